@@ -26,6 +26,7 @@ pub mod pose;
 pub mod sampling;
 pub mod so3;
 pub mod symmetry;
+pub mod vectors;
 
 pub use distance::PoseMetric;
 pub use error::GeometryError;

@@ -1,0 +1,155 @@
+//! Sampler → selector (Hypotheses) and selector → consumers (Estimate).
+
+use iceoryx2_bb_derive_macros::ZeroCopySend;
+use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
+
+use crate::message::{MessageHeader, POSE_LEN, bounded, limits, sections};
+use crate::{ContractError, Header};
+
+/// User header of Hypotheses (88 bytes, alignment 8).
+///
+/// | offset | size | field        | type | meaning |
+/// |-------:|-----:|--------------|------|---------|
+/// | 0      | 80   | header       | [`Header`] | `flags` has TRACKING in tracking mode |
+/// | 80     | 4    | sample_count | u32  | N |
+/// | 84     | 4    | step_count   | u32  | K Euler steps that produced them |
+///
+/// Payload (`f32`): N object-to-camera poses × 12 (`R` row-major, `t` in
+/// metres), camera frame.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("poseflow/Hypotheses/v1")]
+pub struct HypothesesHeader {
+    pub header: Header,
+    pub sample_count: u32,
+    pub step_count: u32,
+}
+
+impl MessageHeader for HypothesesHeader {
+    const NAME: &'static str = "Hypotheses";
+
+    fn header(&self) -> &Header {
+        &self.header
+    }
+
+    fn header_mut(&mut self) -> &mut Header {
+        &mut self.header
+    }
+
+    fn payload_len(&self) -> Result<usize, ContractError> {
+        let n = bounded(Self::NAME, "sample_count", self.sample_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
+        Ok(n * POSE_LEN)
+    }
+}
+
+/// How the selector chose [`EstimateHeader::best`]; stored as `u32`.
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SelectionMethod {
+    /// No selection: `best` is the Karcher mean of all hypotheses.
+    None = 0,
+    /// DBSCAN with the paper's distance, Karcher mean of the largest cluster.
+    ModelFree = 1,
+    /// One-sided Chamfer distance to the object model.
+    Chamfer = 2,
+    /// Signed distance to the object surface.
+    Sdf = 3,
+}
+
+impl SelectionMethod {
+    pub fn from_code(code: u32) -> Option<Self> {
+        [Self::None, Self::ModelFree, Self::Chamfer, Self::Sdf]
+            .into_iter()
+            .find(|m| *m as u32 == code)
+    }
+}
+
+/// `f32` values per mode or kept hypothesis: pose (12) then weight (1).
+pub const WEIGHTED_POSE_LEN: usize = POSE_LEN + 1;
+
+/// User header of an Estimate (336 bytes, alignment 8).
+///
+/// | offset | size | field            | type      | meaning |
+/// |-------:|-----:|------------------|-----------|---------|
+/// | 0      | 80   | header           | [`Header`] | |
+/// | 80     | 48   | best             | [f32; 12] | selected pose, camera frame |
+/// | 128    | 48   | mean             | [f32; 12] | Karcher mean of the kept hypotheses |
+/// | 176    | 144  | covariance       | [f32; 36] | 6×6 row-major tangent covariance at `mean`, order `[t; ω]` (m², rad²) |
+/// | 320    | 4    | rotation_trace   | f32       | trace of the rotational 3×3 block (rad²) |
+/// | 324    | 4    | selection        | u32       | [`SelectionMethod`] |
+/// | 328    | 4    | mode_count       | u32       | M clusters found |
+/// | 332    | 4    | hypothesis_count | u32       | K hypotheses kept |
+///
+/// Payload (`f32`): M modes × 13 (pose, weight = share of samples) ‖ K kept
+/// hypotheses × 13 (pose, normalised weight), each pose `R` row-major then `t`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("poseflow/Estimate/v1")]
+pub struct EstimateHeader {
+    pub header: Header,
+    pub best: [f32; 12],
+    pub mean: [f32; 12],
+    pub covariance: [f32; 36],
+    pub rotation_trace: f32,
+    pub selection: u32,
+    pub mode_count: u32,
+    pub hypothesis_count: u32,
+}
+
+impl Default for EstimateHeader {
+    fn default() -> Self {
+        Self {
+            header: Header::default(),
+            best: [0.0; 12],
+            mean: [0.0; 12],
+            covariance: [0.0; 36],
+            rotation_trace: 0.0,
+            selection: SelectionMethod::None as u32,
+            mode_count: 0,
+            hypothesis_count: 0,
+        }
+    }
+}
+
+/// The sections of an Estimate payload.
+#[derive(Debug, Clone, Copy)]
+pub struct EstimateView<'a> {
+    pub modes: &'a [f32],
+    pub hypotheses: &'a [f32],
+}
+
+impl EstimateHeader {
+    fn section_lengths(&self) -> Result<[usize; 2], ContractError> {
+        SelectionMethod::from_code(self.selection).ok_or(ContractError::FieldOutOfRange {
+            message: Self::NAME,
+            field: "selection",
+            value: u64::from(self.selection),
+            expected: "0 (none), 1 (model-free), 2 (chamfer) or 3 (sdf)",
+        })?;
+        let m = bounded(Self::NAME, "mode_count", self.mode_count, 0, limits::MAX_MODES, "0..=64")?;
+        let k = bounded(Self::NAME, "hypothesis_count", self.hypothesis_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
+        Ok([m * WEIGHTED_POSE_LEN, k * WEIGHTED_POSE_LEN])
+    }
+
+    pub fn view<'a>(&self, payload: &'a [f32]) -> Result<EstimateView<'a>, ContractError> {
+        self.check_payload(payload)?;
+        let [modes, hypotheses] = sections(payload, self.section_lengths()?);
+        Ok(EstimateView { modes, hypotheses })
+    }
+}
+
+impl MessageHeader for EstimateHeader {
+    const NAME: &'static str = "Estimate";
+
+    fn header(&self) -> &Header {
+        &self.header
+    }
+
+    fn header_mut(&mut self) -> &mut Header {
+        &mut self.header
+    }
+
+    fn payload_len(&self) -> Result<usize, ContractError> {
+        Ok(self.section_lengths()?.iter().sum())
+    }
+}

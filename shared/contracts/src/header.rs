@@ -1,0 +1,164 @@
+//! The header every message starts with: frame, object, flags and the
+//! per-stage timestamps that make latency measurable on real traffic.
+
+use iceoryx2_bb_derive_macros::ZeroCopySend;
+use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
+
+/// Number of timestamp slots in [`StageStamps`].
+pub const STAGE_SLOTS: usize = 8;
+
+/// The slot each stage writes in [`StageStamps`]. The numbering is part of
+/// the wire contract; new stages take the reserved slot or a new layout
+/// version.
+#[repr(u8)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Stage {
+    /// The frame was captured or read from disk.
+    Source = 0,
+    Ingest = 1,
+    Encode = 2,
+    Sampler = 3,
+    Selector = 4,
+    Grasp = 5,
+    NextView = 6,
+    /// The final consumer (robot, recorder, benchmark).
+    Sink = 7,
+}
+
+impl Stage {
+    pub const ALL: [Stage; STAGE_SLOTS] = [
+        Stage::Source,
+        Stage::Ingest,
+        Stage::Encode,
+        Stage::Sampler,
+        Stage::Selector,
+        Stage::Grasp,
+        Stage::NextView,
+        Stage::Sink,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Source => "source",
+            Stage::Ingest => "ingest",
+            Stage::Encode => "encode",
+            Stage::Sampler => "sampler",
+            Stage::Selector => "selector",
+            Stage::Grasp => "grasp",
+            Stage::NextView => "next_view",
+            Stage::Sink => "sink",
+        }
+    }
+}
+
+/// `CLOCK_MONOTONIC` nanoseconds at which each stage published its output
+/// for this frame; 0 means the stage has not seen the frame. The clock is
+/// shared by all processes on one machine, so differences between slots
+/// written by different processes are meaningful.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[type_name("poseflow/StageStamps/v1")]
+pub struct StageStamps {
+    pub ns: [u64; STAGE_SLOTS],
+}
+
+impl StageStamps {
+    /// Writes the current time into `stage`'s slot.
+    pub fn stamp(&mut self, stage: Stage) {
+        self.ns[stage as usize] = monotonic_ns();
+    }
+
+    pub fn get(&self, stage: Stage) -> Option<u64> {
+        Some(self.ns[stage as usize]).filter(|&ns| ns != 0)
+    }
+
+    /// Nanoseconds from `from` to `to`, when both stages stamped the frame.
+    pub fn elapsed_ns(&self, from: Stage, to: Stage) -> Option<u64> {
+        Some(self.get(to)?.saturating_sub(self.get(from)?))
+    }
+}
+
+/// Bits of [`Header::flags`].
+pub mod flags {
+    /// The sampler started from the previous frame's estimate (tracking).
+    pub const TRACKING: u32 = 1 << 0;
+    /// A stage upstream restarted since the previous frame; caches keyed by
+    /// earlier frames must not be trusted.
+    pub const UPSTREAM_RESTARTED: u32 = 1 << 1;
+    /// Fewer valid depth points than requested were observed; points were
+    /// resampled with replacement to fill the fixed count.
+    pub const POINTS_RESAMPLED: u32 = 1 << 2;
+}
+
+/// The first 80 bytes of every message header.
+///
+/// | offset | size | field     | type      |
+/// |-------:|-----:|-----------|-----------|
+/// | 0      | 8    | frame_id  | u64       |
+/// | 8      | 4    | object_id | u32       |
+/// | 12     | 4    | flags     | u32 ([`flags`]) |
+/// | 16     | 64   | stamps    | [u64; 8] ([`StageStamps`], slots by [`Stage`]) |
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[type_name("poseflow/Header/v1")]
+pub struct Header {
+    /// Monotonic per source; gaps mean frames were dropped upstream.
+    pub frame_id: u64,
+    /// BOP object id (e.g. 1 = LM-O ape).
+    pub object_id: u32,
+    pub flags: u32,
+    pub stamps: StageStamps,
+}
+
+impl Header {
+    pub fn new(frame_id: u64, object_id: u32) -> Self {
+        Self {
+            frame_id,
+            object_id,
+            flags: 0,
+            stamps: StageStamps::default(),
+        }
+    }
+
+    pub fn has_flag(&self, flag: u32) -> bool {
+        self.flags & flag != 0
+    }
+}
+
+/// `CLOCK_MONOTONIC` in nanoseconds.
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC is always
+    // available on Linux, so the call cannot fail.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stamps_measure_elapsed_time() {
+        let mut stamps = StageStamps::default();
+        assert_eq!(stamps.elapsed_ns(Stage::Source, Stage::Ingest), None);
+        stamps.stamp(Stage::Source);
+        std::thread::sleep(std::time::Duration::from_millis(2));
+        stamps.stamp(Stage::Ingest);
+        let elapsed = stamps.elapsed_ns(Stage::Source, Stage::Ingest).unwrap();
+        assert!(elapsed >= 2_000_000, "{elapsed}");
+        assert_eq!(stamps.get(Stage::Grasp), None);
+    }
+
+    #[test]
+    fn stage_slots_are_distinct_and_named() {
+        let names: std::collections::BTreeSet<_> = Stage::ALL.iter().map(|s| s.name()).collect();
+        assert_eq!(names.len(), STAGE_SLOTS);
+        for (i, s) in Stage::ALL.iter().enumerate() {
+            assert_eq!(*s as usize, i);
+        }
+    }
+}
