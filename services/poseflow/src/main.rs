@@ -1,1 +1,17 @@
-fn main() {}
+//! `poseflow`: the command line of the PoseFlow runtime.
+
+mod cli;
+mod logging;
+
+use std::process::ExitCode;
+
+use clap::Parser;
+
+fn main() -> ExitCode {
+    let cli = cli::Cli::parse();
+    if let Err(err) = logging::init(cli.log_format) {
+        eprintln!("poseflow: cannot set up logging: {err:#}");
+        return ExitCode::FAILURE;
+    }
+    cli::run(cli.command)
+}

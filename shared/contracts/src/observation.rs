@@ -72,8 +72,22 @@ pub struct ObservationView<'a> {
 
 impl ObservationHeader {
     fn section_lengths(&self) -> Result<[usize; 3], ContractError> {
-        let s = bounded(Self::NAME, "image_size", self.image_size, 1, limits::MAX_IMAGE_SIZE, "1..=1024 pixels")?;
-        let p = bounded(Self::NAME, "patch_grid", self.patch_grid, 1, self.image_size, "1..=image_size and a divisor of image_size")?;
+        let s = bounded(
+            Self::NAME,
+            "image_size",
+            self.image_size,
+            1,
+            limits::MAX_IMAGE_SIZE,
+            "1..=1024 pixels",
+        )?;
+        let p = bounded(
+            Self::NAME,
+            "patch_grid",
+            self.patch_grid,
+            1,
+            self.image_size,
+            "1..=image_size and a divisor of image_size",
+        )?;
         if s % p != 0 {
             return Err(ContractError::FieldOutOfRange {
                 message: Self::NAME,
@@ -82,8 +96,22 @@ impl ObservationHeader {
                 expected: "a divisor of image_size",
             });
         }
-        let n = bounded(Self::NAME, "point_count", self.point_count, 1, limits::MAX_POINTS, "1..=65536")?;
-        bounded(Self::NAME, "valid_point_count", self.valid_point_count, 0, self.point_count, "0..=point_count")?;
+        let n = bounded(
+            Self::NAME,
+            "point_count",
+            self.point_count,
+            1,
+            limits::MAX_POINTS,
+            "1..=65536",
+        )?;
+        bounded(
+            Self::NAME,
+            "valid_point_count",
+            self.valid_point_count,
+            0,
+            self.point_count,
+            "0..=point_count",
+        )?;
         Ok([3 * s * s, p * p, 3 * n])
     }
 
@@ -91,7 +119,11 @@ impl ObservationHeader {
     pub fn view<'a>(&self, payload: &'a [f32]) -> Result<ObservationView<'a>, ContractError> {
         self.check_payload(payload)?;
         let [image, token_mask, points] = sections(payload, self.section_lengths()?);
-        Ok(ObservationView { image, token_mask, points })
+        Ok(ObservationView {
+            image,
+            token_mask,
+            points,
+        })
     }
 }
 

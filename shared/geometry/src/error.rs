@@ -21,7 +21,10 @@ pub enum GeometryError {
     FlowTimeOutOfRange { t: f64 },
 
     #[error("{what}: expected finite values, got {values:?}")]
-    NonFinite { what: &'static str, values: Vec<f64> },
+    NonFinite {
+        what: &'static str,
+        values: Vec<f64>,
+    },
 
     #[error("{what}: expected a rotation matrix (orthonormal, det +1), got {detail}")]
     NotARotation { what: String, detail: String },

@@ -61,7 +61,11 @@ pub fn target_velocity(current: &Pose, target: &Pose, t: f64) -> Result<Velocity
 }
 
 /// One explicit Euler step for a batch: `R ← R exp(dt ω)`, `p ← p + dt v`.
-pub fn euler_step(poses: &mut [Pose], velocities: &[Velocity], dt: f64) -> Result<(), GeometryError> {
+pub fn euler_step(
+    poses: &mut [Pose],
+    velocities: &[Velocity],
+    dt: f64,
+) -> Result<(), GeometryError> {
     if poses.len() != velocities.len() {
         return Err(GeometryError::LengthMismatch {
             what: "velocities for an Euler step (one per pose)",
@@ -106,7 +110,9 @@ mod tests {
                 let v = target_velocity(&poses[0], &target, t).unwrap();
                 euler_step(&mut poses, &[v], 1.0 / steps as f64).unwrap();
             }
-            let err = (poses[0].to_homogeneous() - target.to_homogeneous()).abs().max();
+            let err = (poses[0].to_homogeneous() - target.to_homogeneous())
+                .abs()
+                .max();
             assert!(err < 1e-12, "steps {steps}: {err}");
         }
     }
@@ -114,7 +120,9 @@ mod tests {
     #[test]
     fn velocity_at_t1_is_an_error() {
         let (start, target) = sample_pair();
-        let err = target_velocity(&start, &target, 1.0).unwrap_err().to_string();
+        let err = target_velocity(&start, &target, 1.0)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("t = 1"), "{err}");
         assert!(target_velocity(&start, &target, f64::NAN).is_err());
     }
@@ -122,14 +130,20 @@ mod tests {
     #[test]
     fn euler_rejects_length_mismatch() {
         let mut poses = [Pose::identity(); 3];
-        let v = Velocity { linear: Vector3::zeros(), angular: Vector3::zeros() };
+        let v = Velocity {
+            linear: Vector3::zeros(),
+            angular: Vector3::zeros(),
+        };
         assert!(euler_step(&mut poses, &[v; 2], 0.1).is_err());
     }
 
     #[test]
     fn interpolation_midpoint_about_one_axis() {
         let start = Pose::identity();
-        let target = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, 1.0)), Vector3::new(2.0, 0.0, 0.0));
+        let target = Pose::new(
+            so3::exp(&Vector3::new(0.0, 0.0, 1.0)),
+            Vector3::new(2.0, 0.0, 0.0),
+        );
         let mid = interpolate(&start, &target, 0.5);
         assert!((so3::log(&mid.rotation) - Vector3::new(0.0, 0.0, 0.5)).norm() < 1e-15);
         assert_eq!(mid.translation, Vector3::new(1.0, 0.0, 0.0));

@@ -56,7 +56,8 @@ fn normalised_weights(count: usize, weights: Option<&[f64]>) -> Result<Vec<f64>,
         });
     }
     let sum: f64 = weights.iter().sum();
-    if weights.iter().any(|w| !w.is_finite() || *w < 0.0) || !(sum > 0.0) || !sum.is_finite() {
+    let all_valid = weights.iter().all(|w| w.is_finite() && *w >= 0.0);
+    if !all_valid || !sum.is_finite() || sum <= 0.0 {
         return Err(GeometryError::InvalidWeights {
             detail: format!("{weights:?}"),
         });
@@ -80,7 +81,11 @@ fn chordal_start(rotations: &[Rotation3<f64>], weights: &[f64]) -> Rotation3<f64
     let reference = quaternions[heaviest].coords;
     let mut sum = Quaternion::identity().coords * 0.0;
     for (q, w) in quaternions.iter().zip(weights) {
-        let sign = if q.coords.dot(&reference) < 0.0 { -1.0 } else { 1.0 };
+        let sign = if q.coords.dot(&reference) < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
         sum += q.coords * (sign * w);
     }
     if sum.norm() < 1e-9 {
@@ -211,7 +216,8 @@ mod tests {
     fn weights_pull_the_mean() {
         let a = so3::exp(&Vector3::new(0.0, 0.0, 0.0));
         let b = so3::exp(&Vector3::new(0.0, 0.0, 1.0));
-        let m = karcher_mean_rotations(&[a, b], Some(&[3.0, 1.0]), &KarcherOptions::default()).unwrap();
+        let m =
+            karcher_mean_rotations(&[a, b], Some(&[3.0, 1.0]), &KarcherOptions::default()).unwrap();
         assert!((so3::log(&m.mean) - Vector3::new(0.0, 0.0, 0.25)).norm() < 1e-12);
     }
 
@@ -233,8 +239,14 @@ mod tests {
         // the covariance is diag(0, s², 0, σ², 0, 0) with zero cross terms.
         let (sigma, s) = (0.1, 0.02);
         let poses = [
-            Pose::new(so3::exp(&Vector3::new(sigma, 0.0, 0.0)), Vector3::new(0.0, s, 0.0)),
-            Pose::new(so3::exp(&Vector3::new(-sigma, 0.0, 0.0)), Vector3::new(0.0, -s, 0.0)),
+            Pose::new(
+                so3::exp(&Vector3::new(sigma, 0.0, 0.0)),
+                Vector3::new(0.0, s, 0.0),
+            ),
+            Pose::new(
+                so3::exp(&Vector3::new(-sigma, 0.0, 0.0)),
+                Vector3::new(0.0, -s, 0.0),
+            ),
         ];
         let stats = PoseStatistics::compute(&poses, None, &KarcherOptions::default()).unwrap();
         let mut expected = Matrix6::zeros();
@@ -242,7 +254,11 @@ mod tests {
         expected[(3, 3)] = sigma * sigma;
         expected[(1, 3)] = s * sigma;
         expected[(3, 1)] = s * sigma;
-        assert!((stats.covariance - expected).abs().max() < 1e-14, "{}", stats.covariance);
+        assert!(
+            (stats.covariance - expected).abs().max() < 1e-14,
+            "{}",
+            stats.covariance
+        );
         assert!((stats.rotation_covariance().trace() - sigma * sigma).abs() < 1e-14);
         let eig = stats.rotation_eigen().unwrap();
         assert!((eig.values[2] - sigma * sigma).abs() < 1e-14);

@@ -41,7 +41,8 @@ impl Pose {
     /// The homogeneous 4×4 matrix `[R t; 0 1]`.
     pub fn to_homogeneous(&self) -> Matrix4<f64> {
         let mut m = Matrix4::identity();
-        m.fixed_view_mut::<3, 3>(0, 0).copy_from(self.rotation.matrix());
+        m.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(self.rotation.matrix());
         m.fixed_view_mut::<3, 1>(0, 3).copy_from(&self.translation);
         m
     }
@@ -116,7 +117,9 @@ pub fn project_to_rotation(
 ) -> Result<Rotation3<f64>, GeometryError> {
     let orthogonality = (m.transpose() * m - Matrix3::identity()).abs().max();
     let det = m.determinant();
-    if !(orthogonality <= tolerance) || det <= 0.0 {
+    // NaN entries make `orthogonality` NaN, which must fail too.
+    let is_rotation = orthogonality.is_finite() && orthogonality <= tolerance && det > 0.0;
+    if !is_rotation {
         return Err(GeometryError::NotARotation {
             what: what.to_string(),
             detail: format!("max |RᵀR − I| = {orthogonality:.3e}, det = {det:.6}"),

@@ -84,7 +84,10 @@ mod tests {
             mean_matrix += r.matrix() / n as f64;
         }
         let expected = std::f64::consts::FRAC_PI_2 + 2.0 / std::f64::consts::PI;
-        assert!((mean_angle - expected).abs() < 0.02, "mean angle {mean_angle}");
+        assert!(
+            (mean_angle - expected).abs() < 0.02,
+            "mean angle {mean_angle}"
+        );
         // E[R] = 0 under Haar measure; each entry has σ = 1/√(3n) ≈ 0.004.
         assert!(mean_matrix.abs().max() < 0.03, "{mean_matrix}");
     }
@@ -102,7 +105,10 @@ mod tests {
         let mut rng = seeded_rng(11);
         let n = 20_000;
         let gaussian = TranslationNoise::Gaussian { std_dev: 0.2 };
-        let var: f64 = (0..n).map(|_| gaussian.sample(&mut rng).x.powi(2)).sum::<f64>() / n as f64;
+        let var: f64 = (0..n)
+            .map(|_| gaussian.sample(&mut rng).x.powi(2))
+            .sum::<f64>()
+            / n as f64;
         assert!((var.sqrt() - 0.2).abs() < 0.005, "std {}", var.sqrt());
 
         let cube = TranslationNoise::UniformBox { half_extent: 0.5 };

@@ -185,9 +185,9 @@ mod tests {
     fn log_at_pi_returns_a_valid_axis() {
         // Diagonal matrices with two −1 entries are rotations by exactly π.
         for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
-            let r = Rotation3::from_matrix_unchecked(
-                Matrix3::from_diagonal(&(axis * 2.0 - Vector3::repeat(1.0))),
-            );
+            let r = Rotation3::from_matrix_unchecked(Matrix3::from_diagonal(
+                &(axis * 2.0 - Vector3::repeat(1.0)),
+            ));
             let omega = log(&r);
             assert!(omega.iter().all(|x| x.is_finite()));
             assert!((omega.norm() - PI).abs() < 1e-12);
@@ -225,6 +225,9 @@ mod tests {
     fn hat_vee_round_trip() {
         let w = Vector3::new(0.1, -2.0, 3.5);
         assert_eq!(vee(&hat(&w)), w);
-        assert_eq!(hat(&w) * Vector3::new(1.0, 2.0, 3.0), w.cross(&Vector3::new(1.0, 2.0, 3.0)));
+        assert_eq!(
+            hat(&w) * Vector3::new(1.0, 2.0, 3.0),
+            w.cross(&Vector3::new(1.0, 2.0, 3.0))
+        );
     }
 }

@@ -142,7 +142,10 @@ mod tests {
         let set = SymmetrySet::from_model_info(&info(vec![], vec![]), BOP_MAX_SYMMETRY_STEP);
         assert_eq!(set.transforms().len(), 1);
         let truth = Pose::identity();
-        let est = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, 0.3)), Vector3::new(0.01, 0.0, 0.0));
+        let est = Pose::new(
+            so3::exp(&Vector3::new(0.0, 0.0, 0.3)),
+            Vector3::new(0.01, 0.0, 0.0),
+        );
         let err = set.pose_error(&est, &truth);
         assert!((err.rotation - 0.3).abs() < 1e-14);
         assert!((err.translation - 0.01).abs() < 1e-15);
@@ -151,9 +154,15 @@ mod tests {
     #[test]
     fn flipped_box_has_zero_error_under_its_discrete_symmetry() {
         // 180° about z through the point (0.01, 0, 0): S = (R_z(π), t = 2·(0.01, 0, 0)).
-        let flip = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, std::f64::consts::PI)), Vector3::new(0.02, 0.0, 0.0));
+        let flip = Pose::new(
+            so3::exp(&Vector3::new(0.0, 0.0, std::f64::consts::PI)),
+            Vector3::new(0.02, 0.0, 0.0),
+        );
         let set = SymmetrySet::from_model_info(&info(vec![flip], vec![]), BOP_MAX_SYMMETRY_STEP);
-        let truth = Pose::new(so3::exp(&Vector3::new(0.4, -0.2, 1.0)), Vector3::new(0.1, 0.2, 0.8));
+        let truth = Pose::new(
+            so3::exp(&Vector3::new(0.4, -0.2, 1.0)),
+            Vector3::new(0.1, 0.2, 0.8),
+        );
         let twin = truth * flip;
         let err = set.pose_error(&twin, &truth);
         assert!(err.rotation < 1e-7 && err.translation < 1e-12, "{err:?}");
@@ -165,14 +174,21 @@ mod tests {
 
     #[test]
     fn continuous_axis_uses_bop_step_count_and_keeps_identity() {
-        let cylinder = ContinuousSymmetry { axis: Unit::new_normalize(Vector3::z()), offset: Vector3::zeros() };
-        let set = SymmetrySet::from_model_info(&info(vec![], vec![cylinder]), BOP_MAX_SYMMETRY_STEP);
+        let cylinder = ContinuousSymmetry {
+            axis: Unit::new_normalize(Vector3::z()),
+            offset: Vector3::zeros(),
+        };
+        let set =
+            SymmetrySet::from_model_info(&info(vec![], vec![cylinder]), BOP_MAX_SYMMETRY_STEP);
         assert_eq!(set.transforms().len(), 315);
         assert_eq!(set.transforms()[0], Pose::identity());
         // Any spin about z is within half a step (π/315 rad) of a member.
         let truth = Pose::identity();
         let spun = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, 1.2345)), Vector3::zeros());
-        assert!(set.rotation_error(&spun.rotation, &truth.rotation) <= std::f64::consts::PI / 315.0 + 1e-12);
+        assert!(
+            set.rotation_error(&spun.rotation, &truth.rotation)
+                <= std::f64::consts::PI / 315.0 + 1e-12
+        );
         // A tilt off the axis is not forgiven.
         let tilted = so3::exp(&Vector3::new(0.2, 0.0, 0.0));
         assert!((set.rotation_error(&tilted, &truth.rotation) - 0.2).abs() < 1e-12);
@@ -180,8 +196,14 @@ mod tests {
 
     #[test]
     fn discrete_and_continuous_combine() {
-        let flip = Pose::new(so3::exp(&Vector3::new(std::f64::consts::PI, 0.0, 0.0)), Vector3::zeros());
-        let cylinder = ContinuousSymmetry { axis: Unit::new_normalize(Vector3::z()), offset: Vector3::zeros() };
+        let flip = Pose::new(
+            so3::exp(&Vector3::new(std::f64::consts::PI, 0.0, 0.0)),
+            Vector3::zeros(),
+        );
+        let cylinder = ContinuousSymmetry {
+            axis: Unit::new_normalize(Vector3::z()),
+            offset: Vector3::zeros(),
+        };
         let set = SymmetrySet::from_model_info(&info(vec![flip], vec![cylinder]), 0.1);
         assert_eq!(set.transforms().len(), 2 * 32);
     }

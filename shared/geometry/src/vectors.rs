@@ -127,7 +127,10 @@ pub fn generate() -> TestVectors {
     let mut flow_cases = Vec::new();
     // A start that is π − 1e-6 from the target about a fixed axis.
     let start = Pose::new(so3::exp(&(axis * 0.3)), Vector3::new(0.1, 0.2, 0.3));
-    let far = Pose::new(start.rotation * so3::exp(&(axis * (PI - 1e-6))), Vector3::zeros());
+    let far = Pose::new(
+        start.rotation * so3::exp(&(axis * (PI - 1e-6))),
+        Vector3::zeros(),
+    );
     flow_cases.push(flow_case(start, far, 0.0, 0.2));
     flow_cases.push(flow_case(start, start, 0.5, 0.2));
     for k in 0..24 {

@@ -20,7 +20,9 @@ fn config() -> ProptestConfig {
 
 fn unit_axis() -> impl Strategy<Value = Vector3<f64>> {
     (-1.0..1.0f64, -1.0..1.0f64, -1.0..1.0f64)
-        .prop_filter("axis must not vanish", |(x, y, z)| x * x + y * y + z * z > 1e-4)
+        .prop_filter("axis must not vanish", |(x, y, z)| {
+            x * x + y * y + z * z > 1e-4
+        })
         .prop_map(|(x, y, z)| Vector3::new(x, y, z).normalize())
 }
 

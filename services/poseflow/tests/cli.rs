@@ -1,0 +1,61 @@
+//! The `poseflow` binary as a user meets it.
+
+use std::process::{Command, Output};
+
+fn poseflow(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(args)
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("poseflow binary runs")
+}
+
+const SUBCOMMANDS: [&str; 5] = ["demo", "run", "render", "eval", "bench"];
+
+#[test]
+fn help_lists_every_subcommand() {
+    let out = poseflow(&["--help"]);
+    assert!(out.status.success());
+    let help = String::from_utf8(out.stdout).unwrap();
+    for sub in SUBCOMMANDS {
+        assert!(
+            help.lines().any(|l| l.trim_start().starts_with(sub)),
+            "`{sub}` missing from:\n{help}"
+        );
+    }
+    assert!(help.contains("--log-format"));
+}
+
+#[test]
+fn unavailable_subcommands_say_so_and_exit_2() {
+    for sub in SUBCOMMANDS {
+        let out = poseflow(&[sub]);
+        assert_eq!(out.status.code(), Some(2), "{sub}");
+        let stderr = String::from_utf8(out.stderr).unwrap();
+        assert!(
+            stderr.contains(&format!("`poseflow {sub}` is not available yet")),
+            "{stderr}"
+        );
+    }
+}
+
+#[test]
+fn json_logs_are_one_object_per_line() {
+    let out = poseflow(&["--log-format", "json", "demo"]);
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    let line = stderr.lines().next().expect("one log line");
+    let value: serde_json::Value = serde_json::from_str(line).expect("log line is JSON");
+    assert_eq!(value["level"], "ERROR");
+    assert_eq!(value["fields"]["subcommand"], "demo");
+}
+
+#[test]
+fn unknown_log_format_is_rejected_with_the_choices() {
+    let out = poseflow(&["--log-format", "xml", "demo"]);
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        stderr.contains("pretty") && stderr.contains("json"),
+        "{stderr}"
+    );
+}
