@@ -22,7 +22,7 @@ pub mod limits {
 
 /// A message's user header (the fixed-size part); the tensors travel beside
 /// it as a flat `f32` slice.
-pub trait MessageHeader: ZeroCopySend + Copy + std::fmt::Debug {
+pub trait MessageHeader: ZeroCopySend + Copy + Default + std::fmt::Debug {
     /// Name used in errors and logs.
     const NAME: &'static str;
 

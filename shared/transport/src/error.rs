@@ -1,0 +1,30 @@
+/// Failures of the iceoryx2 transport. Each names the service or port and
+/// the operation that failed.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    #[error("invalid name {name:?}: {detail}")]
+    Name { name: String, detail: String },
+
+    #[error("{operation} `{target}` failed: {detail}")]
+    Iceoryx {
+        operation: &'static str,
+        target: String,
+        detail: String,
+    },
+
+    #[error("payload of {len} f32 values exceeds the edge's maximum of {max}")]
+    PayloadTooLarge { len: usize, max: usize },
+
+    #[error(transparent)]
+    Contract(#[from] poseflow_contracts::ContractError),
+}
+
+impl TransportError {
+    pub(crate) fn iceoryx(operation: &'static str, target: &str, err: impl std::fmt::Debug) -> Self {
+        Self::Iceoryx {
+            operation,
+            target: target.to_string(),
+            detail: format!("{err:?}"),
+        }
+    }
+}
