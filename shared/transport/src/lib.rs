@@ -14,8 +14,8 @@ mod pubsub;
 
 pub use cleanup::remove_dead_nodes;
 pub use error::TransportError;
-pub use naming::{edge_service_name, validate_name};
-pub use pubsub::{EdgeOptions, EdgeSubscriber, Overflow, Publisher, Received, events};
+pub use naming::{edge_service_name, heartbeat_service_name, validate_name};
+pub use pubsub::{EdgeOptions, EdgeSubscriber, EndOfStream, Overflow, Publisher, Received, events};
 
 /// The iceoryx2 service variant used across the project: inter-process.
 pub type Ipc = iceoryx2::service::ipc::Service;

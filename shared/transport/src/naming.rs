@@ -24,6 +24,14 @@ pub fn edge_service_name(instance: &str, edge: &str) -> Result<String, Transport
     Ok(format!("poseflow/{instance}/{edge}"))
 }
 
+/// The service on which stage `stage` of graph `instance` publishes its
+/// heartbeat.
+pub fn heartbeat_service_name(instance: &str, stage: &str) -> Result<String, TransportError> {
+    validate_name("graph instance", instance)?;
+    validate_name("stage", stage)?;
+    Ok(format!("poseflow/{instance}/_heartbeat/{stage}"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

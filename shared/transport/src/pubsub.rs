@@ -100,12 +100,28 @@ fn open_event(
         .map_err(|e| TransportError::iceoryx("open event service", name, e))
 }
 
+/// The event service on which receivers acknowledge end-of-stream.
+fn ack_name(edge: &str) -> String {
+    format!("{edge}/ack")
+}
+
+/// How an end-of-stream handshake ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EndOfStream {
+    /// Receivers connected when the stream ended.
+    pub receivers: usize,
+    /// Receivers that acknowledged having drained the edge in time.
+    pub acknowledged: usize,
+}
+
 /// The sending end of an edge.
 #[derive(Debug)]
 pub struct Publisher<H: MessageHeader> {
     name: String,
+    service: PortFactory<Ipc, [f32], H>,
     publisher: IoxPublisher<Ipc, [f32], H>,
     notifier: Notifier<Ipc>,
+    acks: Listener<Ipc>,
 }
 
 impl<H: MessageHeader> Publisher<H> {
@@ -126,7 +142,11 @@ impl<H: MessageHeader> Publisher<H> {
             .notifier_builder()
             .create()
             .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
-        Ok(Self { name: name.to_string(), publisher, notifier })
+        let acks = open_event(node, &ack_name(name))?
+            .listener_builder()
+            .create()
+            .map_err(|e| TransportError::iceoryx("create listener on", name, e))?;
+        Ok(Self { name: name.to_string(), service, publisher, notifier, acks })
     }
 
     pub fn name(&self) -> &str {
@@ -164,9 +184,29 @@ impl<H: MessageHeader> Publisher<H> {
         Ok(receivers)
     }
 
-    /// Tells receivers that no more samples follow.
-    pub fn end_of_stream(&self) -> Result<(), TransportError> {
-        self.notify(events::END_OF_STREAM)
+    /// Tells receivers that no more samples follow and waits (up to
+    /// `timeout`) until each has drained the edge and acknowledged.
+    ///
+    /// The wait matters: iceoryx2 frees a publisher's samples when it is
+    /// dropped, so a stage that exits right after its last send would lose
+    /// whatever its receivers had not yet taken.
+    pub fn end_of_stream(&self, timeout: std::time::Duration) -> Result<EndOfStream, TransportError> {
+        use iceoryx2::service::port_factory::PortFactory as _;
+        let receivers = self.service.dynamic_config().number_of_subscribers();
+        self.notify(events::END_OF_STREAM)?;
+        let deadline = std::time::Instant::now() + timeout;
+        let mut acknowledged = 0u64;
+        while acknowledged < receivers as u64 {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                tracing::warn!(edge = %self.name, receivers, acknowledged, "end-of-stream not acknowledged by every receiver in time");
+                break;
+            }
+            self.acks
+                .timed_wait(|activation| acknowledged += activation.count, left)
+                .map_err(|e| TransportError::iceoryx("wait for acknowledgements on", &self.name, e))?;
+        }
+        Ok(EndOfStream { receivers, acknowledged: acknowledged as usize })
     }
 
     fn notify(&self, id: iceoryx2::port::event_id::EventId) -> Result<(), TransportError> {
@@ -201,6 +241,7 @@ pub struct EdgeSubscriber<H: MessageHeader> {
     name: String,
     subscriber: IoxSubscriber<Ipc, [f32], H>,
     listener: Listener<Ipc>,
+    ack: Notifier<Ipc>,
 }
 
 impl<H: MessageHeader> FileDescriptorBased for EdgeSubscriber<H> {
@@ -222,7 +263,11 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
             .listener_builder()
             .create()
             .map_err(|e| TransportError::iceoryx("create listener on", name, e))?;
-        Ok(Self { name: name.to_string(), subscriber, listener })
+        let ack = open_event(node, &ack_name(name))?
+            .notifier_builder()
+            .create()
+            .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
+        Ok(Self { name: name.to_string(), subscriber, listener, ack })
     }
 
     pub fn name(&self) -> &str {
@@ -237,6 +282,15 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
             .try_wait(|activation| ended |= activation.id == events::END_OF_STREAM)
             .map_err(|e| TransportError::iceoryx("wait on listener of", &self.name, e))?;
         Ok(ended)
+    }
+
+    /// Tells the publisher this receiver has drained the edge after its
+    /// end-of-stream.
+    pub fn acknowledge_end(&self) -> Result<(), TransportError> {
+        self.ack
+            .notify()
+            .map(|_| ())
+            .map_err(|e| TransportError::iceoryx("acknowledge end-of-stream on", &self.name, e))
     }
 
     /// The next queued message, if any. The header is not yet validated:

@@ -14,7 +14,6 @@ fn samples_and_end_of_stream_cross_shared_memory() {
     let subscriber = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
     let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
 
-    let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
     let sender = std::thread::spawn({
         let name = name.clone();
         move || {
@@ -26,8 +25,9 @@ fn samples_and_end_of_stream_cross_shared_memory() {
                     .publish(header, 2 * POSE_LEN, |p| p.iter_mut().enumerate().for_each(|(i, v)| *v = (frame * 100 + i as u64) as f32))
                     .unwrap();
             }
-            publisher.end_of_stream().unwrap();
-            done_rx.recv().unwrap();
+            // Returns once the subscriber has drained and acknowledged, so
+            // dropping the publisher afterwards loses nothing.
+            publisher.end_of_stream(std::time::Duration::from_secs(10)).unwrap()
         }
     });
     drop(publisher);
@@ -52,8 +52,10 @@ fn samples_and_end_of_stream_cross_shared_memory() {
             })
             .unwrap();
     }
-    done_tx.send(()).unwrap();
-    sender.join().unwrap();
+    subscriber.acknowledge_end().unwrap();
+    let end = sender.join().unwrap();
+    assert_eq!(end.receivers, 1);
+    assert_eq!(end.acknowledged, 1);
     assert_eq!(frames, (0..10).collect::<Vec<_>>());
 }
 

@@ -1,0 +1,26 @@
+//! Graph files (`deploy/*.toml`): which stages run, which executable runs
+//! each, how they are connected, and how they are restarted.
+//!
+//! [`load`] parses and validates a file before anything starts; every error
+//! names the file, the key and what was expected. The launcher then hands
+//! each stage process its [`StageWiring`] (service names, queue settings,
+//! parameters) in the environment variable [`WIRING_ENV`].
+
+mod error;
+mod resolve;
+mod spec;
+mod validate;
+mod wiring;
+
+pub use error::GraphError;
+pub use resolve::resolve_executable;
+pub use spec::{EdgePattern, OverflowPolicy, RestartPolicy};
+pub use validate::{Edge, Graph, Restart, Stage, load, parse};
+pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV};
+
+/// Message types an edge may carry, as named in graph files; each is the
+/// `NAME` of a contract header.
+pub const PUBLISH_SUBSCRIBE_MESSAGES: [&str; 6] =
+    ["Observation", "Condition", "Hypotheses", "Estimate", "Grasps", "NextView"];
+/// Request-response edges carry VelocityRequest / VelocityResponse.
+pub const REQUEST_RESPONSE_MESSAGES: [&str; 1] = ["Velocity"];

@@ -1,0 +1,132 @@
+//! The file schema, exactly as written by users. Unknown keys are errors.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct GraphFile {
+    pub graph: GraphSection,
+    #[serde(default)]
+    pub edges: BTreeMap<String, EdgeSpec>,
+    pub stages: BTreeMap<String, StageSpec>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct GraphSection {
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    /// How often each stage publishes its heartbeat.
+    #[serde(default = "default_heartbeat_ms")]
+    pub heartbeat_ms: u64,
+    /// A stage silent for this long is considered hung and is restarted.
+    #[serde(default = "default_heartbeat_timeout_ms")]
+    pub heartbeat_timeout_ms: u64,
+}
+
+fn default_heartbeat_ms() -> u64 {
+    200
+}
+
+fn default_heartbeat_timeout_ms() -> u64 {
+    3000
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EdgePattern {
+    PublishSubscribe,
+    RequestResponse,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum OverflowPolicy {
+    /// A full queue replaces its oldest message (fresh data wins).
+    DropOldest,
+    /// The publisher waits for room (nothing is lost; upstream slows down).
+    Block,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct EdgeSpec {
+    pub message: String,
+    #[serde(default = "default_pattern")]
+    pub pattern: EdgePattern,
+    #[serde(default = "default_queue")]
+    pub queue: usize,
+    #[serde(default = "default_overflow")]
+    pub overflow: OverflowPolicy,
+    /// Payload capacity reserved up front, in f32 values.
+    #[serde(default = "default_max_payload")]
+    pub initial_payload_len: usize,
+}
+
+fn default_pattern() -> EdgePattern {
+    EdgePattern::PublishSubscribe
+}
+fn default_queue() -> usize {
+    4
+}
+fn default_overflow() -> OverflowPolicy {
+    OverflowPolicy::DropOldest
+}
+fn default_max_payload() -> usize {
+    4096
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RestartPolicy {
+    Never,
+    OnFailure,
+    Always,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct StageSpec {
+    pub exe: String,
+    #[serde(default)]
+    pub args: Vec<String>,
+    #[serde(default)]
+    pub inputs: Vec<String>,
+    #[serde(default)]
+    pub outputs: Vec<String>,
+    /// Request-response edges this stage answers.
+    #[serde(default)]
+    pub serves: Vec<String>,
+    /// Request-response edges this stage calls.
+    #[serde(default)]
+    pub calls: Vec<String>,
+    /// A TOML file of parameters, relative to the graph file.
+    pub config: Option<String>,
+    /// Inline parameters; they override the config file's.
+    #[serde(default)]
+    pub params: toml::Table,
+    #[serde(default = "default_restart")]
+    pub restart: RestartPolicy,
+    #[serde(default = "default_backoff_ms")]
+    pub backoff_ms: u64,
+    #[serde(default = "default_max_backoff_ms")]
+    pub max_backoff_ms: u64,
+    #[serde(default = "default_max_restarts")]
+    pub max_restarts: u32,
+}
+
+fn default_restart() -> RestartPolicy {
+    RestartPolicy::OnFailure
+}
+fn default_backoff_ms() -> u64 {
+    100
+}
+fn default_max_backoff_ms() -> u64 {
+    5000
+}
+fn default_max_restarts() -> u32 {
+    10
+}

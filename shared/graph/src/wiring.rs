@@ -1,0 +1,57 @@
+//! What a stage process is told about its place in the graph.
+
+use serde::{Deserialize, Serialize};
+
+use crate::spec::OverflowPolicy;
+
+/// The environment variable holding a stage's wiring as JSON. Plug-in
+/// stages in any language read it to find their services.
+pub const WIRING_ENV: &str = "POSEFLOW_STAGE";
+
+/// One edge as seen by one stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EdgeWiring {
+    /// Edge name in the graph file.
+    pub edge: String,
+    /// iceoryx2 service name (`poseflow/<instance>/<edge>`).
+    pub service: String,
+    /// Contract message name (e.g. `Hypotheses`).
+    pub message: String,
+    pub queue: usize,
+    pub overflow: OverflowPolicy,
+    pub initial_payload_len: usize,
+}
+
+/// Everything a stage process needs to join its graph.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StageWiring {
+    /// Graph instance name: the namespace of all services.
+    pub instance: String,
+    /// Stage name in the graph file.
+    pub stage: String,
+    pub inputs: Vec<EdgeWiring>,
+    pub outputs: Vec<EdgeWiring>,
+    pub serves: Vec<EdgeWiring>,
+    pub calls: Vec<EdgeWiring>,
+    /// iceoryx2 service on which the stage publishes its heartbeat.
+    pub heartbeat_service: String,
+    pub heartbeat_ms: u64,
+    /// The stage's parameters (config file merged with inline params).
+    pub params: serde_json::Value,
+}
+
+impl StageWiring {
+    pub fn to_json(&self) -> String {
+        serde_json::to_string(self).expect("wiring is plain data")
+    }
+
+    /// Reads the wiring the launcher put in [`WIRING_ENV`].
+    pub fn from_env() -> Result<Self, String> {
+        let text = std::env::var(WIRING_ENV).map_err(|_| {
+            format!("{WIRING_ENV} is not set: stages are started by `poseflow run --graph FILE`")
+        })?;
+        serde_json::from_str(&text).map_err(|e| format!("{WIRING_ENV}: invalid stage wiring: {e}"))
+    }
+}
