@@ -39,12 +39,14 @@
 //! | Estimate | [`EstimateHeader`] | modes M·13 ‖ hypotheses K·13 | selector → grasp, nbv, robot |
 //! | Grasps | [`GraspsHeader`] | grasps G·15 | grasp → robot |
 //! | NextView | [`NextViewHeader`] | candidates C·13 | nbv → robot |
+//! | Heartbeat | [`Heartbeat`] | none | every stage → supervisor |
 
 mod condition;
 mod error;
 mod estimate;
 mod grasps;
 mod header;
+mod heartbeat;
 mod message;
 mod next_view;
 mod observation;
@@ -60,6 +62,7 @@ pub use estimate::{
 };
 pub use grasps::{GRASP_LEN, GraspsHeader};
 pub use header::{Header, STAGE_SLOTS, Stage, StageStamps, flags, monotonic_ns};
+pub use heartbeat::{Heartbeat, StageState};
 pub use message::{MessageHeader, POSE_LEN, VELOCITY_LEN, limits};
 pub use next_view::{CANDIDATE_LEN, NextViewHeader};
 pub use observation::{CameraIntrinsics, ObservationHeader, ObservationView};
@@ -97,6 +100,9 @@ mod layout {
         header @ 0, best @ 80, mean @ 128, covariance @ 176, rotation_trace @ 320,
         selection @ 324, mode_count @ 328, hypothesis_count @ 332);
     assert_layout!(GraspsHeader, size 88, align 8, header @ 0, grasp_count @ 80, hypothesis_count @ 84);
+    assert_layout!(Heartbeat, size 128, align 8,
+        header @ 0, pid @ 80, state @ 84, frames_in @ 88, frames_out @ 96, dropped @ 104,
+        errors @ 112, latency_p50_us @ 120, latency_p99_us @ 124);
     assert_layout!(NextViewHeader, size 144, align 8,
         header @ 0, chosen @ 80, expected_rotation_trace @ 128, current_rotation_trace @ 132,
         candidate_count @ 136, reserved @ 140);

@@ -26,6 +26,7 @@ fn type_names_are_stable_and_versioned() {
     assert_eq!(type_name::<EstimateHeader>(), "poseflow/Estimate/v1");
     assert_eq!(type_name::<GraspsHeader>(), "poseflow/Grasps/v1");
     assert_eq!(type_name::<NextViewHeader>(), "poseflow/NextView/v1");
+    assert_eq!(type_name::<Heartbeat>(), "poseflow/Heartbeat/v1");
 }
 
 fn observation(image_size: u32, patch_grid: u32, points: u32) -> ObservationHeader {

@@ -6,7 +6,9 @@ use std::time::Duration;
 
 use crate::spec::{EdgePattern, EdgeSpec, GraphFile, OverflowPolicy, RestartPolicy, StageSpec};
 use crate::wiring::{EdgeWiring, StageWiring};
-use crate::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, resolve_executable};
+use crate::{
+    GraphError, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, resolve_executable,
+};
 
 /// A validated graph.
 #[derive(Debug, Clone)]
@@ -78,7 +80,12 @@ struct Checker<'a> {
 }
 
 impl Checker<'_> {
-    fn invalid(&self, key: impl Into<String>, expected: impl Into<String>, found: impl Into<String>) -> GraphError {
+    fn invalid(
+        &self,
+        key: impl Into<String>,
+        expected: impl Into<String>,
+        found: impl Into<String>,
+    ) -> GraphError {
         GraphError::Invalid {
             file: self.file.to_path_buf(),
             key: key.into(),
@@ -88,14 +95,23 @@ impl Checker<'_> {
     }
 
     fn name(&self, key: &str, kind: &'static str, name: &str) -> Result<(), GraphError> {
-        poseflow_transport::validate_name(kind, name)
-            .map_err(|_| self.invalid(key, "1-64 characters of A-Z, a-z, 0-9, '-' or '_'", format!("{name:?}")))
+        poseflow_transport::validate_name(kind, name).map_err(|_| {
+            self.invalid(
+                key,
+                "1-64 characters of A-Z, a-z, 0-9, '-' or '_'",
+                format!("{name:?}"),
+            )
+        })
     }
 
     fn graph(&self, spec: GraphFile, search_path: &[PathBuf]) -> Result<Graph, GraphError> {
         self.name("graph.name", "graph", &spec.graph.name)?;
         if spec.graph.heartbeat_ms < 10 {
-            return Err(self.invalid("graph.heartbeat_ms", "at least 10 (milliseconds)", spec.graph.heartbeat_ms.to_string()));
+            return Err(self.invalid(
+                "graph.heartbeat_ms",
+                "at least 10 (milliseconds)",
+                spec.graph.heartbeat_ms.to_string(),
+            ));
         }
         if spec.graph.heartbeat_timeout_ms <= spec.graph.heartbeat_ms {
             return Err(self.invalid(
@@ -116,7 +132,12 @@ impl Checker<'_> {
         let stages = spec
             .stages
             .into_iter()
-            .map(|(name, stage)| Ok((name.clone(), self.stage(name, stage, graph_dir, search_path, &edges)?)))
+            .map(|(name, stage)| {
+                Ok((
+                    name.clone(),
+                    self.stage(name, stage, graph_dir, search_path, &edges)?,
+                ))
+            })
             .collect::<Result<BTreeMap<_, _>, GraphError>>()?;
         self.connections(&edges, &stages)?;
         self.acyclic(&stages)?;
@@ -139,13 +160,25 @@ impl Checker<'_> {
             EdgePattern::RequestResponse => &REQUEST_RESPONSE_MESSAGES,
         };
         if !known.contains(&spec.message.as_str()) {
-            return Err(self.invalid(format!("{key}.message"), format!("one of {known:?} for this pattern"), format!("{:?}", spec.message)));
+            return Err(self.invalid(
+                format!("{key}.message"),
+                format!("one of {known:?} for this pattern"),
+                format!("{:?}", spec.message),
+            ));
         }
         if !(1..=1024).contains(&spec.queue) {
-            return Err(self.invalid(format!("{key}.queue"), "1..=1024 messages", spec.queue.to_string()));
+            return Err(self.invalid(
+                format!("{key}.queue"),
+                "1..=1024 messages",
+                spec.queue.to_string(),
+            ));
         }
         if !(1..=(1 << 26)).contains(&spec.initial_payload_len) {
-            return Err(self.invalid(format!("{key}.initial_payload_len"), "1..=67108864 f32 values", spec.initial_payload_len.to_string()));
+            return Err(self.invalid(
+                format!("{key}.initial_payload_len"),
+                "1..=67108864 f32 values",
+                spec.initial_payload_len.to_string(),
+            ));
         }
         Ok(Edge {
             name,
@@ -169,7 +202,11 @@ impl Checker<'_> {
         self.name(&key, "stage", &name)?;
         let exe = resolve_executable(&spec.exe, graph_dir, search_path).map_err(|searched| {
             let places: Vec<String> = searched.iter().map(|p| p.display().to_string()).collect();
-            self.invalid(format!("{key}.exe"), format!("an executable file; looked in: {}", places.join(", ")), format!("{:?}", spec.exe))
+            self.invalid(
+                format!("{key}.exe"),
+                format!("an executable file; looked in: {}", places.join(", ")),
+                format!("{:?}", spec.exe),
+            )
         })?;
         for (field, list, pattern) in [
             ("inputs", &spec.inputs, EdgePattern::PublishSubscribe),
@@ -181,11 +218,27 @@ impl Checker<'_> {
             for edge in list {
                 let field_key = format!("{key}.{field}");
                 match edges.get(edge) {
-                    None => return Err(self.invalid(field_key, "edges declared in an [edges.<name>] table", format!("{edge:?}"))),
-                    Some(e) if e.pattern != pattern => {
-                        return Err(self.invalid(field_key, format!("{pattern:?} edges only"), format!("{edge:?}, a {:?} edge", e.pattern)));
+                    None => {
+                        return Err(self.invalid(
+                            field_key,
+                            "edges declared in an [edges.<name>] table",
+                            format!("{edge:?}"),
+                        ));
                     }
-                    Some(_) if !seen.insert(edge) => return Err(self.invalid(field_key, "each edge once", format!("{edge:?} twice"))),
+                    Some(e) if e.pattern != pattern => {
+                        return Err(self.invalid(
+                            field_key,
+                            format!("{pattern:?} edges only"),
+                            format!("{edge:?}, a {:?} edge", e.pattern),
+                        ));
+                    }
+                    Some(_) if !seen.insert(edge) => {
+                        return Err(self.invalid(
+                            field_key,
+                            "each edge once",
+                            format!("{edge:?} twice"),
+                        ));
+                    }
                     Some(_) => {}
                 }
             }
@@ -195,7 +248,10 @@ impl Checker<'_> {
             return Err(self.invalid(
                 format!("{key}.backoff_ms"),
                 "1 <= backoff_ms <= max_backoff_ms",
-                format!("backoff_ms = {}, max_backoff_ms = {}", spec.backoff_ms, spec.max_backoff_ms),
+                format!(
+                    "backoff_ms = {}, max_backoff_ms = {}",
+                    spec.backoff_ms, spec.max_backoff_ms
+                ),
             ));
         }
         Ok(Stage {
@@ -217,32 +273,73 @@ impl Checker<'_> {
     }
 
     /// The config file's table with the inline `params` laid over it.
-    fn params(&self, key: &str, config: Option<&str>, inline: toml::Table, graph_dir: &Path) -> Result<serde_json::Value, GraphError> {
+    fn params(
+        &self,
+        key: &str,
+        config: Option<&str>,
+        inline: toml::Table,
+        graph_dir: &Path,
+    ) -> Result<serde_json::Value, GraphError> {
         let mut merged = match config {
             None => toml::Table::new(),
             Some(relative) => {
                 let path = graph_dir.join(relative);
-                let text = std::fs::read_to_string(&path)
-                    .map_err(|e| self.invalid(format!("{key}.config"), "a readable TOML file, relative to the graph file", format!("{} ({e})", path.display())))?;
+                let text = std::fs::read_to_string(&path).map_err(|e| {
+                    self.invalid(
+                        format!("{key}.config"),
+                        "a readable TOML file, relative to the graph file",
+                        format!("{} ({e})", path.display()),
+                    )
+                })?;
                 toml::from_str::<toml::Table>(&text).map_err(|e| {
-                    self.invalid(format!("{key}.config"), "a TOML table of parameters", format!("{}: {}", path.display(), e.to_string().trim_end()))
+                    self.invalid(
+                        format!("{key}.config"),
+                        "a TOML table of parameters",
+                        format!("{}: {}", path.display(), e.to_string().trim_end()),
+                    )
                 })?
             }
         };
         merged.extend(inline);
-        serde_json::to_value(&merged).map_err(|e| self.invalid(format!("{key}.params"), "parameters representable as JSON", e.to_string()))
+        serde_json::to_value(&merged).map_err(|e| {
+            self.invalid(
+                format!("{key}.params"),
+                "parameters representable as JSON",
+                e.to_string(),
+            )
+        })
     }
 
-    fn connections(&self, edges: &BTreeMap<String, Edge>, stages: &BTreeMap<String, Stage>) -> Result<(), GraphError> {
+    fn connections(
+        &self,
+        edges: &BTreeMap<String, Edge>,
+        stages: &BTreeMap<String, Stage>,
+    ) -> Result<(), GraphError> {
         for edge in edges.values() {
             let (producers, consumers): (Vec<&str>, Vec<&str>) = match edge.pattern {
                 EdgePattern::PublishSubscribe => (
-                    stages.values().filter(|s| s.outputs.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
-                    stages.values().filter(|s| s.inputs.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
+                    stages
+                        .values()
+                        .filter(|s| s.outputs.contains(&edge.name))
+                        .map(|s| s.name.as_str())
+                        .collect(),
+                    stages
+                        .values()
+                        .filter(|s| s.inputs.contains(&edge.name))
+                        .map(|s| s.name.as_str())
+                        .collect(),
                 ),
                 EdgePattern::RequestResponse => (
-                    stages.values().filter(|s| s.serves.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
-                    stages.values().filter(|s| s.calls.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
+                    stages
+                        .values()
+                        .filter(|s| s.serves.contains(&edge.name))
+                        .map(|s| s.name.as_str())
+                        .collect(),
+                    stages
+                        .values()
+                        .filter(|s| s.calls.contains(&edge.name))
+                        .map(|s| s.name.as_str())
+                        .collect(),
                 ),
             };
             let (produce, consume) = match edge.pattern {
@@ -251,7 +348,11 @@ impl Checker<'_> {
             };
             match (producers.as_slice(), consumers.as_slice()) {
                 ([], []) => {
-                    return Err(self.invalid(format!("edges.{}", edge.name), "an edge some stage uses", "no stage lists it"));
+                    return Err(self.invalid(
+                        format!("edges.{}", edge.name),
+                        "an edge some stage uses",
+                        "no stage lists it",
+                    ));
                 }
                 ([], [consumer, ..]) => {
                     return Err(self.invalid(
@@ -290,7 +391,10 @@ impl Checker<'_> {
             OnPath,
             Done,
         }
-        let mut marks: BTreeMap<&str, Mark> = stages.keys().map(|k| (k.as_str(), Mark::Unvisited)).collect();
+        let mut marks: BTreeMap<&str, Mark> = stages
+            .keys()
+            .map(|k| (k.as_str(), Mark::Unvisited))
+            .collect();
         fn visit<'a>(
             name: &'a str,
             path: &mut Vec<&'a str>,
@@ -351,7 +455,8 @@ impl Graph {
                     let edge = &self.edges[name];
                     Ok(EdgeWiring {
                         edge: name.clone(),
-                        service: poseflow_transport::edge_service_name(instance, name).map_err(invalid_instance)?,
+                        service: poseflow_transport::edge_service_name(instance, name)
+                            .map_err(invalid_instance)?,
                         message: edge.message.clone(),
                         queue: edge.queue,
                         overflow: edge.overflow,
@@ -367,7 +472,8 @@ impl Graph {
             outputs: wire(&stage.outputs)?,
             serves: wire(&stage.serves)?,
             calls: wire(&stage.calls)?,
-            heartbeat_service: poseflow_transport::heartbeat_service_name(instance, &stage.name).map_err(invalid_instance)?,
+            heartbeat_service: poseflow_transport::heartbeat_service_name(instance, &stage.name)
+                .map_err(invalid_instance)?,
             heartbeat_ms: self.heartbeat.as_millis() as u64,
             params: stage.params.clone(),
         })

@@ -23,7 +23,13 @@ pub fn remove_dead_nodes() -> Result<usize, TransportError> {
                     tracing::info!(node = %name, "removed stale resources of a dead node");
                     removed += 1;
                 }
-                Err(e) => failure = Some(TransportError::iceoryx("remove stale resources of", &name, e)),
+                Err(e) => {
+                    failure = Some(TransportError::iceoryx(
+                        "remove stale resources of",
+                        &name,
+                        e,
+                    ))
+                }
             }
         }
         CallbackProgression::Continue

@@ -20,7 +20,11 @@ pub enum TransportError {
 }
 
 impl TransportError {
-    pub(crate) fn iceoryx(operation: &'static str, target: &str, err: impl std::fmt::Debug) -> Self {
+    pub(crate) fn iceoryx(
+        operation: &'static str,
+        target: &str,
+        err: impl std::fmt::Debug,
+    ) -> Self {
         Self::Iceoryx {
             operation,
             target: target.to_string(),

@@ -6,7 +6,9 @@ use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher as IoxPublisher;
 use iceoryx2::port::subscriber::Subscriber as IoxSubscriber;
 use iceoryx2::prelude::{
-    AllocationStrategy, BackpressureStrategy, FileDescriptor, FileDescriptorBased, SynchronousMultiplexing};
+    AllocationStrategy, BackpressureStrategy, FileDescriptor, FileDescriptorBased,
+    SynchronousMultiplexing,
+};
 use iceoryx2::sample::Sample;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
 use poseflow_contracts::MessageHeader;
@@ -67,9 +69,10 @@ fn open_pubsub<H: MessageHeader>(
     name: &str,
     options: &EdgeOptions,
 ) -> Result<PortFactory<Ipc, [f32], H>, TransportError> {
-    let service_name = name
-        .try_into()
-        .map_err(|e| TransportError::Name { name: name.to_string(), detail: format!("{e:?}") })?;
+    let service_name = name.try_into().map_err(|e| TransportError::Name {
+        name: name.to_string(),
+        detail: format!("{e:?}"),
+    })?;
     node.service_builder(&service_name)
         .publish_subscribe::<[f32]>()
         .user_header::<H>()
@@ -87,9 +90,10 @@ fn open_event(
     node: &Node,
     name: &str,
 ) -> Result<iceoryx2::service::port_factory::event::PortFactory<Ipc>, TransportError> {
-    let service_name = name
-        .try_into()
-        .map_err(|e| TransportError::Name { name: name.to_string(), detail: format!("{e:?}") })?;
+    let service_name = name.try_into().map_err(|e| TransportError::Name {
+        name: name.to_string(),
+        detail: format!("{e:?}"),
+    })?;
     node.service_builder(&service_name)
         .event()
         .max_notifiers(MAX_PUBLISHERS)
@@ -146,7 +150,13 @@ impl<H: MessageHeader> Publisher<H> {
             .listener_builder()
             .create()
             .map_err(|e| TransportError::iceoryx("create listener on", name, e))?;
-        Ok(Self { name: name.to_string(), service, publisher, notifier, acks })
+        Ok(Self {
+            name: name.to_string(),
+            service,
+            publisher,
+            notifier,
+            acks,
+        })
     }
 
     pub fn name(&self) -> &str {
@@ -190,7 +200,10 @@ impl<H: MessageHeader> Publisher<H> {
     /// The wait matters: iceoryx2 frees a publisher's samples when it is
     /// dropped, so a stage that exits right after its last send would lose
     /// whatever its receivers had not yet taken.
-    pub fn end_of_stream(&self, timeout: std::time::Duration) -> Result<EndOfStream, TransportError> {
+    pub fn end_of_stream(
+        &self,
+        timeout: std::time::Duration,
+    ) -> Result<EndOfStream, TransportError> {
         use iceoryx2::service::port_factory::PortFactory as _;
         let receivers = self.service.dynamic_config().number_of_subscribers();
         self.notify(events::END_OF_STREAM)?;
@@ -204,9 +217,14 @@ impl<H: MessageHeader> Publisher<H> {
             }
             self.acks
                 .timed_wait(|activation| acknowledged += activation.count, left)
-                .map_err(|e| TransportError::iceoryx("wait for acknowledgements on", &self.name, e))?;
+                .map_err(|e| {
+                    TransportError::iceoryx("wait for acknowledgements on", &self.name, e)
+                })?;
         }
-        Ok(EndOfStream { receivers, acknowledged: acknowledged as usize })
+        Ok(EndOfStream {
+            receivers,
+            acknowledged: acknowledged as usize,
+        })
     }
 
     fn notify(&self, id: iceoryx2::port::event_id::EventId) -> Result<(), TransportError> {
@@ -267,7 +285,12 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
             .notifier_builder()
             .create()
             .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
-        Ok(Self { name: name.to_string(), subscriber, listener, ack })
+        Ok(Self {
+            name: name.to_string(),
+            subscriber,
+            listener,
+            ack,
+        })
     }
 
     pub fn name(&self) -> &str {

@@ -1,0 +1,21 @@
+//! The stage runtime.
+//!
+//! A stage is a library implementing [`Transform`], [`Source`] or [`Sink`]:
+//! plain functions from messages to messages. This crate runs it as a
+//! process of a graph ([`run_transform`], [`run_source`], [`run_sink`]):
+//! it reads the stage's wiring from the environment, connects to its
+//! iceoryx2 services, sleeps in a WaitSet until data or a timer wakes it,
+//! validates every message against its contract, stamps per-stage
+//! timestamps, counts drops and errors, publishes a heartbeat, propagates
+//! end-of-stream, and exits cleanly on SIGINT/SIGTERM.
+
+mod error;
+mod logging;
+mod process;
+mod stage;
+mod stats;
+
+pub use error::RuntimeError;
+pub use logging::init_logging;
+pub use process::{run_sink, run_source, run_transform};
+pub use stage::{EmitError, Emitter, Input, Sink, Source, SourceStep, Transform};

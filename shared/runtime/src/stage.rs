@@ -1,0 +1,76 @@
+//! What a stage author implements: plain functions from inputs to outputs,
+//! with no transport in sight.
+
+use poseflow_contracts::{Header, MessageHeader, Stage};
+
+/// One received message, already checked against its contract.
+#[derive(Debug, Clone, Copy)]
+pub struct Input<'a, H> {
+    pub header: &'a H,
+    pub payload: &'a [f32],
+}
+
+impl<H: MessageHeader> Input<'_, H> {
+    /// The common header to put on an output derived from this input: same
+    /// frame, object, flags and the stamps collected so far.
+    pub fn forward_header(&self) -> Header {
+        *self.header.header()
+    }
+}
+
+/// Where a stage sends its outputs. The runtime provides it: in a process it
+/// writes straight into iceoryx2 shared memory, in-process into a channel.
+pub trait Emitter<H: MessageHeader> {
+    /// Publishes a message with a payload of `len` floats written by `fill`
+    /// in place. `len` must equal `header.payload_len()`.
+    fn emit(&mut self, header: H, len: usize, fill: &mut dyn FnMut(&mut [f32])) -> Result<(), EmitError>;
+}
+
+/// Why a message could not be sent.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct EmitError(pub String);
+
+/// A stage with one input and one output edge.
+pub trait Transform {
+    type In: MessageHeader;
+    type Out: MessageHeader;
+    type Error: std::error::Error;
+
+    /// The timestamp slot this stage writes on its outputs, if any.
+    const SLOT: Option<Stage>;
+
+    /// Handles one input; may emit zero or more outputs.
+    fn process(&mut self, input: Input<'_, Self::In>, output: &mut dyn Emitter<Self::Out>) -> Result<(), Self::Error>;
+}
+
+/// What a source did on one call.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SourceStep {
+    /// It may be called again.
+    Continue,
+    /// The stream is over (end of a dataset or recording).
+    Finished,
+}
+
+/// A stage with no input: a camera, a dataset reader, a replay.
+pub trait Source {
+    type Out: MessageHeader;
+    type Error: std::error::Error;
+
+    const SLOT: Option<Stage>;
+
+    /// Emits the next message(s).
+    fn next(&mut self, output: &mut dyn Emitter<Self::Out>) -> Result<SourceStep, Self::Error>;
+}
+
+/// A stage with no output: a robot interface, a recorder, a checker.
+pub trait Sink {
+    type In: MessageHeader;
+    type Error: std::error::Error;
+
+    fn consume(&mut self, input: Input<'_, Self::In>) -> Result<(), Self::Error>;
+
+    /// Called once after the stream ended or the stage was asked to stop.
+    fn finish(&mut self) -> Result<(), Self::Error>;
+}
