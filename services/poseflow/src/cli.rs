@@ -33,7 +33,7 @@ pub enum Command {
     /// Run the end-to-end demo on the embedded default model and data.
     Demo,
     /// Launch a process graph from a graph file (deploy/*.toml).
-    Run,
+    Run(crate::run::RunArgs),
     /// Render synthetic RGB-D scenes and BOP-format datasets from object models.
     Render,
     /// Evaluate on a BOP-format dataset: accuracy, ADD(-S), calibration, runtime.
@@ -46,31 +46,33 @@ impl Command {
     fn name(&self) -> &'static str {
         match self {
             Command::Demo => "demo",
-            Command::Run => "run",
+            Command::Run(_) => "run",
             Command::Render => "render",
             Command::Eval => "eval",
             Command::Bench => "bench",
         }
     }
-
-    /// What has to land before the subcommand works.
-    fn missing(&self) -> &'static str {
-        match self {
-            Command::Demo => "it needs the trained model and the estimation graph",
-            Command::Run => "it needs the process-graph launcher",
-            Command::Render => "it needs the ray-cast renderer",
-            Command::Eval => "it needs the estimation graph and the BOP benchmark runner",
-            Command::Bench => "it needs the estimation and tracking graphs",
-        }
-    }
 }
 
-pub fn run(command: Command) -> ExitCode {
+pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
+    // What has to land before a subcommand works.
+    let missing = match command {
+        Command::Run(args) => {
+            return crate::run::run(args, log_format).unwrap_or_else(|err| {
+                tracing::error!("{err:#}");
+                ExitCode::FAILURE
+            });
+        }
+        Command::Demo => "it needs the trained model and the estimation graph",
+        Command::Render => "it needs the ray-cast renderer",
+        Command::Eval => "it needs the estimation graph and the BOP benchmark runner",
+        Command::Bench => "it needs the estimation and tracking graphs",
+    };
     tracing::error!(
         subcommand = command.name(),
         "`poseflow {}` is not available yet in this build: {}",
         command.name(),
-        command.missing()
+        missing
     );
     ExitCode::from(NOT_AVAILABLE)
 }

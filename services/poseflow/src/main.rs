@@ -2,6 +2,7 @@
 
 mod cli;
 mod logging;
+mod run;
 
 use std::process::ExitCode;
 
@@ -13,5 +14,5 @@ fn main() -> ExitCode {
         eprintln!("poseflow: cannot set up logging: {err:#}");
         return ExitCode::FAILURE;
     }
-    cli::run(cli.command)
+    cli::run(cli.command, cli.log_format)
 }

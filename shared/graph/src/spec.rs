@@ -61,9 +61,9 @@ pub(crate) struct EdgeSpec {
     pub queue: usize,
     #[serde(default = "default_overflow")]
     pub overflow: OverflowPolicy,
-    /// Payload capacity reserved up front, in f32 values.
+    /// Largest payload in f32 values; its shared memory is reserved up front.
     #[serde(default = "default_max_payload")]
-    pub initial_payload_len: usize,
+    pub max_payload_len: usize,
 }
 
 fn default_pattern() -> EdgePattern {

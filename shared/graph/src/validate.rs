@@ -29,7 +29,7 @@ pub struct Edge {
     pub pattern: EdgePattern,
     pub queue: usize,
     pub overflow: OverflowPolicy,
-    pub initial_payload_len: usize,
+    pub max_payload_len: usize,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -173,11 +173,11 @@ impl Checker<'_> {
                 spec.queue.to_string(),
             ));
         }
-        if !(1..=(1 << 26)).contains(&spec.initial_payload_len) {
+        if !(1..=(1 << 26)).contains(&spec.max_payload_len) {
             return Err(self.invalid(
-                format!("{key}.initial_payload_len"),
+                format!("{key}.max_payload_len"),
                 "1..=67108864 f32 values",
-                spec.initial_payload_len.to_string(),
+                spec.max_payload_len.to_string(),
             ));
         }
         Ok(Edge {
@@ -186,7 +186,7 @@ impl Checker<'_> {
             pattern: spec.pattern,
             queue: spec.queue,
             overflow: spec.overflow,
-            initial_payload_len: spec.initial_payload_len,
+            max_payload_len: spec.max_payload_len,
         })
     }
 
@@ -425,14 +425,15 @@ impl Checker<'_> {
             None
         }
         for name in stages.keys() {
-            if marks[name.as_str()] == Mark::Unvisited {
-                if let Some(cycle) = visit(name, &mut Vec::new(), &mut marks, stages, &downstream) {
-                    return Err(self.invalid(
-                        "stages",
-                        "publish-subscribe edges without cycles (only request-response edges, such as sampler <-> inference, may loop)",
-                        format!("the cycle {}", cycle.join(" -> ")),
-                    ));
-                }
+            if marks[name.as_str()] != Mark::Unvisited {
+                continue;
+            }
+            if let Some(cycle) = visit(name, &mut Vec::new(), &mut marks, stages, &downstream) {
+                return Err(self.invalid(
+                    "stages",
+                    "publish-subscribe edges without cycles (only request-response edges, such as sampler <-> inference, may loop)",
+                    format!("the cycle {}", cycle.join(" -> ")),
+                ));
             }
         }
         Ok(())
@@ -460,7 +461,12 @@ impl Graph {
                         message: edge.message.clone(),
                         queue: edge.queue,
                         overflow: edge.overflow,
-                        initial_payload_len: edge.initial_payload_len,
+                        max_payload_len: edge.max_payload_len,
+                        readers: self
+                            .stages
+                            .values()
+                            .filter(|s| s.inputs.contains(name) || s.calls.contains(name))
+                            .count(),
                     })
                 })
                 .collect()

@@ -20,7 +20,10 @@ pub struct EdgeWiring {
     pub message: String,
     pub queue: usize,
     pub overflow: OverflowPolicy,
-    pub initial_payload_len: usize,
+    pub max_payload_len: usize,
+    /// Stages reading this edge (for outputs: receivers to wait for at
+    /// start-up).
+    pub readers: usize,
 }
 
 /// Everything a stage process needs to join its graph.

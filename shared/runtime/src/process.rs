@@ -7,7 +7,9 @@ use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
 use poseflow_contracts::{Heartbeat, MessageHeader, Stage, StageState};
 use poseflow_graph::{EdgeWiring, OverflowPolicy, StageWiring};
-use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, Publisher, create_node};
+use poseflow_transport::{
+    EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, Publisher, create_node,
+};
 
 use crate::stage::{EmitError, Emitter, Input, Sink, Source, SourceStep, Transform};
 use crate::stats::Stats;
@@ -16,6 +18,10 @@ use crate::{RuntimeError, init_logging};
 /// How long a finished stage waits for its receivers to drain before exiting
 /// anyway.
 const END_OF_STREAM_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long a stage waits at start-up for the stages reading its output.
+const READERS_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long a stage waits for the supervisor to take its final heartbeat.
+const FINAL_HEARTBEAT_TIMEOUT: Duration = Duration::from_secs(1);
 
 /// The parts every stage process has.
 struct StageProcess {
@@ -33,7 +39,7 @@ fn edge_options(edge: &EdgeWiring) -> EdgeOptions {
             OverflowPolicy::DropOldest => Overflow::DropOldest,
             OverflowPolicy::Block => Overflow::Block,
         },
-        initial_payload_len: edge.initial_payload_len,
+        max_payload_len: edge.max_payload_len,
     }
 }
 
@@ -56,32 +62,67 @@ impl StageProcess {
             return Err(RuntimeError::Shape {
                 stage: wiring.stage.clone(),
                 expected,
-                found: format!("{} input(s) and {} output(s)", wiring.inputs.len(), wiring.outputs.len()),
+                found: format!(
+                    "{} input(s) and {} output(s)",
+                    wiring.inputs.len(),
+                    wiring.outputs.len()
+                ),
             });
         }
         let node = create_node(&wiring.stage)?;
         let heartbeat = Publisher::create(
             &node,
             &wiring.heartbeat_service,
-            &EdgeOptions { queue: 1, overflow: Overflow::DropOldest, initial_payload_len: 1 },
+            &EdgeOptions {
+                queue: 1,
+                overflow: Overflow::DropOldest,
+                max_payload_len: 1,
+            },
         )?;
         let heartbeat_period = Duration::from_millis(wiring.heartbeat_ms);
-        Ok(Self { wiring, node, heartbeat, heartbeat_period, stats: Stats::new() })
+        Ok(Self {
+            wiring,
+            node,
+            heartbeat,
+            heartbeat_period,
+            stats: Stats::new(),
+        })
     }
 
     fn input<H: MessageHeader>(&self) -> Result<EdgeSubscriber<H>, RuntimeError> {
         let edge = &self.wiring.inputs[0];
-        Ok(EdgeSubscriber::create(&self.node, &edge.service, &edge_options(edge))?)
+        Ok(EdgeSubscriber::create(
+            &self.node,
+            &edge.service,
+            &edge_options(edge),
+        )?)
     }
 
+    /// The output edge, once its readers are connected (or the start-up
+    /// timeout passed).
     fn output<H: MessageHeader>(&self) -> Result<Publisher<H>, RuntimeError> {
         let edge = &self.wiring.outputs[0];
-        Ok(Publisher::create(&self.node, &edge.service, &edge_options(edge))?)
+        let publisher = Publisher::create(&self.node, &edge.service, &edge_options(edge))?;
+        let connected = publisher.wait_for_receivers(edge.readers, READERS_TIMEOUT)?;
+        if connected < edge.readers {
+            tracing::warn!(edge = %edge.edge, connected, expected = edge.readers, "starting before every reader connected");
+        }
+        Ok(publisher)
     }
 
     fn beat(heartbeat: &Publisher<Heartbeat>, stats: &Stats, state: StageState) {
         if let Err(err) = heartbeat.publish(stats.heartbeat(state), 0, |_| {}) {
             tracing::warn!(%err, "heartbeat not sent");
+        }
+    }
+
+    /// The last heartbeat, with the final counters. It is handed over with
+    /// the end-of-stream handshake: a sample still queued when its
+    /// publisher exits would be lost with it.
+    fn last_beat(heartbeat: &Publisher<Heartbeat>, stats: &Stats) {
+        Self::beat(heartbeat, stats, StageState::Finished);
+        if let Err(err) = heartbeat.end_of_stream(FINAL_HEARTBEAT_TIMEOUT) {
+            tracing::warn!(%err, "final heartbeat not acknowledged");
         }
     }
 
@@ -92,8 +133,12 @@ impl StageProcess {
         input: &EdgeSubscriber<H>,
         mut on_input: impl FnMut(Input<'_, H>, &mut Stats),
     ) -> Result<LoopEnd, RuntimeError> {
-        let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
-        let input_guard = waitset.attach_notification(input).map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
+        let waitset = WaitSetBuilder::new()
+            .create::<Ipc>()
+            .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
+        let input_guard = waitset
+            .attach_notification(input)
+            .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
         let beat_guard = waitset
             .attach_interval(self.heartbeat_period)
             .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
@@ -149,7 +194,13 @@ fn drain<H: MessageHeader>(
         stats.observe_frame(frame);
         let _span = tracing::debug_span!("frame", id = frame).entered();
         let started = Instant::now();
-        on_input(Input { header, payload: message.payload() }, stats);
+        on_input(
+            Input {
+                header,
+                payload: message.payload(),
+            },
+            stats,
+        );
         stats.record_latency(started.elapsed());
     }
     Ok(())
@@ -163,11 +214,20 @@ struct IpcEmitter<'a, H: MessageHeader> {
 }
 
 impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
-    fn emit(&mut self, mut header: H, len: usize, fill: &mut dyn FnMut(&mut [f32])) -> Result<(), EmitError> {
+    fn emit(
+        &mut self,
+        mut header: H,
+        len: usize,
+        fill: &mut dyn FnMut(&mut [f32]),
+    ) -> Result<(), EmitError> {
         if let Some(slot) = self.slot {
             header.header_mut().stamps.stamp(slot);
         }
-        self.publisher.publish(header, len, fill).map_err(|e| EmitError(e.to_string()))?;
+        let receivers = self
+            .publisher
+            .publish(header, len, fill)
+            .map_err(|e| EmitError(e.to_string()))?;
+        tracing::trace!(receivers, "published");
         *self.sent += 1;
         Ok(())
     }
@@ -175,7 +235,12 @@ impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
 
 fn finish_output<H: MessageHeader>(output: &Publisher<H>) {
     match output.end_of_stream(END_OF_STREAM_TIMEOUT) {
-        Ok(end) => tracing::info!(edge = output.name(), receivers = end.receivers, acknowledged = end.acknowledged, "end of stream"),
+        Ok(end) => tracing::info!(
+            edge = output.name(),
+            receivers = end.receivers,
+            acknowledged = end.acknowledged,
+            "end of stream"
+        ),
         Err(err) => tracing::warn!(edge = output.name(), %err, "end of stream not delivered"),
     }
 }
@@ -191,13 +256,21 @@ fn exit(result: Result<(), RuntimeError>) -> ExitCode {
     }
 }
 
-fn build<T>(wiring: &StageWiring, make: impl FnOnce(&StageWiring) -> Result<T, String>) -> Result<T, RuntimeError> {
-    make(wiring).map_err(|reason| RuntimeError::Build { stage: wiring.stage.clone(), reason })
+fn build<T>(
+    wiring: &StageWiring,
+    make: impl FnOnce(&StageWiring) -> Result<T, String>,
+) -> Result<T, RuntimeError> {
+    make(wiring).map_err(|reason| RuntimeError::Build {
+        stage: wiring.stage.clone(),
+        reason,
+    })
 }
 
 /// Runs a [`Transform`] as a graph process; `make` builds it from the
 /// stage's wiring (its `params` in particular). Call it from `main`.
-pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, String>) -> ExitCode {
+pub fn run_transform<T: Transform>(
+    make: impl FnOnce(&StageWiring) -> Result<T, String>,
+) -> ExitCode {
     exit((|| {
         let mut process = StageProcess::start(1, 1)?;
         let mut stage = build(&process.wiring, make)?;
@@ -206,7 +279,11 @@ pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, 
         let output = process.output::<T::Out>()?;
         tracing::info!(input = input.name(), output = output.name(), "running");
         let end = process.event_loop(&input, |message, stats| {
-            let mut emitter = IpcEmitter { publisher: &output, slot: T::SLOT, sent: &mut stats.frames_out };
+            let mut emitter = IpcEmitter {
+                publisher: &output,
+                slot: T::SLOT,
+                sent: &mut stats.frames_out,
+            };
             if let Err(err) = stage.process(message, &mut emitter) {
                 stats.errors += 1;
                 tracing::warn!(%err, "process failed; frame skipped");
@@ -217,7 +294,7 @@ pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, 
             finish_output(&output);
             input.acknowledge_end()?;
         }
-        StageProcess::beat(&process.heartbeat, &process.stats, StageState::Finished);
+        StageProcess::last_beat(&process.heartbeat, &process.stats);
         Ok(())
     })())
 }
@@ -242,7 +319,7 @@ pub fn run_sink<K: Sink>(make: impl FnOnce(&StageWiring) -> Result<K, String>) -
         if let LoopEnd::EndOfStream = end {
             input.acknowledge_end()?;
         }
-        StageProcess::beat(&process.heartbeat, &process.stats, StageState::Finished);
+        StageProcess::last_beat(&process.heartbeat, &process.stats);
         Ok(())
     })())
 }
@@ -255,11 +332,25 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
         let mut source = build(&process.wiring, make)?;
         let _span = tracing::info_span!("stage", name = %process.wiring.stage).entered();
         let output = process.output::<S::Out>()?;
-        let rate_hz = process.wiring.params.get("rate_hz").and_then(|v| v.as_f64());
+        let rate_hz = process
+            .wiring
+            .params
+            .get("rate_hz")
+            .and_then(|v| v.as_f64());
         tracing::info!(output = output.name(), ?rate_hz, "running");
-        let StageProcess { node, heartbeat, heartbeat_period, stats, .. } = &mut process;
+        let StageProcess {
+            node,
+            heartbeat,
+            heartbeat_period,
+            stats,
+            ..
+        } = &mut process;
         let mut step = |stats: &mut Stats| -> SourceStep {
-            let mut emitter = IpcEmitter { publisher: &output, slot: S::SLOT, sent: &mut stats.frames_out };
+            let mut emitter = IpcEmitter {
+                publisher: &output,
+                slot: S::SLOT,
+                sent: &mut stats.frames_out,
+            };
             let started = Instant::now();
             let result = source.next(&mut emitter);
             stats.record_latency(started.elapsed());
@@ -270,7 +361,13 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
             })
         };
         let finished = match rate_hz.filter(|hz| *hz > 0.0) {
-            Some(hz) => paced(heartbeat, *heartbeat_period, stats, Duration::from_secs_f64(1.0 / hz), &mut step)?,
+            Some(hz) => paced(
+                heartbeat,
+                *heartbeat_period,
+                stats,
+                Duration::from_secs_f64(1.0 / hz),
+                &mut step,
+            )?,
             None => {
                 let mut last_beat = Instant::now();
                 StageProcess::beat(heartbeat, stats, StageState::Running);
@@ -293,7 +390,7 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
             StageProcess::beat(heartbeat, stats, StageState::Draining);
             finish_output(&output);
         }
-        StageProcess::beat(heartbeat, stats, StageState::Finished);
+        StageProcess::last_beat(heartbeat, stats);
         Ok(())
     })())
 }
@@ -306,9 +403,15 @@ fn paced(
     period: Duration,
     step: &mut impl FnMut(&mut Stats) -> SourceStep,
 ) -> Result<bool, RuntimeError> {
-    let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
-    let tick = waitset.attach_interval(period).map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
-    let beat = waitset.attach_interval(heartbeat_period).map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
+    let waitset = WaitSetBuilder::new()
+        .create::<Ipc>()
+        .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
+    let tick = waitset
+        .attach_interval(period)
+        .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
+    let beat = waitset
+        .attach_interval(heartbeat_period)
+        .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
     let mut finished = false;
     waitset
         .wait_and_process(|id| {

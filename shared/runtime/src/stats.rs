@@ -24,31 +24,37 @@ impl Stats {
             errors: 0,
             last_frame: None,
             // 1 µs .. 60 s at 3 significant digits.
-            latency_us: Histogram::new_with_bounds(1, 60_000_000, 3).expect("valid histogram bounds"),
+            latency_us: Histogram::new_with_bounds(1, 60_000_000, 3)
+                .expect("valid histogram bounds"),
         }
     }
 
     /// Counts frames missing between the previous frame id and this one. A
     /// smaller id means the source restarted its numbering; that is not a drop.
     pub fn observe_frame(&mut self, frame_id: u64) {
-        if let Some(last) = self.last_frame {
-            if frame_id > last + 1 {
-                let missing = frame_id - last - 1;
-                self.dropped += missing;
-                tracing::warn!(frame = frame_id, missing, "frames missing upstream");
-            }
+        if let Some(last) = self.last_frame
+            && frame_id > last + 1
+        {
+            let missing = frame_id - last - 1;
+            self.dropped += missing;
+            tracing::warn!(frame = frame_id, missing, "frames missing upstream");
         }
         self.last_frame = Some(frame_id);
     }
 
     pub fn record_latency(&mut self, elapsed: Duration) {
-        self.latency_us.saturating_record(elapsed.as_micros().max(1) as u64);
+        self.latency_us
+            .saturating_record(elapsed.as_micros().max(1) as u64);
     }
 
     pub fn heartbeat(&self, state: StageState) -> Heartbeat {
         let mut header = Header::new(self.last_frame.unwrap_or(0), 0);
         header.stamps.stamp(poseflow_contracts::Stage::Source);
-        let quantile = |q| self.latency_us.value_at_quantile(q).min(u64::from(u32::MAX)) as u32;
+        let quantile = |q| {
+            self.latency_us
+                .value_at_quantile(q)
+                .min(u64::from(u32::MAX)) as u32
+        };
         Heartbeat {
             header,
             pid: std::process::id(),

@@ -12,7 +12,7 @@ pub enum TransportError {
         detail: String,
     },
 
-    #[error("payload of {len} f32 values exceeds the edge's maximum of {max}")]
+    #[error("payload of {len} f32 values exceeds the edge's max_payload_len of {max}")]
     PayloadTooLarge { len: usize, max: usize },
 
     #[error(transparent)]

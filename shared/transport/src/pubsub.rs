@@ -1,30 +1,48 @@
 //! Publish-subscribe of contract messages (`H` user header + `[f32]`
-//! payload), with event notifications for wake-up.
+//! payload), with event notifications for wake-up and two handshakes:
+//! READY (a receiver is connected before a publisher starts) and
+//! END_OF_STREAM / END_ACKNOWLEDGED (receivers drained before a publisher
+//! exits).
 
+use std::time::{Duration, Instant};
+
+use iceoryx2::port::event_id::EventId;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher as IoxPublisher;
 use iceoryx2::port::subscriber::Subscriber as IoxSubscriber;
+use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::{
     AllocationStrategy, BackpressureStrategy, FileDescriptor, FileDescriptorBased,
     SynchronousMultiplexing,
 };
 use iceoryx2::sample::Sample;
+use iceoryx2::service::port_factory::PortFactory as _;
+use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
-use poseflow_contracts::MessageHeader;
+use poseflow_contracts::{ContractError, MessageHeader};
 
 use crate::{Ipc, Node, TransportError};
 
-/// Event ids on an edge's event service.
+/// Event ids. Each edge has two event services: `<edge>` (publisher →
+/// receivers) and `<edge>/ack` (receivers → publisher).
 pub mod events {
     use iceoryx2::port::event_id::EventId;
 
-    /// A new sample was published.
+    /// `<edge>`: a new sample was published.
     pub const DATA: EventId = EventId::new(0);
-    /// The publisher has sent its last sample; receivers drain and finish.
+    /// `<edge>`: the publisher has sent its last sample; receivers drain and
+    /// finish.
     pub const END_OF_STREAM: EventId = EventId::new(1);
-    /// Highest id in use (sizes the event service).
-    pub const MAX: usize = 1;
+    /// `<edge>`: a publisher appeared (emitted by iceoryx2 when its notifier
+    /// is created); receivers connect to it and answer READY.
+    pub const PUBLISHER_CONNECTED: EventId = EventId::new(2);
+    /// `<edge>/ack`: a receiver drained the edge after END_OF_STREAM.
+    pub const END_ACKNOWLEDGED: EventId = EventId::new(0);
+    /// `<edge>/ack`: a receiver is connected and will see every sample.
+    pub const READY: EventId = EventId::new(1);
+    /// Highest id in use (sizes the event services).
+    pub const MAX: usize = 2;
 }
 
 /// What a full receive queue does to a new sample.
@@ -43,9 +61,10 @@ pub enum Overflow {
 pub struct EdgeOptions {
     pub queue: usize,
     pub overflow: Overflow,
-    /// Payload capacity reserved up front, in `f32` values; larger payloads
-    /// reallocate (power-of-two growth).
-    pub initial_payload_len: usize,
+    /// Largest payload, in `f32` values. Shared memory for it is reserved up
+    /// front: iceoryx2's growing segments lose samples when a publisher
+    /// reallocates and exits before receivers have mapped the new segment.
+    pub max_payload_len: usize,
 }
 
 impl Default for EdgeOptions {
@@ -53,7 +72,7 @@ impl Default for EdgeOptions {
         Self {
             queue: 4,
             overflow: Overflow::DropOldest,
-            initial_payload_len: 4096,
+            max_payload_len: 4096,
         }
     }
 }
@@ -64,16 +83,19 @@ const MAX_PUBLISHERS: usize = 4;
 const MAX_SUBSCRIBERS: usize = 16;
 const MAX_NODES: usize = 32;
 
+fn service_name(name: &str) -> Result<iceoryx2::prelude::ServiceName, TransportError> {
+    name.try_into().map_err(|e| TransportError::Name {
+        name: name.to_string(),
+        detail: format!("{e:?}"),
+    })
+}
+
 fn open_pubsub<H: MessageHeader>(
     node: &Node,
     name: &str,
     options: &EdgeOptions,
 ) -> Result<PortFactory<Ipc, [f32], H>, TransportError> {
-    let service_name = name.try_into().map_err(|e| TransportError::Name {
-        name: name.to_string(),
-        detail: format!("{e:?}"),
-    })?;
-    node.service_builder(&service_name)
+    node.service_builder(&service_name(name)?)
         .publish_subscribe::<[f32]>()
         .user_header::<H>()
         .subscriber_max_buffer_size(options.queue)
@@ -86,27 +108,32 @@ fn open_pubsub<H: MessageHeader>(
         .map_err(|e| TransportError::iceoryx("open publish-subscribe service", name, e))
 }
 
-fn open_event(
-    node: &Node,
-    name: &str,
-) -> Result<iceoryx2::service::port_factory::event::PortFactory<Ipc>, TransportError> {
-    let service_name = name.try_into().map_err(|e| TransportError::Name {
-        name: name.to_string(),
-        detail: format!("{e:?}"),
-    })?;
-    node.service_builder(&service_name)
+fn open_event(node: &Node, name: &str) -> Result<EventFactory<Ipc>, TransportError> {
+    node.service_builder(&service_name(name)?)
         .event()
-        .max_notifiers(MAX_PUBLISHERS)
+        .max_notifiers(MAX_SUBSCRIBERS)
         .max_listeners(MAX_SUBSCRIBERS)
         .max_nodes(MAX_NODES)
         .event_id_max_value(events::MAX)
+        .notifier_created_event(events::PUBLISHER_CONNECTED)
         .open_or_create()
         .map_err(|e| TransportError::iceoryx("open event service", name, e))
 }
 
-/// The event service on which receivers acknowledge end-of-stream.
 fn ack_name(edge: &str) -> String {
     format!("{edge}/ack")
+}
+
+fn notify(
+    notifier: &Notifier<Ipc>,
+    id: EventId,
+    what: &'static str,
+    edge: &str,
+) -> Result<(), TransportError> {
+    notifier
+        .notify_with_custom_event_id(id)
+        .map(|_| ())
+        .map_err(|e| TransportError::iceoryx(what, edge, e))
 }
 
 /// How an end-of-stream handshake ended.
@@ -126,6 +153,7 @@ pub struct Publisher<H: MessageHeader> {
     publisher: IoxPublisher<Ipc, [f32], H>,
     notifier: Notifier<Ipc>,
     acks: Listener<Ipc>,
+    max_payload_len: usize,
 }
 
 impl<H: MessageHeader> Publisher<H> {
@@ -135,27 +163,31 @@ impl<H: MessageHeader> Publisher<H> {
             Overflow::DropOldest => BackpressureStrategy::DiscardData,
             Overflow::Block => BackpressureStrategy::RetryUntilDelivered,
         };
+        let max_payload_len = options.max_payload_len.max(1);
         let publisher = service
             .publisher_builder()
-            .initial_max_slice_len(options.initial_payload_len.max(1))
-            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .initial_max_slice_len(max_payload_len)
+            .allocation_strategy(AllocationStrategy::Static)
             .backpressure_strategy(backpressure)
             .create()
             .map_err(|e| TransportError::iceoryx("create publisher on", name, e))?;
-        let notifier = open_event(node, name)?
-            .notifier_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
+        // The ack listener exists before the notifier announces this publisher,
+        // so no READY is missed.
         let acks = open_event(node, &ack_name(name))?
             .listener_builder()
             .create()
             .map_err(|e| TransportError::iceoryx("create listener on", name, e))?;
+        let notifier = open_event(node, name)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
         Ok(Self {
             name: name.to_string(),
             service,
             publisher,
             notifier,
             acks,
+            max_payload_len,
         })
     }
 
@@ -174,12 +206,18 @@ impl<H: MessageHeader> Publisher<H> {
     ) -> Result<usize, TransportError> {
         let expected = header.payload_len()?;
         if expected != len {
-            return Err(poseflow_contracts::ContractError::PayloadLength {
+            return Err(ContractError::PayloadLength {
                 message: H::NAME,
                 expected,
                 actual: len,
             }
             .into());
+        }
+        if len > self.max_payload_len {
+            return Err(TransportError::PayloadTooLarge {
+                len,
+                max: self.max_payload_len,
+            });
         }
         let mut sample = self
             .publisher
@@ -190,8 +228,26 @@ impl<H: MessageHeader> Publisher<H> {
         let receivers = sample
             .send()
             .map_err(|e| TransportError::iceoryx("send on", &self.name, e))?;
-        self.notify(events::DATA)?;
+        notify(&self.notifier, events::DATA, "notify on", &self.name)?;
         Ok(receivers)
+    }
+
+    /// Waits (up to `timeout`) until `count` receivers have connected and
+    /// said READY.
+    ///
+    /// iceoryx2 completes a connection only when the receiver next touches
+    /// its port, and a blocking send into a half-made connection is dropped;
+    /// so a fast source must not start before its readers answer. Returns
+    /// how many answered.
+    pub fn wait_for_receivers(
+        &self,
+        count: usize,
+        timeout: Duration,
+    ) -> Result<usize, TransportError> {
+        self.connect()?;
+        let ready = self.wait_for_acks(events::READY, count, timeout)?;
+        self.connect()?;
+        Ok(ready)
     }
 
     /// Tells receivers that no more samples follow and waits (up to
@@ -200,38 +256,57 @@ impl<H: MessageHeader> Publisher<H> {
     /// The wait matters: iceoryx2 frees a publisher's samples when it is
     /// dropped, so a stage that exits right after its last send would lose
     /// whatever its receivers had not yet taken.
-    pub fn end_of_stream(
-        &self,
-        timeout: std::time::Duration,
-    ) -> Result<EndOfStream, TransportError> {
-        use iceoryx2::service::port_factory::PortFactory as _;
+    pub fn end_of_stream(&self, timeout: Duration) -> Result<EndOfStream, TransportError> {
         let receivers = self.service.dynamic_config().number_of_subscribers();
-        self.notify(events::END_OF_STREAM)?;
-        let deadline = std::time::Instant::now() + timeout;
-        let mut acknowledged = 0u64;
-        while acknowledged < receivers as u64 {
-            let left = deadline.saturating_duration_since(std::time::Instant::now());
-            if left.is_zero() {
-                tracing::warn!(edge = %self.name, receivers, acknowledged, "end-of-stream not acknowledged by every receiver in time");
-                break;
-            }
-            self.acks
-                .timed_wait(|activation| acknowledged += activation.count, left)
-                .map_err(|e| {
-                    TransportError::iceoryx("wait for acknowledgements on", &self.name, e)
-                })?;
+        notify(
+            &self.notifier,
+            events::END_OF_STREAM,
+            "notify on",
+            &self.name,
+        )?;
+        let acknowledged = self.wait_for_acks(events::END_ACKNOWLEDGED, receivers, timeout)?;
+        if acknowledged < receivers {
+            tracing::warn!(edge = %self.name, receivers, acknowledged, "end-of-stream not acknowledged by every receiver in time");
         }
         Ok(EndOfStream {
             receivers,
-            acknowledged: acknowledged as usize,
+            acknowledged,
         })
     }
 
-    fn notify(&self, id: iceoryx2::port::event_id::EventId) -> Result<(), TransportError> {
-        self.notifier
-            .notify_with_custom_event_id(id)
-            .map(|_| ())
-            .map_err(|e| TransportError::iceoryx("notify on", &self.name, e))
+    fn connect(&self) -> Result<(), TransportError> {
+        self.publisher
+            .update_connections()
+            .map_err(|e| TransportError::iceoryx("connect receivers of", &self.name, e))
+    }
+
+    /// Counts `id` notifications on the ack service until `count` arrived or
+    /// `timeout` passed; other ids are discarded.
+    fn wait_for_acks(
+        &self,
+        id: EventId,
+        count: usize,
+        timeout: Duration,
+    ) -> Result<usize, TransportError> {
+        let deadline = Instant::now() + timeout;
+        let mut seen = 0u64;
+        while seen < count as u64 {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                break;
+            }
+            self.acks
+                .timed_wait(
+                    |activation| {
+                        if activation.id == id {
+                            seen += activation.count;
+                        }
+                    },
+                    left,
+                )
+                .map_err(|e| TransportError::iceoryx("wait for receivers on", &self.name, e))?;
+        }
+        Ok(seen as usize)
     }
 }
 
@@ -285,35 +360,53 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
             .notifier_builder()
             .create()
             .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
-        Ok(Self {
+        let edge = Self {
             name: name.to_string(),
             subscriber,
             listener,
             ack,
-        })
+        };
+        edge.connect()?;
+        Ok(edge)
     }
 
     pub fn name(&self) -> &str {
         &self.name
     }
 
-    /// Consumes pending notifications; returns true when one of them was
-    /// END_OF_STREAM.
+    /// Connects to every publisher now present and tells them READY.
+    fn connect(&self) -> Result<(), TransportError> {
+        self.subscriber
+            .update_connections()
+            .map_err(|e| TransportError::iceoryx("connect to publishers of", &self.name, e))?;
+        notify(&self.ack, events::READY, "signal ready on", &self.name)
+    }
+
+    /// Consumes pending notifications (connecting to new publishers on the
+    /// way); returns true when one of them was END_OF_STREAM.
     pub fn take_events(&self) -> Result<bool, TransportError> {
-        let mut ended = false;
+        let (mut ended, mut new_publisher) = (false, false);
         self.listener
-            .try_wait(|activation| ended |= activation.id == events::END_OF_STREAM)
+            .try_wait(|activation| {
+                ended |= activation.id == events::END_OF_STREAM;
+                new_publisher |= activation.id == events::PUBLISHER_CONNECTED;
+            })
             .map_err(|e| TransportError::iceoryx("wait on listener of", &self.name, e))?;
+        if new_publisher {
+            self.connect()?;
+        }
         Ok(ended)
     }
 
     /// Tells the publisher this receiver has drained the edge after its
     /// end-of-stream.
     pub fn acknowledge_end(&self) -> Result<(), TransportError> {
-        self.ack
-            .notify()
-            .map(|_| ())
-            .map_err(|e| TransportError::iceoryx("acknowledge end-of-stream on", &self.name, e))
+        notify(
+            &self.ack,
+            events::END_ACKNOWLEDGED,
+            "acknowledge end-of-stream on",
+            &self.name,
+        )
     }
 
     /// The next queued message, if any. The header is not yet validated:

@@ -1,0 +1,94 @@
+//! `poseflow run`: launch a graph file as supervised processes.
+
+mod status;
+mod supervisor;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::Args;
+
+use crate::logging::LogFormat;
+
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// Graph file to launch (see deploy/*.toml).
+    #[arg(long)]
+    pub graph: PathBuf,
+
+    /// Name of this graph instance: the namespace of its shared-memory
+    /// services, so two instances can run side by side. Default: the graph's
+    /// name followed by this process id.
+    #[arg(long)]
+    pub instance: Option<String>,
+
+    /// Directories searched for stage executables given by bare name, before
+    /// POSEFLOW_STAGE_PATH, the directory of `poseflow` itself, and PATH.
+    #[arg(long = "stage-path", value_name = "DIR")]
+    pub stage_path: Vec<PathBuf>,
+
+    /// Print a status line per stage this often (milliseconds; 0 = never).
+    #[arg(long, default_value_t = 1000)]
+    pub status_ms: u64,
+
+    /// Validate the graph file and exit without starting anything.
+    #[arg(long)]
+    pub check: bool,
+
+    /// Print a final JSON summary (per stage: restarts, exit status, counters,
+    /// latency) on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Where bare executable names are looked up, in order.
+fn search_path(args: &RunArgs) -> Vec<PathBuf> {
+    let mut dirs = args.stage_path.clone();
+    if let Some(env) = std::env::var_os("POSEFLOW_STAGE_PATH") {
+        dirs.extend(std::env::split_paths(&env));
+    }
+    if let Some(own_dir) = std::env::current_exe()
+        .ok()
+        .and_then(|p| p.parent().map(PathBuf::from))
+    {
+        dirs.push(own_dir);
+    }
+    dirs
+}
+
+pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
+    let graph = poseflow_graph::load(&args.graph, &search_path(&args))?;
+    let instance = args
+        .instance
+        .clone()
+        .unwrap_or_else(|| format!("{}-{}", graph.name, std::process::id()));
+    poseflow_transport::validate_name("graph instance", &instance).context("--instance")?;
+    if args.check {
+        println!(
+            "{}: valid graph `{}` with {} stages and {} edges",
+            args.graph.display(),
+            graph.name,
+            graph.stages.len(),
+            graph.edges.len()
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let options = supervisor::Options {
+        instance,
+        status_every: (args.status_ms > 0)
+            .then(|| std::time::Duration::from_millis(args.status_ms)),
+        log_format,
+    };
+    let report = supervisor::supervise(&graph, &options)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report.to_json())?);
+    } else {
+        eprintln!("{}", report.table());
+    }
+    Ok(if report.failed() {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
+}

@@ -1,0 +1,138 @@
+//! What the supervisor reports: live status lines and the final summary.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use poseflow_contracts::Heartbeat;
+use serde_json::json;
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    Running,
+    Restarting,
+    /// Exited with status 0 and is not to be restarted.
+    Finished,
+    /// Stopped by the supervisor at shutdown.
+    Stopped,
+    /// Failed beyond its restart policy.
+    Failed(String),
+}
+
+impl Outcome {
+    fn label(&self) -> &str {
+        match self {
+            Outcome::Running => "running",
+            Outcome::Restarting => "restarting",
+            Outcome::Finished => "finished",
+            Outcome::Stopped => "stopped",
+            Outcome::Failed(_) => "failed",
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct StageReport {
+    pub name: String,
+    pub pid: u32,
+    pub outcome: Outcome,
+    pub restarts: u32,
+    pub hangs: u32,
+    /// From a death being noticed to the replacement being started.
+    pub restart_latency_ms: Vec<f64>,
+    pub heartbeat: Option<Heartbeat>,
+}
+
+impl StageReport {
+    pub fn new(name: &str) -> Self {
+        Self {
+            name: name.to_string(),
+            pid: 0,
+            outcome: Outcome::Running,
+            restarts: 0,
+            hangs: 0,
+            restart_latency_ms: Vec::new(),
+            heartbeat: None,
+        }
+    }
+
+    fn line(&self, width: usize) -> String {
+        let beat = self.heartbeat.unwrap_or_default();
+        format!(
+            "  {:<width$} {:<10} pid {:>7}  in {:>8}  out {:>8}  drop {:>6}  err {:>4}  restarts {:>2}  p50 {:>7} µs  p99 {:>7} µs",
+            self.name,
+            self.outcome.label(),
+            self.pid,
+            beat.frames_in,
+            beat.frames_out,
+            beat.dropped,
+            beat.errors,
+            self.restarts,
+            beat.latency_p50_us,
+            beat.latency_p99_us,
+        )
+    }
+
+    fn to_json(&self) -> serde_json::Value {
+        let beat = self.heartbeat.unwrap_or_default();
+        json!({
+            "outcome": self.outcome.label(),
+            "failure": match &self.outcome { Outcome::Failed(why) => Some(why.as_str()), _ => None },
+            "restarts": self.restarts,
+            "hangs": self.hangs,
+            "restart_latency_ms": self.restart_latency_ms,
+            "frames_in": beat.frames_in,
+            "frames_out": beat.frames_out,
+            "dropped": beat.dropped,
+            "errors": beat.errors,
+            "p50_us": beat.latency_p50_us,
+            "p99_us": beat.latency_p99_us,
+        })
+    }
+}
+
+pub fn status_lines<'a>(
+    instance: &str,
+    elapsed: Duration,
+    stages: impl Iterator<Item = &'a StageReport>,
+) -> String {
+    let stages: Vec<_> = stages.collect();
+    let width = stages.iter().map(|s| s.name.len()).max().unwrap_or(0);
+    let mut out = format!("poseflow {instance} [{:.1} s]", elapsed.as_secs_f64());
+    for s in stages {
+        out.push('\n');
+        out.push_str(&s.line(width));
+    }
+    out
+}
+
+#[derive(Debug)]
+pub struct Report {
+    pub graph: String,
+    pub instance: String,
+    pub elapsed: Duration,
+    pub stale_nodes_removed_at_exit: usize,
+    pub stages: BTreeMap<String, StageReport>,
+}
+
+impl Report {
+    pub fn failed(&self) -> bool {
+        self.stages
+            .values()
+            .any(|s| matches!(s.outcome, Outcome::Failed(_)))
+    }
+
+    pub fn table(&self) -> String {
+        status_lines(&self.instance, self.elapsed, self.stages.values())
+    }
+
+    pub fn to_json(&self) -> serde_json::Value {
+        json!({
+            "graph": self.graph,
+            "instance": self.instance,
+            "elapsed_s": self.elapsed.as_secs_f64(),
+            "failed": self.failed(),
+            "stale_nodes_removed_at_exit": self.stale_nodes_removed_at_exit,
+            "stages": self.stages.iter().map(|(name, s)| (name.clone(), s.to_json())).collect::<serde_json::Map<_, _>>(),
+        })
+    }
+}

@@ -1,0 +1,56 @@
+//! With `Overflow::Block` a full receiver queue makes the publisher wait, so
+//! nothing is lost.
+
+use std::time::Duration;
+
+use poseflow_contracts::{Header, HypothesesHeader, POSE_LEN};
+use poseflow_transport::{
+    EdgeOptions, EdgeSubscriber, Overflow, Publisher, create_node, edge_service_name,
+};
+
+#[test]
+fn block_overflow_loses_nothing() {
+    let name = edge_service_name(&format!("test-block-{}", std::process::id()), "poses").unwrap();
+    let options = EdgeOptions {
+        queue: 16,
+        overflow: Overflow::Block,
+        max_payload_len: 4096,
+    };
+    let node = create_node("block-receiver").unwrap();
+    let subscriber = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    let sender = std::thread::spawn({
+        let name = name.clone();
+        move || {
+            let node = create_node("block-sender").unwrap();
+            let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+            for frame in 0..200u64 {
+                let header = HypothesesHeader {
+                    header: Header::new(frame, 1),
+                    sample_count: 1,
+                    step_count: 1,
+                };
+                publisher
+                    .publish(header, POSE_LEN, |p| p.fill(frame as f32))
+                    .unwrap();
+            }
+            publisher.end_of_stream(Duration::from_secs(10)).unwrap()
+        }
+    });
+    let mut frames = Vec::new();
+    while frames.len() < 200 {
+        // A slow receiver: the sender must wait for it, not drop.
+        std::thread::sleep(Duration::from_millis(5));
+        while let Some(message) = subscriber.receive().unwrap() {
+            frames.push(message.header().header.frame_id);
+        }
+        if sender.is_finished() {
+            break;
+        }
+    }
+    while let Some(message) = subscriber.receive().unwrap() {
+        frames.push(message.header().header.frame_id);
+    }
+    subscriber.acknowledge_end().unwrap();
+    sender.join().unwrap();
+    assert_eq!(frames, (0..200).collect::<Vec<_>>());
+}

@@ -1,0 +1,267 @@
+//! Whole graphs of real processes over real iceoryx2 shared memory, launched
+//! by `poseflow run`.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use poseflow_e2e::SinkReport;
+
+/// Tests here compare shared-memory listings before and after, so they must
+/// not overlap.
+static SERIAL: Mutex<()> = Mutex::new(());
+
+fn bin_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_testbed-source"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+/// `poseflow` is built by `cargo test --workspace` into the same directory.
+fn poseflow() -> Command {
+    let exe = bin_dir().join("poseflow");
+    assert!(
+        exe.exists(),
+        "{} missing: run the tests with `cargo test --workspace`",
+        exe.display()
+    );
+    let mut command = Command::new(exe);
+    command.env_remove("RUST_LOG");
+    command
+}
+
+/// Every file iceoryx2 keeps in shared memory or under /tmp/iceoryx2.
+fn iceoryx_files() -> BTreeSet<PathBuf> {
+    fn walk(dir: &Path, out: &mut BTreeSet<PathBuf>) {
+        for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let path = entry.path();
+            if path.is_dir() {
+                walk(&path, out);
+            } else {
+                out.insert(path);
+            }
+        }
+    }
+    let mut files = BTreeSet::new();
+    walk(Path::new("/tmp/iceoryx2"), &mut files);
+    for entry in std::fs::read_dir("/dev/shm")
+        .into_iter()
+        .flatten()
+        .flatten()
+    {
+        if entry.file_name().to_string_lossy().starts_with("iox2_") {
+            files.insert(entry.path());
+        }
+    }
+    files
+}
+
+struct Scratch {
+    dir: PathBuf,
+}
+
+impl Scratch {
+    fn new(name: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("poseflow-e2e-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        Self { dir }
+    }
+
+    /// The relay graph with this test's parameters.
+    fn graph(&self, frames: u64, rate_hz: f64, overflow: &str) -> PathBuf {
+        let text =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/graphs/relay.toml"))
+                .unwrap()
+                .replace("frames = 1000", &format!("frames = {frames}"))
+                .replace("rate_hz = 0.0", &format!("rate_hz = {rate_hz}"))
+                .replace(
+                    "overflow = \"block\"",
+                    &format!("overflow = \"{overflow}\""),
+                )
+                .replace(
+                    "report = \"sink-report.json\"",
+                    &format!("report = \"{}\"", self.report_path().display()),
+                );
+        let path = self.dir.join("relay.toml");
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    fn report_path(&self) -> PathBuf {
+        self.dir.join("sink-report.json")
+    }
+
+    fn report(&self) -> SinkReport {
+        serde_json::from_str(
+            &std::fs::read_to_string(self.report_path()).expect("sink wrote its report"),
+        )
+        .unwrap()
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+fn summary(output: &Output) -> serde_json::Value {
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    serde_json::from_str(&stdout).unwrap_or_else(|e| {
+        panic!(
+            "summary is not JSON ({e}):\n{stdout}\nstderr:\n{}",
+            String::from_utf8_lossy(&output.stderr)
+        )
+    })
+}
+
+#[test]
+fn three_processes_pass_every_frame_intact() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("intact");
+    let graph = scratch.graph(1000, 0.0, "block");
+    let output = poseflow()
+        .args(["run", "--json", "--status-ms", "0", "--graph"])
+        .arg(&graph)
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "finished", "{summary}");
+        assert_eq!(summary["stages"][stage]["restarts"], 0, "{summary}");
+    }
+    assert_eq!(summary["stages"]["relay"]["frames_in"], 1000, "{summary}");
+
+    // Back-pressure ("block") loses nothing: every frame, intact, in order.
+    let report = scratch.report();
+    assert_eq!(report.received, 1000, "{report:?}");
+    assert_eq!(report.intact, 1000);
+    assert_eq!(report.relayed, 1000);
+    assert_eq!(
+        (report.first_frame, report.last_frame, report.gaps),
+        (Some(0), Some(999), 0)
+    );
+
+    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
+    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+}
+
+/// Processes whose stage wiring names this stage of this instance.
+fn find_stage_pid(instance: &str, stage: &str) -> Option<u32> {
+    let needle = format!("\"instance\":\"{instance}\",\"stage\":\"{stage}\"");
+    std::fs::read_dir("/proc")
+        .ok()?
+        .flatten()
+        .find_map(|entry| {
+            let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
+            let environ = std::fs::read(entry.path().join("environ")).ok()?;
+            String::from_utf8_lossy(&environ)
+                .contains(&needle)
+                .then_some(pid)
+        })
+}
+
+#[test]
+fn a_killed_stage_is_restarted_and_traffic_resumes() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("kill");
+    // 1,500 frames at 500 Hz: three seconds of traffic; drop-oldest so the
+    // source never waits for the dead relay.
+    let graph = scratch.graph(1500, 500.0, "drop-oldest");
+    let instance = format!("kill-{}", std::process::id());
+    let run = poseflow()
+        .args([
+            "run",
+            "--json",
+            "--status-ms",
+            "0",
+            "--instance",
+            &instance,
+            "--graph",
+        ])
+        .arg(&graph)
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let relay = loop {
+        if let Some(pid) = find_stage_pid(&instance, "relay") {
+            break pid;
+        }
+        assert!(Instant::now() < deadline, "relay never started");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    // Let traffic flow for a moment, then kill the relay mid-stream.
+    std::thread::sleep(Duration::from_millis(800));
+    // SAFETY: signalling a process this test started (through poseflow).
+    assert_eq!(unsafe { libc::kill(relay as i32, libc::SIGKILL) }, 0);
+
+    let output = run.wait_with_output().unwrap();
+    let summary = summary(&output);
+    assert!(
+        output.status.success(),
+        "{summary}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let relay_summary = &summary["stages"]["relay"];
+    assert_eq!(relay_summary["restarts"], 1, "{summary}");
+    let latency = relay_summary["restart_latency_ms"][0].as_f64().unwrap();
+    eprintln!("relay restarted {latency:.0} ms after its death was noticed");
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "finished", "{summary}");
+    }
+
+    // Nothing corrupted; what was lost while the relay was down is counted;
+    // traffic resumed up to the last frame.
+    let report = scratch.report();
+    assert_eq!(report.corrupted, 0, "{report:?}");
+    assert_eq!(report.intact, report.received);
+    assert_eq!(
+        report.last_frame,
+        Some(1499),
+        "traffic did not resume: {report:?}"
+    );
+    let first = report.first_frame.unwrap();
+    assert_eq!(report.received + report.gaps, 1500 - first, "{report:?}");
+    eprintln!("sink: {report:?}");
+
+    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
+    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+}
+
+#[test]
+fn an_invalid_graph_is_rejected_before_anything_starts() {
+    let scratch = Scratch::new("invalid");
+    let graph = scratch.graph(10, 0.0, "block");
+    let text = std::fs::read_to_string(&graph)
+        .unwrap()
+        .replace("inputs = [\"raw\"]", "inputs = [\"raw\", \"missing\"]");
+    std::fs::write(&graph, text).unwrap();
+    let output = poseflow()
+        .args(["run", "--graph"])
+        .arg(&graph)
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("relay.toml")
+            && stderr.contains("`stages.relay.inputs`")
+            && stderr.contains("\"missing\""),
+        "{stderr}"
+    );
+}

@@ -1,0 +1,201 @@
+//! Test-bed stages: a counting source, a relay that negates, and a sink that
+//! checks every value. Frame `f` carries the values [`value`]`(f, i)`, so any
+//! corruption on the way is detected exactly.
+
+use std::path::PathBuf;
+
+use poseflow_contracts::{Header, HypothesesHeader, MessageHeader, POSE_LEN, Stage};
+use poseflow_graph::StageWiring;
+use poseflow_runtime::{Emitter, Input, Sink, Source, SourceStep, Transform};
+
+/// The value at index `i` of frame `f`: an integer below 2²⁴, exact in f32.
+pub fn value(frame: u64, index: usize) -> f32 {
+    ((frame.wrapping_mul(7919) + index as u64 * 104_729) % 1_000_003) as f32
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TestbedError {
+    #[error("frame {frame}: value {index} is {found}, expected {expected}")]
+    Corrupted {
+        frame: u64,
+        index: usize,
+        found: f32,
+        expected: f32,
+    },
+    #[error("{0}")]
+    Emit(#[from] poseflow_runtime::EmitError),
+    #[error("cannot write report {path}: {source}")]
+    Report {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+fn param_u64(wiring: &StageWiring, key: &str, default: u64) -> Result<u64, String> {
+    match wiring.params.get(key) {
+        None => Ok(default),
+        Some(v) => v
+            .as_u64()
+            .ok_or_else(|| format!("param `{key}`: expected a non-negative integer, got {v}")),
+    }
+}
+
+/// Emits `frames` Hypotheses messages of `samples` poses each.
+#[derive(Debug)]
+pub struct CountingSource {
+    next_frame: u64,
+    frames: u64,
+    samples: u32,
+}
+
+impl CountingSource {
+    pub fn from_wiring(wiring: &StageWiring) -> Result<Self, String> {
+        Ok(Self {
+            next_frame: 0,
+            frames: param_u64(wiring, "frames", 1000)?,
+            samples: param_u64(wiring, "samples", 4)? as u32,
+        })
+    }
+}
+
+impl Source for CountingSource {
+    type Out = HypothesesHeader;
+    type Error = TestbedError;
+    const SLOT: Option<Stage> = Some(Stage::Source);
+
+    fn next(
+        &mut self,
+        output: &mut dyn Emitter<HypothesesHeader>,
+    ) -> Result<SourceStep, TestbedError> {
+        if self.next_frame >= self.frames {
+            return Ok(SourceStep::Finished);
+        }
+        let frame = self.next_frame;
+        self.next_frame += 1;
+        let header = HypothesesHeader {
+            header: Header::new(frame, 1),
+            sample_count: self.samples,
+            step_count: 1,
+        };
+        let len = self.samples as usize * POSE_LEN;
+        output.emit(header, len, &mut |payload| {
+            for (i, v) in payload.iter_mut().enumerate() {
+                *v = value(frame, i);
+            }
+        })?;
+        Ok(SourceStep::Continue)
+    }
+}
+
+/// Negates every value, keeping header and stamps.
+#[derive(Debug, Default)]
+pub struct NegatingRelay;
+
+impl Transform for NegatingRelay {
+    type In = HypothesesHeader;
+    type Out = HypothesesHeader;
+    type Error = TestbedError;
+    const SLOT: Option<Stage> = Some(Stage::Sampler);
+
+    fn process(
+        &mut self,
+        input: Input<'_, HypothesesHeader>,
+        output: &mut dyn Emitter<HypothesesHeader>,
+    ) -> Result<(), TestbedError> {
+        let payload = input.payload;
+        output.emit(*input.header, payload.len(), &mut |out| {
+            for (o, v) in out.iter_mut().zip(payload) {
+                *o = -v;
+            }
+        })?;
+        Ok(())
+    }
+}
+
+/// What the checking sink saw, written as JSON when it finishes.
+#[derive(Debug, Default, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SinkReport {
+    pub received: u64,
+    pub intact: u64,
+    pub corrupted: u64,
+    pub first_frame: Option<u64>,
+    pub last_frame: Option<u64>,
+    /// Frames missing between received ones (dropped upstream).
+    pub gaps: u64,
+    /// Received frames that passed through the relay stamp.
+    pub relayed: u64,
+}
+
+/// Checks that every frame carries `-value(f, i)` (one negating relay).
+#[derive(Debug)]
+pub struct CheckingSink {
+    report_path: PathBuf,
+    report: SinkReport,
+}
+
+impl CheckingSink {
+    pub fn from_wiring(wiring: &StageWiring) -> Result<Self, String> {
+        let path = wiring
+            .params
+            .get("report")
+            .and_then(|v| v.as_str())
+            .ok_or("param `report`: expected a file path")?;
+        Ok(Self {
+            report_path: PathBuf::from(path),
+            report: SinkReport::default(),
+        })
+    }
+
+    fn check(input: &Input<'_, HypothesesHeader>) -> Result<(), TestbedError> {
+        let frame = input.header.header().frame_id;
+        for (index, found) in input.payload.iter().enumerate() {
+            let expected = -value(frame, index);
+            if *found != expected {
+                return Err(TestbedError::Corrupted {
+                    frame,
+                    index,
+                    found: *found,
+                    expected,
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Sink for CheckingSink {
+    type In = HypothesesHeader;
+    type Error = TestbedError;
+
+    fn consume(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestbedError> {
+        let frame = input.header.header().frame_id;
+        let report = &mut self.report;
+        report.received += 1;
+        if let Some(last) = report.last_frame {
+            report.gaps += frame.saturating_sub(last + 1);
+        }
+        report.first_frame.get_or_insert(frame);
+        report.last_frame = Some(frame);
+        if input.header.header().stamps.get(Stage::Sampler).is_some() {
+            report.relayed += 1;
+        }
+        match Self::check(&input) {
+            Ok(()) => {
+                report.intact += 1;
+                Ok(())
+            }
+            Err(err) => {
+                report.corrupted += 1;
+                Err(err)
+            }
+        }
+    }
+
+    fn finish(&mut self) -> Result<(), TestbedError> {
+        let json = serde_json::to_string_pretty(&self.report).expect("plain data");
+        std::fs::write(&self.report_path, json).map_err(|source| TestbedError::Report {
+            path: self.report_path.clone(),
+            source,
+        })
+    }
+}
