@@ -25,7 +25,7 @@ impl StageState {
     }
 }
 
-/// User header of a Heartbeat (128 bytes, alignment 8). No payload. Counters
+/// User header of a Heartbeat (136 bytes, alignment 8). No payload. Counters
 /// are cumulative since the process started.
 ///
 /// | offset | size | field          | type | meaning |
@@ -39,6 +39,8 @@ impl StageState {
 /// | 112    | 8    | errors         | u64  | messages rejected or failed in `process` |
 /// | 120    | 4    | latency_p50_us | u32  | median `process` time, µs |
 /// | 124    | 4    | latency_p99_us | u32  | 99th percentile `process` time, µs |
+/// | 128    | 4    | busy_us        | u32  | time in the current `process` call, sends excluded (0 when idle); a stage stuck in its own code shows it growing |
+/// | 132    | 4    | blocked_us     | u32  | time the current send has waited for a full downstream queue (back-pressure, not a hang) |
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
 #[type_name("poseflow/Heartbeat/v1")]
@@ -52,6 +54,8 @@ pub struct Heartbeat {
     pub errors: u64,
     pub latency_p50_us: u32,
     pub latency_p99_us: u32,
+    pub busy_us: u32,
+    pub blocked_us: u32,
 }
 
 impl MessageHeader for Heartbeat {

@@ -100,9 +100,9 @@ mod layout {
         header @ 0, best @ 80, mean @ 128, covariance @ 176, rotation_trace @ 320,
         selection @ 324, mode_count @ 328, hypothesis_count @ 332);
     assert_layout!(GraspsHeader, size 88, align 8, header @ 0, grasp_count @ 80, hypothesis_count @ 84);
-    assert_layout!(Heartbeat, size 128, align 8,
+    assert_layout!(Heartbeat, size 136, align 8,
         header @ 0, pid @ 80, state @ 84, frames_in @ 88, frames_out @ 96, dropped @ 104,
-        errors @ 112, latency_p50_us @ 120, latency_p99_us @ 124);
+        errors @ 112, latency_p50_us @ 120, latency_p99_us @ 124, busy_us @ 128, blocked_us @ 132);
     assert_layout!(NextViewHeader, size 144, align 8,
         header @ 0, chosen @ 80, expected_rotation_trace @ 128, current_rotation_trace @ 132,
         candidate_count @ 136, reserved @ 140);

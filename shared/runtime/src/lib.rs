@@ -10,10 +10,11 @@
 //! end-of-stream, and exits cleanly on SIGINT/SIGTERM.
 
 mod error;
+mod heartbeat;
+mod liveness;
 mod logging;
 mod process;
 mod stage;
-mod stats;
 
 pub use error::RuntimeError;
 pub use logging::init_logging;

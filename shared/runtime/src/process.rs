@@ -1,18 +1,20 @@
 //! Running a stage as a process of a graph over iceoryx2.
 
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
-use poseflow_contracts::{Heartbeat, MessageHeader, Stage, StageState};
+use poseflow_contracts::{MessageHeader, Stage, StageState};
 use poseflow_graph::{EdgeWiring, OverflowPolicy, StageWiring};
 use poseflow_transport::{
-    EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, Publisher, create_node,
+    EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, Publisher, TransportError, create_node,
 };
 
+use crate::heartbeat::HeartbeatThread;
+use crate::liveness::Liveness;
 use crate::stage::{EmitError, Emitter, Input, Sink, Source, SourceStep, Transform};
-use crate::stats::Stats;
 use crate::{RuntimeError, init_logging};
 
 /// How long a finished stage waits for its receivers to drain before exiting
@@ -20,17 +22,6 @@ use crate::{RuntimeError, init_logging};
 const END_OF_STREAM_TIMEOUT: Duration = Duration::from_secs(30);
 /// How long a stage waits at start-up for the stages reading its output.
 const READERS_TIMEOUT: Duration = Duration::from_secs(10);
-/// How long a stage waits for the supervisor to take its final heartbeat.
-const FINAL_HEARTBEAT_TIMEOUT: Duration = Duration::from_secs(1);
-
-/// The parts every stage process has.
-struct StageProcess {
-    wiring: StageWiring,
-    node: Node,
-    heartbeat: Publisher<Heartbeat>,
-    heartbeat_period: Duration,
-    stats: Stats,
-}
 
 fn edge_options(edge: &EdgeWiring) -> EdgeOptions {
     EdgeOptions {
@@ -41,6 +32,18 @@ fn edge_options(edge: &EdgeWiring) -> EdgeOptions {
         },
         max_payload_len: edge.max_payload_len,
     }
+}
+
+fn waitset_error(err: impl std::fmt::Debug) -> RuntimeError {
+    RuntimeError::WaitSet(format!("{err:?}"))
+}
+
+/// The parts every stage process has.
+struct StageProcess {
+    wiring: StageWiring,
+    node: Node,
+    liveness: Arc<Liveness>,
+    heartbeat: HeartbeatThread,
 }
 
 /// How an event loop ended.
@@ -70,22 +73,19 @@ impl StageProcess {
             });
         }
         let node = create_node(&wiring.stage)?;
-        let heartbeat = Publisher::create(
-            &node,
+        let liveness = Arc::new(Liveness::new());
+        let period = Duration::from_millis(wiring.heartbeat_ms);
+        let heartbeat = HeartbeatThread::spawn(
+            &wiring.stage,
             &wiring.heartbeat_service,
-            &EdgeOptions {
-                queue: 1,
-                overflow: Overflow::DropOldest,
-                max_payload_len: 1,
-            },
+            period,
+            liveness.clone(),
         )?;
-        let heartbeat_period = Duration::from_millis(wiring.heartbeat_ms);
         Ok(Self {
             wiring,
             node,
+            liveness,
             heartbeat,
-            heartbeat_period,
-            stats: Stats::new(),
         })
     }
 
@@ -110,47 +110,24 @@ impl StageProcess {
         Ok(publisher)
     }
 
-    fn beat(heartbeat: &Publisher<Heartbeat>, stats: &Stats, state: StageState) {
-        if let Err(err) = heartbeat.publish(stats.heartbeat(state), 0, |_| {}) {
-            tracing::warn!(%err, "heartbeat not sent");
-        }
-    }
-
-    /// The last heartbeat, with the final counters. It is handed over with
-    /// the end-of-stream handshake: a sample still queued when its
-    /// publisher exits would be lost with it.
-    fn last_beat(heartbeat: &Publisher<Heartbeat>, stats: &Stats) {
-        Self::beat(heartbeat, stats, StageState::Finished);
-        if let Err(err) = heartbeat.end_of_stream(FINAL_HEARTBEAT_TIMEOUT) {
-            tracing::warn!(%err, "final heartbeat not acknowledged");
-        }
-    }
-
-    /// Sleeps until the input or the heartbeat timer wakes it; hands every
-    /// valid message to `on_input`.
+    /// Sleeps until the input wakes it; hands every valid message to
+    /// `on_input`.
     fn event_loop<H: MessageHeader>(
-        &mut self,
+        &self,
         input: &EdgeSubscriber<H>,
-        mut on_input: impl FnMut(Input<'_, H>, &mut Stats),
+        mut on_input: impl FnMut(Input<'_, H>),
     ) -> Result<LoopEnd, RuntimeError> {
         let waitset = WaitSetBuilder::new()
             .create::<Ipc>()
-            .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
-        let input_guard = waitset
-            .attach_notification(input)
-            .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
-        let beat_guard = waitset
-            .attach_interval(self.heartbeat_period)
-            .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
-        let (stats, heartbeat) = (&mut self.stats, &self.heartbeat);
-        Self::beat(heartbeat, stats, StageState::Running);
+            .map_err(waitset_error)?;
+        let input_guard = waitset.attach_notification(input).map_err(waitset_error)?;
         let mut ended = false;
         let mut failure = None;
         let run = waitset.wait_and_process(|id| {
             if id.has_event_from(&input_guard) {
                 let step = input.take_events().and_then(|end| {
                     ended |= end;
-                    drain(input, stats, &mut on_input)
+                    drain(input, &self.liveness, &mut on_input)
                 });
                 if let Err(err) = step {
                     failure = Some(err);
@@ -160,18 +137,20 @@ impl StageProcess {
                     return CallbackProgression::Stop;
                 }
             }
-            if id.has_event_from(&beat_guard) {
-                Self::beat(heartbeat, stats, StageState::Running);
-            }
             CallbackProgression::Continue
         });
         if let Some(err) = failure {
             return Err(err.into());
         }
-        match run.map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))? {
+        match run.map_err(waitset_error)? {
             WaitSetRunResult::StopRequest if ended => Ok(LoopEnd::EndOfStream),
             _ => Ok(LoopEnd::Terminated),
         }
+    }
+
+    fn finish(self) {
+        self.liveness.set_state(StageState::Finished);
+        self.heartbeat.finish();
     }
 }
 
@@ -179,29 +158,26 @@ impl StageProcess {
 /// counts gaps, times the handler.
 fn drain<H: MessageHeader>(
     input: &EdgeSubscriber<H>,
-    stats: &mut Stats,
-    on_input: &mut impl FnMut(Input<'_, H>, &mut Stats),
-) -> Result<(), poseflow_transport::TransportError> {
+    liveness: &Liveness,
+    on_input: &mut impl FnMut(Input<'_, H>),
+) -> Result<(), TransportError> {
     while let Some(message) = input.receive()? {
         let header = message.header();
         let frame = header.header().frame_id;
         if let Err(err) = header.check_payload(message.payload()) {
-            stats.errors += 1;
+            liveness.count_error();
             tracing::warn!(edge = input.name(), frame, %err, "message rejected");
             continue;
         }
-        stats.frames_in += 1;
-        stats.observe_frame(frame);
+        liveness.count_received(frame);
         let _span = tracing::debug_span!("frame", id = frame).entered();
         let started = Instant::now();
-        on_input(
-            Input {
-                header,
-                payload: message.payload(),
-            },
-            stats,
-        );
-        stats.record_latency(started.elapsed());
+        liveness.work_started();
+        on_input(Input {
+            header,
+            payload: message.payload(),
+        });
+        liveness.work_finished(started.elapsed());
     }
     Ok(())
 }
@@ -210,7 +186,7 @@ fn drain<H: MessageHeader>(
 struct IpcEmitter<'a, H: MessageHeader> {
     publisher: &'a Publisher<H>,
     slot: Option<Stage>,
-    sent: &'a mut u64,
+    liveness: &'a Liveness,
 }
 
 impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
@@ -223,12 +199,12 @@ impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
         if let Some(slot) = self.slot {
             header.header_mut().stamps.stamp(slot);
         }
-        let receivers = self
-            .publisher
-            .publish(header, len, fill)
-            .map_err(|e| EmitError(e.to_string()))?;
+        self.liveness.send_started();
+        let sent = self.publisher.publish(header, len, fill);
+        self.liveness.send_finished();
+        let receivers = sent.map_err(|e| EmitError(e.to_string()))?;
         tracing::trace!(receivers, "published");
-        *self.sent += 1;
+        self.liveness.count_sent();
         Ok(())
     }
 }
@@ -272,29 +248,30 @@ pub fn run_transform<T: Transform>(
     make: impl FnOnce(&StageWiring) -> Result<T, String>,
 ) -> ExitCode {
     exit((|| {
-        let mut process = StageProcess::start(1, 1)?;
+        let process = StageProcess::start(1, 1)?;
         let mut stage = build(&process.wiring, make)?;
         let _span = tracing::info_span!("stage", name = %process.wiring.stage).entered();
         let input = process.input::<T::In>()?;
         let output = process.output::<T::Out>()?;
         tracing::info!(input = input.name(), output = output.name(), "running");
-        let end = process.event_loop(&input, |message, stats| {
+        let liveness = &process.liveness;
+        let end = process.event_loop(&input, |message| {
             let mut emitter = IpcEmitter {
                 publisher: &output,
                 slot: T::SLOT,
-                sent: &mut stats.frames_out,
+                liveness,
             };
             if let Err(err) = stage.process(message, &mut emitter) {
-                stats.errors += 1;
+                liveness.count_error();
                 tracing::warn!(%err, "process failed; frame skipped");
             }
         })?;
         if let LoopEnd::EndOfStream = end {
-            StageProcess::beat(&process.heartbeat, &process.stats, StageState::Draining);
+            process.liveness.set_state(StageState::Draining);
             finish_output(&output);
             input.acknowledge_end()?;
         }
-        StageProcess::last_beat(&process.heartbeat, &process.stats);
+        process.finish();
         Ok(())
     })())
 }
@@ -302,14 +279,15 @@ pub fn run_transform<T: Transform>(
 /// Runs a [`Sink`] as a graph process.
 pub fn run_sink<K: Sink>(make: impl FnOnce(&StageWiring) -> Result<K, String>) -> ExitCode {
     exit((|| {
-        let mut process = StageProcess::start(1, 0)?;
+        let process = StageProcess::start(1, 0)?;
         let mut sink = build(&process.wiring, make)?;
         let _span = tracing::info_span!("stage", name = %process.wiring.stage).entered();
         let input = process.input::<K::In>()?;
         tracing::info!(input = input.name(), "running");
-        let end = process.event_loop(&input, |message, stats| {
+        let liveness = &process.liveness;
+        let end = process.event_loop(&input, |message| {
             if let Err(err) = sink.consume(message) {
-                stats.errors += 1;
+                liveness.count_error();
                 tracing::warn!(%err, "consume failed; frame skipped");
             }
         })?;
@@ -319,7 +297,7 @@ pub fn run_sink<K: Sink>(make: impl FnOnce(&StageWiring) -> Result<K, String>) -
         if let LoopEnd::EndOfStream = end {
             input.acknowledge_end()?;
         }
-        StageProcess::last_beat(&process.heartbeat, &process.stats);
+        process.finish();
         Ok(())
     })())
 }
@@ -328,7 +306,7 @@ pub fn run_sink<K: Sink>(make: impl FnOnce(&StageWiring) -> Result<K, String>) -
 /// on a timer; without, as fast as its output edge accepts.
 pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String>) -> ExitCode {
     exit((|| {
-        let mut process = StageProcess::start(0, 1)?;
+        let process = StageProcess::start(0, 1)?;
         let mut source = build(&process.wiring, make)?;
         let _span = tracing::info_span!("stage", name = %process.wiring.stage).entered();
         let output = process.output::<S::Out>()?;
@@ -336,94 +314,62 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
             .wiring
             .params
             .get("rate_hz")
-            .and_then(|v| v.as_f64());
+            .and_then(|v| v.as_f64())
+            .filter(|hz| *hz > 0.0);
         tracing::info!(output = output.name(), ?rate_hz, "running");
-        let StageProcess {
-            node,
-            heartbeat,
-            heartbeat_period,
-            stats,
-            ..
-        } = &mut process;
-        let mut step = |stats: &mut Stats| -> SourceStep {
+        let liveness = &process.liveness;
+        let mut step = || -> SourceStep {
             let mut emitter = IpcEmitter {
                 publisher: &output,
                 slot: S::SLOT,
-                sent: &mut stats.frames_out,
+                liveness,
             };
             let started = Instant::now();
+            liveness.work_started();
             let result = source.next(&mut emitter);
-            stats.record_latency(started.elapsed());
+            liveness.work_finished(started.elapsed());
             result.unwrap_or_else(|err| {
-                stats.errors += 1;
+                liveness.count_error();
                 tracing::warn!(%err, "source failed; frame skipped");
                 SourceStep::Continue
             })
         };
-        let finished = match rate_hz.filter(|hz| *hz > 0.0) {
-            Some(hz) => paced(
-                heartbeat,
-                *heartbeat_period,
-                stats,
-                Duration::from_secs_f64(1.0 / hz),
-                &mut step,
-            )?,
-            None => {
-                let mut last_beat = Instant::now();
-                StageProcess::beat(heartbeat, stats, StageState::Running);
-                loop {
-                    // Returns an error once SIGINT/SIGTERM arrived; does not sleep.
-                    if node.wait(Duration::ZERO).is_err() {
-                        break false;
-                    }
-                    if step(stats) == SourceStep::Finished {
-                        break true;
-                    }
-                    if last_beat.elapsed() >= *heartbeat_period {
-                        StageProcess::beat(heartbeat, stats, StageState::Running);
-                        last_beat = Instant::now();
-                    }
+        let finished = match rate_hz {
+            Some(hz) => paced(Duration::from_secs_f64(1.0 / hz), &mut step)?,
+            // As fast as possible; `wait(0)` only checks for SIGINT/SIGTERM.
+            None => loop {
+                if process.node.wait(Duration::ZERO).is_err() {
+                    break false;
                 }
-            }
+                if step() == SourceStep::Finished {
+                    break true;
+                }
+            },
         };
         if finished {
-            StageProcess::beat(heartbeat, stats, StageState::Draining);
+            process.liveness.set_state(StageState::Draining);
             finish_output(&output);
         }
-        StageProcess::last_beat(heartbeat, stats);
+        process.finish();
         Ok(())
     })())
 }
 
 /// The timer-driven source loop; returns whether the source finished.
-fn paced(
-    heartbeat: &Publisher<Heartbeat>,
-    heartbeat_period: Duration,
-    stats: &mut Stats,
-    period: Duration,
-    step: &mut impl FnMut(&mut Stats) -> SourceStep,
-) -> Result<bool, RuntimeError> {
+fn paced(period: Duration, step: &mut impl FnMut() -> SourceStep) -> Result<bool, RuntimeError> {
     let waitset = WaitSetBuilder::new()
         .create::<Ipc>()
-        .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
-    let tick = waitset
-        .attach_interval(period)
-        .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
-    let beat = waitset
-        .attach_interval(heartbeat_period)
-        .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
+        .map_err(waitset_error)?;
+    let tick = waitset.attach_interval(period).map_err(waitset_error)?;
     let mut finished = false;
     waitset
         .wait_and_process(|id| {
-            if id.has_event_from(&tick) && step(stats) == SourceStep::Finished {
+            if id.has_event_from(&tick) && step() == SourceStep::Finished {
                 finished = true;
                 return CallbackProgression::Stop;
             }
-            if id.has_event_from(&beat) {
-                StageProcess::beat(heartbeat, stats, StageState::Running);
-            }
             CallbackProgression::Continue
         })
-        .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
+        .map_err(waitset_error)?;
     Ok(finished)
 }

@@ -23,6 +23,12 @@ fn block_overflow_loses_nothing() {
         move || {
             let node = create_node("block-sender").unwrap();
             let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+            assert_eq!(
+                publisher
+                    .wait_for_receivers(1, Duration::from_secs(10))
+                    .unwrap(),
+                1
+            );
             for frame in 0..200u64 {
                 let header = HypothesesHeader {
                     header: Header::new(frame, 1),
@@ -40,6 +46,8 @@ fn block_overflow_loses_nothing() {
     while frames.len() < 200 {
         // A slow receiver: the sender must wait for it, not drop.
         std::thread::sleep(Duration::from_millis(5));
+        // Events carry the READY handshake with a new publisher.
+        subscriber.take_events().unwrap();
         while let Some(message) = subscriber.receive().unwrap() {
             frames.push(message.header().header.frame_id);
         }

@@ -24,6 +24,9 @@ fn samples_and_end_of_stream_cross_shared_memory() {
         move || {
             let node = create_node("roundtrip-sender").unwrap();
             let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+            publisher
+                .wait_for_receivers(1, std::time::Duration::from_secs(10))
+                .unwrap();
             for frame in 0..10u64 {
                 let header = HypothesesHeader {
                     header: Header::new(frame, 3),

@@ -86,6 +86,7 @@ impl StageReport {
             "errors": beat.errors,
             "p50_us": beat.latency_p50_us,
             "p99_us": beat.latency_p99_us,
+            "blocked_us": beat.blocked_us,
         })
     }
 }

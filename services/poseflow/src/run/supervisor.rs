@@ -142,6 +142,18 @@ impl Supervised<'_> {
         self.next_backoff = (self.next_backoff * 2).min(self.stage.restart.max_backoff);
     }
 
+    /// Why the stage counts as hung, if it does: silent (the process is
+    /// frozen) or stuck in its own code. Time spent waiting on a full
+    /// downstream queue does not count.
+    fn hung(&self, now: Instant, timeout: Duration) -> Option<&'static str> {
+        if now.duration_since(self.last_heartbeat_at) > timeout {
+            return Some("no heartbeat within graph.heartbeat_timeout_ms");
+        }
+        let beat = self.report.heartbeat.filter(|b| b.pid == self.report.pid)?;
+        (u128::from(beat.busy_us) > timeout.as_micros())
+            .then_some("busy in one message longer than graph.heartbeat_timeout_ms")
+    }
+
     fn kill(&mut self, signal: i32) {
         if let Some(child) = &self.child {
             // SAFETY: sending a signal to our own child's pid.
@@ -255,8 +267,8 @@ fn step(stages: &mut [Supervised<'_>], graph: &Graph, options: &Options) -> anyh
         if let Some(child) = &mut s.child {
             if let Some(status) = child.try_wait().context("waiting for a stage")? {
                 s.on_exit(status);
-            } else if now.duration_since(s.last_heartbeat_at) > graph.heartbeat_timeout {
-                tracing::error!(stage = %s.stage.name, timeout_ms = graph.heartbeat_timeout.as_millis() as u64, "no heartbeat: stage hung, killing it");
+            } else if let Some(reason) = s.hung(now, graph.heartbeat_timeout) {
+                tracing::error!(stage = %s.stage.name, reason, "stage hung; killing it");
                 s.report.hangs += 1;
                 s.kill(libc::SIGKILL);
             }

@@ -1,0 +1,105 @@
+//! The thread that publishes a stage's heartbeat.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use poseflow_contracts::{Heartbeat, StageState};
+use poseflow_transport::{EdgeOptions, Overflow, Publisher, create_node};
+
+use crate::RuntimeError;
+use crate::liveness::Liveness;
+
+/// How long the last heartbeat waits for the supervisor to take it.
+const FINAL_HEARTBEAT_TIMEOUT: Duration = Duration::from_secs(1);
+
+#[derive(Debug)]
+pub(crate) struct HeartbeatThread {
+    stop: Arc<AtomicBool>,
+    handle: JoinHandle<()>,
+}
+
+impl HeartbeatThread {
+    /// Starts publishing on `service` every `period`. Returns once the
+    /// publisher exists, so start-up failures surface here.
+    pub fn spawn(
+        stage: &str,
+        service: &str,
+        period: Duration,
+        liveness: Arc<Liveness>,
+    ) -> Result<Self, RuntimeError> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        let handle = std::thread::Builder::new()
+            .name("heartbeat".into())
+            .spawn({
+                let (stop, node_name, service) = (
+                    stop.clone(),
+                    format!("{stage}-heartbeat"),
+                    service.to_string(),
+                );
+                move || {
+                    // iceoryx2 ports are bound to the thread that made them.
+                    let setup = create_node(&node_name).and_then(|node| {
+                        let options = EdgeOptions {
+                            queue: 1,
+                            overflow: Overflow::DropOldest,
+                            max_payload_len: 1,
+                        };
+                        Publisher::<Heartbeat>::create(&node, &service, &options).map(|p| (node, p))
+                    });
+                    let (node, publisher) = match setup {
+                        Ok(ok) => {
+                            let _ = ready_tx.send(Ok(()));
+                            ok
+                        }
+                        Err(err) => {
+                            let _ = ready_tx.send(Err(err));
+                            return;
+                        }
+                    };
+                    let beat = || {
+                        if let Err(err) = publisher.publish(liveness.heartbeat(), 0, |_| {}) {
+                            tracing::warn!(%err, "heartbeat not sent");
+                        }
+                    };
+                    // `wait` fails once SIGINT/SIGTERM arrived; the main thread
+                    // then finishes and asks for the last beat.
+                    while !stop.load(Ordering::Relaxed) {
+                        beat();
+                        if node.wait(period).is_err() {
+                            while !stop.load(Ordering::Relaxed) {
+                                std::thread::park_timeout(Duration::from_millis(10));
+                            }
+                        }
+                    }
+                    // The final counters travel with the end-of-stream
+                    // handshake: a sample still queued when its publisher
+                    // exits is lost with it.
+                    liveness.set_state(StageState::Finished);
+                    beat();
+                    if let Err(err) = publisher.end_of_stream(FINAL_HEARTBEAT_TIMEOUT) {
+                        tracing::warn!(%err, "final heartbeat not acknowledged");
+                    }
+                }
+            })
+            .map_err(|e| {
+                RuntimeError::WaitSet(format!("cannot start the heartbeat thread: {e}"))
+            })?;
+        match ready_rx.recv() {
+            Ok(Ok(())) => Ok(Self { stop, handle }),
+            Ok(Err(err)) => Err(err.into()),
+            Err(_) => Err(RuntimeError::WaitSet(
+                "heartbeat thread died at start-up".into(),
+            )),
+        }
+    }
+
+    /// Sends the final heartbeat and joins the thread.
+    pub fn finish(self) {
+        self.stop.store(true, Ordering::Relaxed);
+        self.handle.thread().unpark();
+        let _ = self.handle.join();
+    }
+}

@@ -1,0 +1,182 @@
+//! Counters and timing of one stage process, shared between the thread
+//! doing the work and the thread publishing heartbeats.
+//!
+//! The heartbeat has its own thread so that a stage waiting on back-pressure
+//! (a full downstream queue) still reports in; hang detection then looks at
+//! `busy_us`, the time spent in the stage's own code, not at silence.
+
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering::Relaxed};
+use std::time::Duration;
+
+use hdrhistogram::Histogram;
+use poseflow_contracts::{Header, Heartbeat, StageState, monotonic_ns};
+
+#[derive(Debug)]
+pub(crate) struct Liveness {
+    frames_in: AtomicU64,
+    frames_out: AtomicU64,
+    dropped: AtomicU64,
+    errors: AtomicU64,
+    /// `u64::MAX` until the first frame.
+    last_frame: AtomicU64,
+    state: AtomicU32,
+    /// Monotonic ns at which the current unit of work began; 0 when idle.
+    work_started_ns: AtomicU64,
+    /// Time spent sending during the current unit of work.
+    work_send_ns: AtomicU64,
+    /// Monotonic ns at which the current send began; 0 when not sending.
+    send_started_ns: AtomicU64,
+    latency_us: Mutex<Histogram<u64>>,
+}
+
+fn micros(ns: u64) -> u32 {
+    (ns / 1000).min(u64::from(u32::MAX)) as u32
+}
+
+impl Liveness {
+    pub fn new() -> Self {
+        Self {
+            frames_in: AtomicU64::new(0),
+            frames_out: AtomicU64::new(0),
+            dropped: AtomicU64::new(0),
+            errors: AtomicU64::new(0),
+            last_frame: AtomicU64::new(u64::MAX),
+            state: AtomicU32::new(StageState::Running as u32),
+            work_started_ns: AtomicU64::new(0),
+            work_send_ns: AtomicU64::new(0),
+            send_started_ns: AtomicU64::new(0),
+            // 1 µs .. 60 s at 3 significant digits.
+            latency_us: Mutex::new(
+                Histogram::new_with_bounds(1, 60_000_000, 3).expect("valid histogram bounds"),
+            ),
+        }
+    }
+
+    pub fn set_state(&self, state: StageState) {
+        self.state.store(state as u32, Relaxed);
+    }
+
+    pub fn count_error(&self) {
+        self.errors.fetch_add(1, Relaxed);
+    }
+
+    pub fn count_sent(&self) {
+        self.frames_out.fetch_add(1, Relaxed);
+    }
+
+    /// Counts an accepted input and the frames missing between the previous
+    /// frame id and this one. A smaller id means the source restarted its
+    /// numbering; that is not a drop.
+    pub fn count_received(&self, frame_id: u64) {
+        self.frames_in.fetch_add(1, Relaxed);
+        let last = self.last_frame.swap(frame_id, Relaxed);
+        if last != u64::MAX && frame_id > last + 1 {
+            let missing = frame_id - last - 1;
+            self.dropped.fetch_add(missing, Relaxed);
+            tracing::warn!(frame = frame_id, missing, "frames missing upstream");
+        }
+    }
+
+    pub fn work_started(&self) {
+        self.work_send_ns.store(0, Relaxed);
+        self.work_started_ns.store(monotonic_ns(), Relaxed);
+    }
+
+    pub fn work_finished(&self, elapsed: Duration) {
+        self.work_started_ns.store(0, Relaxed);
+        let mut histogram = self.latency_us.lock().unwrap_or_else(|e| e.into_inner());
+        histogram.saturating_record(elapsed.as_micros().max(1) as u64);
+    }
+
+    pub fn send_started(&self) {
+        self.send_started_ns.store(monotonic_ns(), Relaxed);
+    }
+
+    pub fn send_finished(&self) {
+        let started = self.send_started_ns.swap(0, Relaxed);
+        if started != 0 {
+            self.work_send_ns
+                .fetch_add(monotonic_ns().saturating_sub(started), Relaxed);
+        }
+    }
+
+    /// A consistent-enough snapshot for the heartbeat (fields are read one
+    /// by one; a counter may be one message ahead of another).
+    pub fn heartbeat(&self) -> Heartbeat {
+        let now = monotonic_ns();
+        let last = self.last_frame.load(Relaxed);
+        let mut header = Header::new(if last == u64::MAX { 0 } else { last }, 0);
+        header.stamps.ns[0] = now;
+        let send_started = self.send_started_ns.load(Relaxed);
+        let blocked = if send_started == 0 {
+            0
+        } else {
+            now.saturating_sub(send_started)
+        };
+        let work_started = self.work_started_ns.load(Relaxed);
+        let busy = if work_started == 0 {
+            0
+        } else {
+            now.saturating_sub(work_started)
+                .saturating_sub(self.work_send_ns.load(Relaxed))
+                .saturating_sub(blocked)
+        };
+        let histogram = self.latency_us.lock().unwrap_or_else(|e| e.into_inner());
+        let quantile = |q| histogram.value_at_quantile(q).min(u64::from(u32::MAX)) as u32;
+        Heartbeat {
+            header,
+            pid: std::process::id(),
+            state: self.state.load(Relaxed),
+            frames_in: self.frames_in.load(Relaxed),
+            frames_out: self.frames_out.load(Relaxed),
+            dropped: self.dropped.load(Relaxed),
+            errors: self.errors.load(Relaxed),
+            latency_p50_us: quantile(0.5),
+            latency_p99_us: quantile(0.99),
+            busy_us: micros(busy),
+            blocked_us: micros(blocked),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gaps_count_as_drops_and_restarts_do_not() {
+        let liveness = Liveness::new();
+        for id in [0, 1, 2, 5, 6, 0, 1] {
+            liveness.count_received(id);
+        }
+        let beat = liveness.heartbeat();
+        assert_eq!(beat.dropped, 2);
+        assert_eq!(beat.frames_in, 7);
+        assert_eq!(beat.header.frame_id, 1);
+    }
+
+    #[test]
+    fn latency_quantiles_reach_the_heartbeat() {
+        let liveness = Liveness::new();
+        for us in 1..=100 {
+            liveness.work_started();
+            liveness.work_finished(Duration::from_micros(us));
+        }
+        let beat = liveness.heartbeat();
+        assert_eq!((beat.latency_p50_us, beat.latency_p99_us), (50, 99));
+        assert_eq!(beat.busy_us, 0, "idle between messages");
+    }
+
+    #[test]
+    fn time_blocked_in_a_send_is_not_busy_time() {
+        let liveness = Liveness::new();
+        liveness.work_started();
+        std::thread::sleep(Duration::from_millis(20));
+        liveness.send_started();
+        std::thread::sleep(Duration::from_millis(60));
+        let beat = liveness.heartbeat();
+        assert!(beat.blocked_us >= 60_000, "{beat:?}");
+        assert!(beat.busy_us >= 20_000 && beat.busy_us < 60_000, "{beat:?}");
+    }
+}
