@@ -265,3 +265,66 @@ fn an_invalid_graph_is_rejected_before_anything_starts() {
         "{stderr}"
     );
 }
+
+/// The Python interpreter with iceoryx2's bindings that `deploy/setup`
+/// installs (override with POSEFLOW_PYTHON).
+fn plugin_python() -> PathBuf {
+    let python = std::env::var_os("POSEFLOW_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/../target/python-venv/bin/python"
+            ))
+        });
+    assert!(
+        python.exists(),
+        "{} missing: run deploy/setup first",
+        python.display()
+    );
+    python
+}
+
+#[test]
+fn a_python_stage_replaces_a_rust_one() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("python");
+    let graph = scratch.graph(500, 0.0, "block");
+    let plugin = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../plugins/python/negating_relay.py"
+    );
+    let text = std::fs::read_to_string(&graph).unwrap().replace(
+        "exe = \"testbed-relay\"",
+        &format!(
+            "exe = \"{}\"\nargs = [\"{plugin}\"]",
+            plugin_python().display()
+        ),
+    );
+    std::fs::write(&graph, text).unwrap();
+    let output = poseflow()
+        .args(["run", "--json", "--status-ms", "0", "--graph"])
+        .arg(&graph)
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    let summary = summary(&output);
+    assert!(
+        output.status.success(),
+        "{summary}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert_eq!(summary["stages"]["relay"]["frames_in"], 500, "{summary}");
+
+    // The Rust sink checks the Python relay's output value by value.
+    let report = scratch.report();
+    assert_eq!(
+        (report.received, report.intact, report.relayed),
+        (500, 500, 500),
+        "{report:?}"
+    );
+    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
+    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+}

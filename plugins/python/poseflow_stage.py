@@ -1,0 +1,291 @@
+"""Write a PoseFlow stage in Python.
+
+A stage started by `poseflow run` finds its wiring (service names, queue
+settings, parameters) as JSON in the environment variable POSEFLOW_STAGE.
+This module speaks the same protocol as the Rust runtime
+(`shared/runtime`, `shared/transport`) over iceoryx2's Python bindings:
+
+- every edge is a publish-subscribe service `[f32]` with a contract header
+  as user header, plus an event service of the same name (DATA,
+  END_OF_STREAM, PUBLISHER_CONNECTED) and one named `<edge>/ack` (READY,
+  END_ACKNOWLEDGED);
+- a receiver announces READY once connected; a publisher waits for READY
+  from its readers before its first sample;
+- at the end of a stream the publisher sends END_OF_STREAM and waits until
+  each receiver has drained and sent END_ACKNOWLEDGED;
+- a Heartbeat is published on the stage's heartbeat service every
+  `heartbeat_ms`; the last one is handed over with the same end-of-stream
+  handshake.
+
+Layouts are those of `shared/contracts` (see its crate docs); the ctypes
+structures below mirror them field by field.
+"""
+
+import ctypes
+import json
+import os
+import time
+
+import iceoryx2 as iox2
+
+STAGE_SLOTS = 8
+SLOT_SAMPLER = 3
+
+# Event ids on `<edge>` and on `<edge>/ack` (shared/transport/src/pubsub.rs).
+DATA, END_OF_STREAM, PUBLISHER_CONNECTED = 0, 1, 2
+END_ACKNOWLEDGED, READY = 0, 1
+EVENT_ID_MAX = 2
+# Service capacities (must equal the Rust side's, iceoryx2 checks them).
+MAX_PUBLISHERS, MAX_SUBSCRIBERS, MAX_NODES = 4, 16, 32
+
+STATE_RUNNING, STATE_DRAINING, STATE_FINISHED = 1, 2, 3
+
+
+class StageStamps(ctypes.Structure):
+    _fields_ = [("ns", ctypes.c_uint64 * STAGE_SLOTS)]
+
+
+class Header(ctypes.Structure):
+    _fields_ = [
+        ("frame_id", ctypes.c_uint64),
+        ("object_id", ctypes.c_uint32),
+        ("flags", ctypes.c_uint32),
+        ("stamps", StageStamps),
+    ]
+
+
+class HypothesesHeader(ctypes.Structure):
+    _fields_ = [("header", Header), ("sample_count", ctypes.c_uint32), ("step_count", ctypes.c_uint32)]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/Hypotheses/v1"
+
+    def payload_len(self):
+        return 12 * self.sample_count
+
+
+class Heartbeat(ctypes.Structure):
+    _fields_ = [
+        ("header", Header),
+        ("pid", ctypes.c_uint32),
+        ("state", ctypes.c_uint32),
+        ("frames_in", ctypes.c_uint64),
+        ("frames_out", ctypes.c_uint64),
+        ("dropped", ctypes.c_uint64),
+        ("errors", ctypes.c_uint64),
+        ("latency_p50_us", ctypes.c_uint32),
+        ("latency_p99_us", ctypes.c_uint32),
+        ("busy_us", ctypes.c_uint32),
+        ("blocked_us", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/Heartbeat/v1"
+
+    def payload_len(self):
+        return 0
+
+
+assert ctypes.sizeof(Header) == 80 and ctypes.sizeof(HypothesesHeader) == 88 and ctypes.sizeof(Heartbeat) == 136
+
+
+def monotonic_ns():
+    return time.clock_gettime_ns(time.CLOCK_MONOTONIC)
+
+
+def _float_view(payload):
+    """A ctypes float array over a `Slice[c_float]` payload, in place.
+
+    The 0.10 Python bindings report a slice's `len()` in bytes (measured:
+    `loan_slice_uninit(5)` of `c_float` has `len() == 20`)."""
+    count = payload.len() // ctypes.sizeof(ctypes.c_float)
+    return (ctypes.c_float * count).from_address(payload.as_ptr())
+
+
+def wiring():
+    text = os.environ.get("POSEFLOW_STAGE")
+    if text is None:
+        raise SystemExit("POSEFLOW_STAGE is not set: stages are started by `poseflow run --graph FILE`")
+    return json.loads(text)
+
+
+def _open_pubsub(node, edge, header_type):
+    return (
+        node.service_builder(iox2.ServiceName.new(edge["service"]))
+        .publish_subscribe(iox2.Slice[ctypes.c_float])
+        .user_header(header_type)
+        .subscriber_max_buffer_size(edge["queue"])
+        .history_size(0)
+        .enable_safe_overflow(edge["overflow"] == "drop-oldest")
+        .max_publishers(MAX_PUBLISHERS)
+        .max_subscribers(MAX_SUBSCRIBERS)
+        .max_nodes(MAX_NODES)
+        .open_or_create()
+    )
+
+
+def _open_event(node, name):
+    return (
+        node.service_builder(iox2.ServiceName.new(name))
+        .event()
+        .max_notifiers(MAX_SUBSCRIBERS)
+        .max_listeners(MAX_SUBSCRIBERS)
+        .max_nodes(MAX_NODES)
+        .event_id_max_value(EVENT_ID_MAX)
+        .notifier_created_event(iox2.EventId.new(PUBLISHER_CONNECTED))
+        .open_or_create()
+    )
+
+
+class Input:
+    """The receiving end of an edge."""
+
+    def __init__(self, node, edge, header_type):
+        self.header_type = header_type
+        self.subscriber = _open_pubsub(node, edge, header_type).subscriber_builder().buffer_size(edge["queue"]).create()
+        self.listener = _open_event(node, edge["service"]).listener_builder().create()
+        self.ack = _open_event(node, edge["service"] + "/ack").notifier_builder().create()
+        self.connect()
+
+    def connect(self):
+        self.subscriber.has_samples()  # touches the port: connects to new publishers
+        self.ack.notify_with_custom_event_id(iox2.EventId.new(READY))
+
+    def take_events(self):
+        """Returns True once END_OF_STREAM arrived."""
+        ids = {activation.id.as_value for activation in self.listener.try_wait()}
+        if PUBLISHER_CONNECTED in ids:
+            self.connect()
+        return END_OF_STREAM in ids
+
+    def receive(self):
+        """Yields (header, floats) for every queued message; floats is a ctypes array view."""
+        while True:
+            sample = self.subscriber.receive()
+            if sample is None:
+                return
+            header = sample.user_header().contents
+            floats = _float_view(sample.payload())
+            yield header, floats, sample
+
+    def acknowledge_end(self):
+        self.ack.notify_with_custom_event_id(iox2.EventId.new(END_ACKNOWLEDGED))
+
+
+class Output:
+    """The sending end of an edge."""
+
+    def __init__(self, node, edge, header_type):
+        self.service = _open_pubsub(node, edge, header_type)
+        strategy = iox2.BackpressureStrategy.DiscardData if edge["overflow"] == "drop-oldest" else iox2.BackpressureStrategy.RetryUntilDelivered
+        self.publisher = (
+            self.service.publisher_builder()
+            .initial_max_slice_len(max(1, edge["max_payload_len"]))
+            .allocation_strategy(iox2.AllocationStrategy.Static)
+            .backpressure_strategy(strategy)
+            .create()
+        )
+        self.acks = _open_event(node, edge["service"] + "/ack").listener_builder().create()
+        self.notifier = _open_event(node, edge["service"]).notifier_builder().create()
+
+    def _wait_for(self, event_id, count, timeout_s):
+        seen, deadline = 0, time.monotonic() + timeout_s
+        while seen < count and time.monotonic() < deadline:
+            left = max(0.001, deadline - time.monotonic())
+            for activation in self.acks.timed_wait(iox2.Duration.from_secs_f64(left)):
+                if activation.id.as_value == event_id:
+                    seen += 1
+        return seen
+
+    def wait_for_receivers(self, count, timeout_s=10.0):
+        self.publisher.update_connections()
+        ready = self._wait_for(READY, count, timeout_s)
+        self.publisher.update_connections()
+        return ready
+
+    def publish(self, header, values):
+        """Sends `header` (a ctypes structure) with the floats `values` (a sequence)."""
+        sample = self.publisher.loan_slice_uninit(len(values))
+        ctypes.memmove(sample.user_header_ptr, ctypes.addressof(header), ctypes.sizeof(header))
+        _float_view(sample.payload())[:] = values
+        sample.assume_init().send()
+        self.notifier.notify_with_custom_event_id(iox2.EventId.new(DATA))
+
+    def end_of_stream(self, timeout_s=30.0):
+        receivers = self.service.dynamic_config.number_of_subscribers
+        self.notifier.notify_with_custom_event_id(iox2.EventId.new(END_OF_STREAM))
+        return self._wait_for(END_ACKNOWLEDGED, receivers, timeout_s)
+
+
+class Counters:
+    def __init__(self):
+        self.frames_in = self.frames_out = self.dropped = self.errors = 0
+        self.last_frame = None
+        self.latencies_us = []
+
+    def received(self, frame_id):
+        self.frames_in += 1
+        if self.last_frame is not None and frame_id > self.last_frame + 1:
+            self.dropped += frame_id - self.last_frame - 1
+        self.last_frame = frame_id
+
+    def heartbeat(self, state):
+        beat = Heartbeat()
+        beat.header.frame_id = self.last_frame or 0
+        beat.header.stamps.ns[0] = monotonic_ns()
+        beat.pid, beat.state = os.getpid(), state
+        beat.frames_in, beat.frames_out, beat.dropped, beat.errors = self.frames_in, self.frames_out, self.dropped, self.errors
+        recent = sorted(self.latencies_us[-1000:])
+        if recent:
+            beat.latency_p50_us = recent[len(recent) // 2]
+            beat.latency_p99_us = recent[min(len(recent) - 1, (len(recent) * 99) // 100)]
+        return beat
+
+
+def run_transform(process, header_type=HypothesesHeader, slot=SLOT_SAMPLER):
+    """Runs `process(header, floats) -> (header, values) or None` as a one-input,
+    one-output stage until end-of-stream or SIGINT/SIGTERM."""
+    wire = wiring()
+    assert len(wire["inputs"]) == 1 and len(wire["outputs"]) == 1, "a transform has one input and one output"
+    node = iox2.NodeBuilder.new().name(iox2.NodeName.new(wire["stage"])).create(iox2.ServiceType.Ipc)
+    beat_edge = {"service": wire["heartbeat_service"], "queue": 1, "overflow": "drop-oldest", "max_payload_len": 1}
+    heartbeat = Output(node, beat_edge, Heartbeat)
+    source = Input(node, wire["inputs"][0], header_type)
+    sink = Output(node, wire["outputs"][0], header_type)
+    sink.wait_for_receivers(wire["outputs"][0]["readers"])
+    counters = Counters()
+
+    waitset = iox2.WaitSetBuilder.new().create(iox2.ServiceType.Ipc)
+    input_guard = waitset.attach_notification(source.listener)
+    beat_guard = waitset.attach_interval(iox2.Duration.from_millis(wire["heartbeat_ms"]))
+    heartbeat.publish(counters.heartbeat(STATE_RUNNING), [])
+    ended = False
+    while not ended:
+        attachments, result = waitset.wait_and_process()
+        if result in (iox2.WaitSetRunResult.TerminationRequest, iox2.WaitSetRunResult.Interrupt):
+            break
+        for attachment in attachments:
+            if attachment.has_event_from(beat_guard):
+                heartbeat.publish(counters.heartbeat(STATE_RUNNING), [])
+            if attachment.has_event_from(input_guard):
+                ended = source.take_events()
+                for header, floats, _sample in source.receive():
+                    if len(floats) != header.payload_len():
+                        counters.errors += 1
+                        continue
+                    counters.received(header.header.frame_id)
+                    started = time.perf_counter()
+                    out = process(header, floats)
+                    if out is not None:
+                        out_header, values = out
+                        out_header.header.stamps.ns[slot] = monotonic_ns()
+                        sink.publish(out_header, values)
+                        counters.frames_out += 1
+                    counters.latencies_us.append(int((time.perf_counter() - started) * 1e6) + 1)
+    if ended:
+        sink.end_of_stream()
+        source.acknowledge_end()
+    heartbeat.publish(counters.heartbeat(STATE_FINISHED), [])
+    heartbeat.end_of_stream(1.0)
