@@ -328,3 +328,94 @@ fn a_python_stage_replaces_a_rust_one() {
     let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
     assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
 }
+
+#[test]
+fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("sigint");
+    // A stream far longer than the test: only SIGINT ends it.
+    let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
+    let instance = format!("sigint-{}", std::process::id());
+    let run = poseflow()
+        .args([
+            "run",
+            "--json",
+            "--status-ms",
+            "0",
+            "--instance",
+            &instance,
+            "--graph",
+        ])
+        .arg(&graph)
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while find_stage_pid(&instance, "sink").is_none() {
+        assert!(Instant::now() < deadline, "sink never started");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    // SAFETY: signalling the poseflow process this test started.
+    assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGINT) }, 0);
+
+    let output = run.wait_with_output().unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "stopped", "{summary}");
+        assert!(
+            find_stage_pid(&instance, stage).is_none(),
+            "{stage} still running"
+        );
+    }
+    // The sink finished normally on SIGTERM and wrote what it had seen.
+    let report = scratch.report();
+    assert!(report.received > 0 && report.corrupted == 0, "{report:?}");
+    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
+    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+}
+
+#[test]
+fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("failing");
+    let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
+    // A "relay" that dies at once, every time.
+    let text = std::fs::read_to_string(&graph)
+        .unwrap()
+        .replace(
+            "exe = \"testbed-relay\"",
+            "exe = \"/bin/false\"\nmax_restarts = 2",
+        )
+        .replace("backoff_ms = 100", "backoff_ms = 10");
+    std::fs::write(&graph, text).unwrap();
+    let output = poseflow()
+        .args(["run", "--json", "--status-ms", "0", "--graph"])
+        .arg(&graph)
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(1));
+    let summary = summary(&output);
+    assert_eq!(summary["failed"], true);
+    let relay = &summary["stages"]["relay"];
+    assert_eq!(relay["outcome"], "failed", "{summary}");
+    assert_eq!(relay["restarts"], 2, "{summary}");
+    assert!(
+        relay["failure"].as_str().unwrap().contains("max_restarts"),
+        "{summary}"
+    );
+    assert_eq!(
+        summary["stages"]["source"]["outcome"], "stopped",
+        "{summary}"
+    );
+    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
+    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+}

@@ -11,6 +11,20 @@ use poseflow_transport::{EdgeOptions, Overflow, Publisher, create_node};
 use crate::RuntimeError;
 use crate::liveness::Liveness;
 
+/// SIGINT/SIGTERM go to the main thread, whose WaitSet turns them into a
+/// clean shutdown; this thread must neither receive nor consume them.
+fn block_termination_signals() {
+    // SAFETY: plain libc calls on a local, initialised signal set; they only
+    // change this thread's mask.
+    unsafe {
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        libc::sigaddset(&mut set, libc::SIGINT);
+        libc::sigaddset(&mut set, libc::SIGTERM);
+        libc::pthread_sigmask(libc::SIG_BLOCK, &set, std::ptr::null_mut());
+    }
+}
+
 /// How long the last heartbeat waits for the supervisor to take it.
 const FINAL_HEARTBEAT_TIMEOUT: Duration = Duration::from_secs(1);
 
@@ -40,6 +54,7 @@ impl HeartbeatThread {
                     service.to_string(),
                 );
                 move || {
+                    block_termination_signals();
                     // iceoryx2 ports are bound to the thread that made them.
                     let setup = create_node(&node_name).and_then(|node| {
                         let options = EdgeOptions {
@@ -49,7 +64,7 @@ impl HeartbeatThread {
                         };
                         Publisher::<Heartbeat>::create(&node, &service, &options).map(|p| (node, p))
                     });
-                    let (node, publisher) = match setup {
+                    let (_node, publisher) = match setup {
                         Ok(ok) => {
                             let _ = ready_tx.send(Ok(()));
                             ok
@@ -64,15 +79,11 @@ impl HeartbeatThread {
                             tracing::warn!(%err, "heartbeat not sent");
                         }
                     };
-                    // `wait` fails once SIGINT/SIGTERM arrived; the main thread
-                    // then finishes and asks for the last beat.
+                    // Runs until the main thread has finished (after a stream
+                    // ended or SIGINT/SIGTERM) and asks for the last beat.
                     while !stop.load(Ordering::Relaxed) {
                         beat();
-                        if node.wait(period).is_err() {
-                            while !stop.load(Ordering::Relaxed) {
-                                std::thread::park_timeout(Duration::from_millis(10));
-                            }
-                        }
+                        std::thread::park_timeout(period);
                     }
                     // The final counters travel with the end-of-stream
                     // handshake: a sample still queued when its publisher

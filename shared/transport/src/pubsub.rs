@@ -136,6 +136,18 @@ fn notify(
         .map_err(|e| TransportError::iceoryx(what, edge, e))
 }
 
+/// Whether SIGINT/SIGTERM arrived, without hiding it from the stage's own
+/// loop: iceoryx2 clears the flag when it is read, so it is raised again.
+fn termination_requested() -> bool {
+    let requested = iceoryx2_bb_posix::signal::SignalHandler::termination_requested();
+    if requested {
+        // SAFETY: raise() only re-delivers SIGTERM to this thread, where
+        // iceoryx2's handler records it again.
+        unsafe { libc::raise(libc::SIGTERM) };
+    }
+    requested
+}
+
 /// How an end-of-stream handshake ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EndOfStream {
@@ -280,19 +292,23 @@ impl<H: MessageHeader> Publisher<H> {
             .map_err(|e| TransportError::iceoryx("connect receivers of", &self.name, e))
     }
 
-    /// Counts `id` notifications on the ack service until `count` arrived or
-    /// `timeout` passed; other ids are discarded.
+    /// Counts `id` notifications on the ack service until `count` arrived,
+    /// `timeout` passed or SIGINT/SIGTERM arrived; other ids are discarded.
     fn wait_for_acks(
         &self,
         id: EventId,
         count: usize,
         timeout: Duration,
     ) -> Result<usize, TransportError> {
+        // Short slices, so a termination request is noticed promptly.
+        const SLICE: Duration = Duration::from_millis(50);
         let deadline = Instant::now() + timeout;
         let mut seen = 0u64;
         while seen < count as u64 {
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
+            let left = deadline
+                .saturating_duration_since(Instant::now())
+                .min(SLICE);
+            if left.is_zero() || termination_requested() {
                 break;
             }
             self.acks
