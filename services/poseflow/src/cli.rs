@@ -38,8 +38,8 @@ pub enum Command {
     Render,
     /// Evaluate on a BOP-format dataset: accuracy, ADD(-S), calibration, runtime.
     Eval,
-    /// Benchmark end-to-end and per-stage latency and throughput.
-    Bench,
+    /// Benchmark transport latency and end-to-end throughput.
+    Bench(crate::bench::BenchArgs),
 }
 
 impl Command {
@@ -49,24 +49,26 @@ impl Command {
             Command::Run(_) => "run",
             Command::Render => "render",
             Command::Eval => "eval",
-            Command::Bench => "bench",
+            Command::Bench(_) => "bench",
         }
     }
+}
+
+fn report(result: anyhow::Result<ExitCode>) -> ExitCode {
+    result.unwrap_or_else(|err| {
+        tracing::error!("{err:#}");
+        ExitCode::FAILURE
+    })
 }
 
 pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
     // What has to land before a subcommand works.
     let missing = match command {
-        Command::Run(args) => {
-            return crate::run::run(args, log_format).unwrap_or_else(|err| {
-                tracing::error!("{err:#}");
-                ExitCode::FAILURE
-            });
-        }
+        Command::Run(args) => return report(crate::run::run(args, log_format)),
+        Command::Bench(args) => return report(crate::bench::run(args)),
         Command::Demo => "it needs the trained model and the estimation graph",
         Command::Render => "it needs the ray-cast renderer",
         Command::Eval => "it needs the estimation graph and the BOP benchmark runner",
-        Command::Bench => "it needs the estimation and tracking graphs",
     };
     tracing::error!(
         subcommand = command.name(),

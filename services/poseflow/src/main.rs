@@ -1,5 +1,6 @@
 //! `poseflow`: the command line of the PoseFlow runtime.
 
+mod bench;
 mod cli;
 mod logging;
 mod run;

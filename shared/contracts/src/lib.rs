@@ -40,6 +40,7 @@
 //! | Grasps | [`GraspsHeader`] | grasps G·15 | grasp → robot |
 //! | NextView | [`NextViewHeader`] | candidates C·13 | nbv → robot |
 //! | Heartbeat | [`Heartbeat`] | none | every stage → supervisor |
+//! | Tensor | [`TensorHeader`] | values ∏shape | plug-ins, benchmarks |
 
 mod condition;
 mod error;
@@ -50,6 +51,7 @@ mod heartbeat;
 mod message;
 mod next_view;
 mod observation;
+mod tensor;
 mod velocity;
 
 #[cfg(test)]
@@ -66,6 +68,7 @@ pub use heartbeat::{Heartbeat, StageState};
 pub use message::{MessageHeader, POSE_LEN, VELOCITY_LEN, limits};
 pub use next_view::{CANDIDATE_LEN, NextViewHeader};
 pub use observation::{CameraIntrinsics, ObservationHeader, ObservationView};
+pub use tensor::{MAX_TENSOR_LEN, TensorHeader};
 pub use velocity::{VelocityRequest, VelocityResponse, status};
 
 /// The layout tables in the docs, checked by the compiler.
@@ -103,6 +106,7 @@ mod layout {
     assert_layout!(Heartbeat, size 136, align 8,
         header @ 0, pid @ 80, state @ 84, frames_in @ 88, frames_out @ 96, dropped @ 104,
         errors @ 112, latency_p50_us @ 120, latency_p99_us @ 124, busy_us @ 128, blocked_us @ 132);
+    assert_layout!(TensorHeader, size 104, align 8, header @ 0, shape @ 80, rank @ 96, reserved @ 100);
     assert_layout!(NextViewHeader, size 144, align 8,
         header @ 0, chosen @ 80, expected_rotation_trace @ 128, current_rotation_trace @ 132,
         candidate_count @ 136, reserved @ 140);

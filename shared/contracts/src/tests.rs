@@ -27,6 +27,7 @@ fn type_names_are_stable_and_versioned() {
     assert_eq!(type_name::<GraspsHeader>(), "poseflow/Grasps/v1");
     assert_eq!(type_name::<NextViewHeader>(), "poseflow/NextView/v1");
     assert_eq!(type_name::<Heartbeat>(), "poseflow/Heartbeat/v1");
+    assert_eq!(type_name::<TensorHeader>(), "poseflow/Tensor/v1");
 }
 
 fn observation(image_size: u32, patch_grid: u32, points: u32) -> ObservationHeader {
@@ -179,6 +180,34 @@ fn grasps_next_view_hypotheses_and_condition_lengths() {
         .payload_len()
         .is_err()
     );
+}
+
+#[test]
+fn tensor_length_is_the_product_of_its_shape() {
+    let t = TensorHeader {
+        shape: [3, 224, 224, 99],
+        rank: 3,
+        ..Default::default()
+    };
+    assert_eq!(t.payload_len().unwrap(), 3 * 224 * 224);
+    assert_eq!(
+        TensorHeader::vector(Header::new(0, 0), 7)
+            .payload_len()
+            .unwrap(),
+        7
+    );
+    let huge = TensorHeader {
+        shape: [u32::MAX, u32::MAX, 2, 2],
+        rank: 4,
+        ..Default::default()
+    };
+    assert!(
+        huge.payload_len()
+            .unwrap_err()
+            .to_string()
+            .contains("shape")
+    );
+    assert!(TensorHeader { rank: 0, ..t }.payload_len().is_err());
 }
 
 #[test]

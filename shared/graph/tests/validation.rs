@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use poseflow_contracts::{
     ConditionHandle, EstimateHeader, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader,
-    ObservationHeader,
+    ObservationHeader, TensorHeader,
 };
 use poseflow_graph::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, StageWiring, parse};
 
@@ -226,6 +226,7 @@ fn message_names_match_the_contracts() {
         EstimateHeader::NAME,
         GraspsHeader::NAME,
         NextViewHeader::NAME,
+        TensorHeader::NAME,
     ];
     assert_eq!(PUBLISH_SUBSCRIBE_MESSAGES, names);
 }

@@ -1,0 +1,43 @@
+//! `poseflow bench`: latency and throughput measurements.
+
+mod ipc;
+
+use std::process::ExitCode;
+
+use clap::{Args, Subcommand};
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    #[command(subcommand)]
+    pub what: BenchCommand,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// One-way per-hop latency of iceoryx2 (zero-copy, event wake-up), an
+    /// in-process channel and a Unix socket carrying bincode, for 4 KiB to
+    /// 4 MiB payloads.
+    Ipc(ipc::IpcArgs),
+    /// End-to-end frames per second and per-stage latency of the estimation
+    /// and tracking graphs.
+    Pipeline,
+    /// Internal: the receiving process of `bench ipc`.
+    #[command(hide = true)]
+    IpcReceive(ipc::ReceiveArgs),
+}
+
+/// Exit code of a benchmark that this build does not provide yet.
+const NOT_AVAILABLE: u8 = 2;
+
+pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
+    match args.what {
+        BenchCommand::Ipc(args) => ipc::run(&args).map(|()| ExitCode::SUCCESS),
+        BenchCommand::IpcReceive(args) => ipc::receive(&args).map(|()| ExitCode::SUCCESS),
+        BenchCommand::Pipeline => {
+            tracing::error!(
+                "`poseflow bench pipeline` is not available yet in this build: it needs the estimation and tracking graphs"
+            );
+            Ok(ExitCode::from(NOT_AVAILABLE))
+        }
+    }
+}
