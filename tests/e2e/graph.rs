@@ -7,27 +7,23 @@ use std::process::{Command, Output, Stdio};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use poseflow_e2e::SinkReport;
+use poseflow_smoke::SinkReport;
 
 /// Tests here compare shared-memory listings before and after, so they must
 /// not overlap.
 static SERIAL: Mutex<()> = Mutex::new(());
 
+/// Where cargo put the workspace's binaries: this test runs from
+/// `target/<profile>/deps/`.
 fn bin_dir() -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_testbed-source"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
+    let exe = std::env::current_exe().unwrap();
+    exe.parent().and_then(|deps| deps.parent()).unwrap().to_path_buf()
 }
 
-/// `poseflow` is built by `cargo test --workspace` into the same directory.
+/// `poseflow` and the smoke stages are built by `cargo test --workspace`.
 fn poseflow() -> Command {
     let exe = bin_dir().join("poseflow");
-    assert!(
-        exe.exists(),
-        "{} missing: run the tests with `cargo test --workspace`",
-        exe.display()
-    );
+    assert!(exe.exists(), "{} missing: run the tests with `cargo test --workspace`", exe.display());
     let mut command = Command::new(exe);
     command.env_remove("RUST_LOG");
     command
@@ -47,11 +43,7 @@ fn iceoryx_files() -> BTreeSet<PathBuf> {
     }
     let mut files = BTreeSet::new();
     walk(Path::new("/tmp/iceoryx2"), &mut files);
-    for entry in std::fs::read_dir("/dev/shm")
-        .into_iter()
-        .flatten()
-        .flatten()
-    {
+    for entry in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
         if entry.file_name().to_string_lossy().starts_with("iox2_") {
             files.insert(entry.path());
         }
@@ -72,19 +64,12 @@ impl Scratch {
 
     /// The relay graph with this test's parameters.
     fn graph(&self, frames: u64, rate_hz: f64, overflow: &str) -> PathBuf {
-        let text =
-            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/graphs/relay.toml"))
-                .unwrap()
-                .replace("frames = 1000", &format!("frames = {frames}"))
-                .replace("rate_hz = 0.0", &format!("rate_hz = {rate_hz}"))
-                .replace(
-                    "overflow = \"block\"",
-                    &format!("overflow = \"{overflow}\""),
-                )
-                .replace(
-                    "report = \"sink-report.json\"",
-                    &format!("report = \"{}\"", self.report_path().display()),
-                );
+        let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/graphs/relay.toml"))
+            .unwrap()
+            .replace("frames = 1000", &format!("frames = {frames}"))
+            .replace("rate_hz = 0.0", &format!("rate_hz = {rate_hz}"))
+            .replace("overflow = \"block\"", &format!("overflow = \"{overflow}\""))
+            .replace("report = \"sink-report.json\"", &format!("report = \"{}\"", self.report_path().display()));
         let path = self.dir.join("relay.toml");
         std::fs::write(&path, text).unwrap();
         path
@@ -95,10 +80,7 @@ impl Scratch {
     }
 
     fn report(&self) -> SinkReport {
-        serde_json::from_str(
-            &std::fs::read_to_string(self.report_path()).expect("sink wrote its report"),
-        )
-        .unwrap()
+        serde_json::from_str(&std::fs::read_to_string(self.report_path()).expect("sink wrote its report")).unwrap()
     }
 }
 
@@ -111,10 +93,7 @@ impl Drop for Scratch {
 fn summary(output: &Output) -> serde_json::Value {
     let stdout = String::from_utf8_lossy(&output.stdout);
     serde_json::from_str(&stdout).unwrap_or_else(|e| {
-        panic!(
-            "summary is not JSON ({e}):\n{stdout}\nstderr:\n{}",
-            String::from_utf8_lossy(&output.stderr)
-        )
+        panic!("summary is not JSON ({e}):\n{stdout}\nstderr:\n{}", String::from_utf8_lossy(&output.stderr))
     })
 }
 
@@ -144,10 +123,7 @@ fn three_processes_pass_every_frame_intact() {
     assert_eq!(report.received, 1000, "{report:?}");
     assert_eq!(report.intact, 1000);
     assert_eq!(report.relayed, 1000);
-    assert_eq!(
-        (report.first_frame, report.last_frame, report.gaps),
-        (Some(0), Some(999), 0)
-    );
+    assert_eq!((report.first_frame, report.last_frame, report.gaps), (Some(0), Some(999), 0));
 
     let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
     assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
@@ -156,16 +132,11 @@ fn three_processes_pass_every_frame_intact() {
 /// Processes whose stage wiring names this stage of this instance.
 fn find_stage_pid(instance: &str, stage: &str) -> Option<u32> {
     let needle = format!("\"instance\":\"{instance}\",\"stage\":\"{stage}\"");
-    std::fs::read_dir("/proc")
-        .ok()?
-        .flatten()
-        .find_map(|entry| {
-            let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
-            let environ = std::fs::read(entry.path().join("environ")).ok()?;
-            String::from_utf8_lossy(&environ)
-                .contains(&needle)
-                .then_some(pid)
-        })
+    std::fs::read_dir("/proc").ok()?.flatten().find_map(|entry| {
+        let pid: u32 = entry.file_name().to_str()?.parse().ok()?;
+        let environ = std::fs::read(entry.path().join("environ")).ok()?;
+        String::from_utf8_lossy(&environ).contains(&needle).then_some(pid)
+    })
 }
 
 #[test]
@@ -178,15 +149,7 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     let graph = scratch.graph(1500, 500.0, "drop-oldest");
     let instance = format!("kill-{}", std::process::id());
     let run = poseflow()
-        .args([
-            "run",
-            "--json",
-            "--status-ms",
-            "0",
-            "--instance",
-            &instance,
-            "--graph",
-        ])
+        .args(["run", "--json", "--status-ms", "0", "--instance", &instance, "--graph"])
         .arg(&graph)
         .arg("--stage-path")
         .arg(bin_dir())
@@ -210,11 +173,7 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
 
     let output = run.wait_with_output().unwrap();
     let summary = summary(&output);
-    assert!(
-        output.status.success(),
-        "{summary}\n{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
     let relay_summary = &summary["stages"]["relay"];
     assert_eq!(relay_summary["restarts"], 1, "{summary}");
     let latency = relay_summary["restart_latency_ms"][0].as_f64().unwrap();
@@ -228,11 +187,7 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     let report = scratch.report();
     assert_eq!(report.corrupted, 0, "{report:?}");
     assert_eq!(report.intact, report.received);
-    assert_eq!(
-        report.last_frame,
-        Some(1499),
-        "traffic did not resume: {report:?}"
-    );
+    assert_eq!(report.last_frame, Some(1499), "traffic did not resume: {report:?}");
     let first = report.first_frame.unwrap();
     assert_eq!(report.received + report.gaps, 1500 - first, "{report:?}");
     eprintln!("sink: {report:?}");
@@ -245,23 +200,14 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
 fn an_invalid_graph_is_rejected_before_anything_starts() {
     let scratch = Scratch::new("invalid");
     let graph = scratch.graph(10, 0.0, "block");
-    let text = std::fs::read_to_string(&graph)
-        .unwrap()
-        .replace("inputs = [\"raw\"]", "inputs = [\"raw\", \"missing\"]");
+    let text =
+        std::fs::read_to_string(&graph).unwrap().replace("inputs = [\"raw\"]", "inputs = [\"raw\", \"missing\"]");
     std::fs::write(&graph, text).unwrap();
-    let output = poseflow()
-        .args(["run", "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
+    let output = poseflow().args(["run", "--graph"]).arg(&graph).arg("--stage-path").arg(bin_dir()).output().unwrap();
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
-        stderr.contains("relay.toml")
-            && stderr.contains("`stages.relay.inputs`")
-            && stderr.contains("\"missing\""),
+        stderr.contains("relay.toml") && stderr.contains("`stages.relay.inputs`") && stderr.contains("\"missing\""),
         "{stderr}"
     );
 }
@@ -271,17 +217,8 @@ fn an_invalid_graph_is_rejected_before_anything_starts() {
 fn plugin_python() -> PathBuf {
     let python = std::env::var_os("POSEFLOW_PYTHON")
         .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/../target/python-venv/bin/python"
-            ))
-        });
-    assert!(
-        python.exists(),
-        "{} missing: run deploy/setup first",
-        python.display()
-    );
+        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../target/python-venv/bin/python")));
+    assert!(python.exists(), "{} missing: run deploy/setup first", python.display());
     python
 }
 
@@ -291,17 +228,10 @@ fn a_python_stage_replaces_a_rust_one() {
     let before = iceoryx_files();
     let scratch = Scratch::new("python");
     let graph = scratch.graph(500, 0.0, "block");
-    let plugin = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../plugins/python/negating_relay.py"
-    );
-    let text = std::fs::read_to_string(&graph).unwrap().replace(
-        "exe = \"testbed-relay\"",
-        &format!(
-            "exe = \"{}\"\nargs = [\"{plugin}\"]",
-            plugin_python().display()
-        ),
-    );
+    let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/negating_relay.py");
+    let text = std::fs::read_to_string(&graph)
+        .unwrap()
+        .replace("exe = \"smoke-relay\"", &format!("exe = \"{}\"\nargs = [\"{plugin}\"]", plugin_python().display()));
     std::fs::write(&graph, text).unwrap();
     let output = poseflow()
         .args(["run", "--json", "--status-ms", "0", "--graph"])
@@ -311,20 +241,12 @@ fn a_python_stage_replaces_a_rust_one() {
         .output()
         .unwrap();
     let summary = summary(&output);
-    assert!(
-        output.status.success(),
-        "{summary}\n{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
     assert_eq!(summary["stages"]["relay"]["frames_in"], 500, "{summary}");
 
     // The Rust sink checks the Python relay's output value by value.
     let report = scratch.report();
-    assert_eq!(
-        (report.received, report.intact, report.relayed),
-        (500, 500, 500),
-        "{report:?}"
-    );
+    assert_eq!((report.received, report.intact, report.relayed), (500, 500, 500), "{report:?}");
     let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
     assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
 }
@@ -338,15 +260,7 @@ fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
     let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
     let instance = format!("sigint-{}", std::process::id());
     let run = poseflow()
-        .args([
-            "run",
-            "--json",
-            "--status-ms",
-            "0",
-            "--instance",
-            &instance,
-            "--graph",
-        ])
+        .args(["run", "--json", "--status-ms", "0", "--instance", &instance, "--graph"])
         .arg(&graph)
         .arg("--stage-path")
         .arg(bin_dir())
@@ -368,10 +282,7 @@ fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
     assert!(output.status.success(), "{summary}");
     for stage in ["source", "relay", "sink"] {
         assert_eq!(summary["stages"][stage]["outcome"], "stopped", "{summary}");
-        assert!(
-            find_stage_pid(&instance, stage).is_none(),
-            "{stage} still running"
-        );
+        assert!(find_stage_pid(&instance, stage).is_none(), "{stage} still running");
     }
     // The sink finished normally on SIGTERM and wrote what it had seen.
     let report = scratch.report();
@@ -389,10 +300,7 @@ fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
     // A "relay" that dies at once, every time.
     let text = std::fs::read_to_string(&graph)
         .unwrap()
-        .replace(
-            "exe = \"testbed-relay\"",
-            "exe = \"/bin/false\"\nmax_restarts = 2",
-        )
+        .replace("exe = \"smoke-relay\"", "exe = \"/bin/false\"\nmax_restarts = 2")
         .replace("backoff_ms = 100", "backoff_ms = 10");
     std::fs::write(&graph, text).unwrap();
     let output = poseflow()
@@ -408,14 +316,42 @@ fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
     let relay = &summary["stages"]["relay"];
     assert_eq!(relay["outcome"], "failed", "{summary}");
     assert_eq!(relay["restarts"], 2, "{summary}");
-    assert!(
-        relay["failure"].as_str().unwrap().contains("max_restarts"),
-        "{summary}"
-    );
-    assert_eq!(
-        summary["stages"]["source"]["outcome"], "stopped",
-        "{summary}"
-    );
+    assert!(relay["failure"].as_str().unwrap().contains("max_restarts"), "{summary}");
+    assert_eq!(summary["stages"]["source"]["outcome"], "stopped", "{summary}");
+    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
+    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+}
+
+/// Every graph shipped in deploy/ validates, and the smoke graph runs clean.
+#[test]
+fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let deploy = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy"));
+    for entry in std::fs::read_dir(deploy).unwrap().flatten() {
+        let path = entry.path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            let output = poseflow()
+                .args(["run", "--check", "--graph"])
+                .arg(&path)
+                .arg("--stage-path")
+                .arg(bin_dir())
+                .output()
+                .unwrap();
+            assert!(output.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&output.stderr));
+        }
+    }
+    let before = iceoryx_files();
+    let output = poseflow()
+        .args(["run", "--json", "--status-ms", "0", "--graph"])
+        .arg(deploy.join("smoke.toml"))
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    assert_eq!(summary["stages"]["source"]["frames_out"], 3000, "{summary}");
+    assert_eq!(summary["stages"]["sink"]["errors"], 0, "{summary}");
     let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
     assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
 }

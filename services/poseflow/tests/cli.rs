@@ -18,10 +18,7 @@ fn help_lists_every_subcommand() {
     assert!(out.status.success());
     let help = String::from_utf8(out.stdout).unwrap();
     for sub in SUBCOMMANDS {
-        assert!(
-            help.lines().any(|l| l.trim_start().starts_with(sub)),
-            "`{sub}` missing from:\n{help}"
-        );
+        assert!(help.lines().any(|l| l.trim_start().starts_with(sub)), "`{sub}` missing from:\n{help}");
     }
     assert!(help.contains("--log-format"));
 }
@@ -33,10 +30,7 @@ fn unavailable_subcommands_say_so_and_exit_2() {
         let out = poseflow(&args);
         assert_eq!(out.status.code(), Some(2), "{sub}");
         let stderr = String::from_utf8(out.stderr).unwrap();
-        assert!(
-            stderr.contains(&format!("`poseflow {sub}` is not available yet")),
-            "{stderr}"
-        );
+        assert!(stderr.contains(&format!("`poseflow {sub}` is not available yet")), "{stderr}");
     }
 }
 
@@ -55,44 +49,21 @@ fn unknown_log_format_is_rejected_with_the_choices() {
     let out = poseflow(&["--log-format", "xml", "demo"]);
     assert_eq!(out.status.code(), Some(2));
     let stderr = String::from_utf8(out.stderr).unwrap();
-    assert!(
-        stderr.contains("pretty") && stderr.contains("json"),
-        "{stderr}"
-    );
+    assert!(stderr.contains("pretty") && stderr.contains("json"), "{stderr}");
 }
 
 #[test]
 fn bench_ipc_reports_every_transport_and_payload() {
-    let out = poseflow(&[
-        "bench",
-        "ipc",
-        "--json",
-        "--samples",
-        "20",
-        "--warmup",
-        "5",
-        "--period-us",
-        "200",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = poseflow(&["bench", "ipc", "--json", "--samples", "20", "--warmup", "5", "--period-us", "200"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
     for transport in ["iceoryx2", "in_process", "unix_socket_bincode"] {
         for bytes in ["4096", "65536", "1048576", "4194304"] {
             let cell = &report[transport][bytes];
             assert_eq!(cell["samples"], 20, "{transport} {bytes}: {cell}");
-            let (p50, p99, max) = (
-                cell["p50_us"].as_f64().unwrap(),
-                cell["p99_us"].as_f64().unwrap(),
-                cell["max_us"].as_f64().unwrap(),
-            );
-            assert!(
-                0.0 < p50 && p50 <= p99 && p99 <= max,
-                "{transport} {bytes}: {cell}"
-            );
+            let (p50, p99, max) =
+                (cell["p50_us"].as_f64().unwrap(), cell["p99_us"].as_f64().unwrap(), cell["max_us"].as_f64().unwrap());
+            assert!(0.0 < p50 && p50 <= p99 && p99 <= max, "{transport} {bytes}: {cell}");
         }
     }
 }

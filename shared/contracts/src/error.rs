@@ -4,17 +4,8 @@
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ContractError {
     #[error("{message}: payload holds {actual} f32 values, the header announces {expected}")]
-    PayloadLength {
-        message: &'static str,
-        expected: usize,
-        actual: usize,
-    },
+    PayloadLength { message: &'static str, expected: usize, actual: usize },
 
     #[error("{message}: field `{field}` = {value}: expected {expected}")]
-    FieldOutOfRange {
-        message: &'static str,
-        field: &'static str,
-        value: u64,
-        expected: &'static str,
-    },
+    FieldOutOfRange { message: &'static str, field: &'static str, value: u64, expected: &'static str },
 }

@@ -37,14 +37,7 @@ impl MessageHeader for HypothesesHeader {
     }
 
     fn payload_len(&self) -> Result<usize, ContractError> {
-        let n = bounded(
-            Self::NAME,
-            "sample_count",
-            self.sample_count,
-            1,
-            limits::MAX_SAMPLES,
-            "1..=4096",
-        )?;
+        let n = bounded(Self::NAME, "sample_count", self.sample_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
         Ok(n * POSE_LEN)
     }
 }
@@ -65,9 +58,7 @@ pub enum SelectionMethod {
 
 impl SelectionMethod {
     pub fn from_code(code: u32) -> Option<Self> {
-        [Self::None, Self::ModelFree, Self::Chamfer, Self::Sdf]
-            .into_iter()
-            .find(|m| *m as u32 == code)
+        [Self::None, Self::ModelFree, Self::Chamfer, Self::Sdf].into_iter().find(|m| *m as u32 == code)
     }
 }
 
@@ -133,22 +124,8 @@ impl EstimateHeader {
             value: u64::from(self.selection),
             expected: "0 (none), 1 (model-free), 2 (chamfer) or 3 (sdf)",
         })?;
-        let m = bounded(
-            Self::NAME,
-            "mode_count",
-            self.mode_count,
-            0,
-            limits::MAX_MODES,
-            "0..=64",
-        )?;
-        let k = bounded(
-            Self::NAME,
-            "hypothesis_count",
-            self.hypothesis_count,
-            1,
-            limits::MAX_SAMPLES,
-            "1..=4096",
-        )?;
+        let m = bounded(Self::NAME, "mode_count", self.mode_count, 0, limits::MAX_MODES, "0..=64")?;
+        let k = bounded(Self::NAME, "hypothesis_count", self.hypothesis_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
         Ok([m * WEIGHTED_POSE_LEN, k * WEIGHTED_POSE_LEN])
     }
 

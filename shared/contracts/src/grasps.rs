@@ -43,22 +43,8 @@ impl MessageHeader for GraspsHeader {
     }
 
     fn payload_len(&self) -> Result<usize, ContractError> {
-        bounded(
-            Self::NAME,
-            "hypothesis_count",
-            self.hypothesis_count,
-            1,
-            limits::MAX_SAMPLES,
-            "1..=4096",
-        )?;
-        let g = bounded(
-            Self::NAME,
-            "grasp_count",
-            self.grasp_count,
-            0,
-            limits::MAX_GRASPS,
-            "0..=4096",
-        )?;
+        bounded(Self::NAME, "hypothesis_count", self.hypothesis_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
+        let g = bounded(Self::NAME, "grasp_count", self.grasp_count, 0, limits::MAX_GRASPS, "0..=4096")?;
         Ok(g * GRASP_LEN)
     }
 }

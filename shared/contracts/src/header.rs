@@ -112,12 +112,7 @@ pub struct Header {
 
 impl Header {
     pub fn new(frame_id: u64, object_id: u32) -> Self {
-        Self {
-            frame_id,
-            object_id,
-            flags: 0,
-            stamps: StageStamps::default(),
-        }
+        Self { frame_id, object_id, flags: 0, stamps: StageStamps::default() }
     }
 
     pub fn has_flag(&self, flag: u32) -> bool {
@@ -127,10 +122,7 @@ impl Header {
 
 /// `CLOCK_MONOTONIC` in nanoseconds.
 pub fn monotonic_ns() -> u64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
     // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC is always
     // available on Linux, so the call cannot fail.
     unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };

@@ -19,9 +19,7 @@ pub enum StageState {
 
 impl StageState {
     pub fn from_code(code: u32) -> Option<Self> {
-        [Self::Running, Self::Draining, Self::Finished]
-            .into_iter()
-            .find(|s| *s as u32 == code)
+        [Self::Running, Self::Draining, Self::Finished].into_iter().find(|s| *s as u32 == code)
     }
 }
 

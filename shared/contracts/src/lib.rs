@@ -59,9 +59,7 @@ mod tests;
 
 pub use condition::ConditionHandle;
 pub use error::ContractError;
-pub use estimate::{
-    EstimateHeader, EstimateView, HypothesesHeader, SelectionMethod, WEIGHTED_POSE_LEN,
-};
+pub use estimate::{EstimateHeader, EstimateView, HypothesesHeader, SelectionMethod, WEIGHTED_POSE_LEN};
 pub use grasps::{GRASP_LEN, GraspsHeader};
 pub use header::{Header, STAGE_SLOTS, Stage, StageStamps, flags, monotonic_ns};
 pub use heartbeat::{Heartbeat, StageState};

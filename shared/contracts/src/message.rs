@@ -39,11 +39,7 @@ pub trait MessageHeader: ZeroCopySend + Copy + Default + std::fmt::Debug {
         if payload.len() == expected {
             Ok(())
         } else {
-            Err(ContractError::PayloadLength {
-                message: Self::NAME,
-                expected,
-                actual: payload.len(),
-            })
+            Err(ContractError::PayloadLength { message: Self::NAME, expected, actual: payload.len() })
         }
     }
 }
@@ -60,12 +56,7 @@ pub(crate) fn bounded(
     if (min..=max).contains(&value) {
         Ok(value as usize)
     } else {
-        Err(ContractError::FieldOutOfRange {
-            message,
-            field,
-            value: u64::from(value),
-            expected,
-        })
+        Err(ContractError::FieldOutOfRange { message, field, value: u64::from(value), expected })
     }
 }
 

@@ -48,14 +48,7 @@ impl MessageHeader for NextViewHeader {
     }
 
     fn payload_len(&self) -> Result<usize, ContractError> {
-        let c = bounded(
-            Self::NAME,
-            "candidate_count",
-            self.candidate_count,
-            1,
-            limits::MAX_CANDIDATES,
-            "1..=4096",
-        )?;
+        let c = bounded(Self::NAME, "candidate_count", self.candidate_count, 1, limits::MAX_CANDIDATES, "1..=4096")?;
         Ok(c * CANDIDATE_LEN)
     }
 }

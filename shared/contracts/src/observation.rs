@@ -72,14 +72,7 @@ pub struct ObservationView<'a> {
 
 impl ObservationHeader {
     fn section_lengths(&self) -> Result<[usize; 3], ContractError> {
-        let s = bounded(
-            Self::NAME,
-            "image_size",
-            self.image_size,
-            1,
-            limits::MAX_IMAGE_SIZE,
-            "1..=1024 pixels",
-        )?;
+        let s = bounded(Self::NAME, "image_size", self.image_size, 1, limits::MAX_IMAGE_SIZE, "1..=1024 pixels")?;
         let p = bounded(
             Self::NAME,
             "patch_grid",
@@ -96,22 +89,8 @@ impl ObservationHeader {
                 expected: "a divisor of image_size",
             });
         }
-        let n = bounded(
-            Self::NAME,
-            "point_count",
-            self.point_count,
-            1,
-            limits::MAX_POINTS,
-            "1..=65536",
-        )?;
-        bounded(
-            Self::NAME,
-            "valid_point_count",
-            self.valid_point_count,
-            0,
-            self.point_count,
-            "0..=point_count",
-        )?;
+        let n = bounded(Self::NAME, "point_count", self.point_count, 1, limits::MAX_POINTS, "1..=65536")?;
+        bounded(Self::NAME, "valid_point_count", self.valid_point_count, 0, self.point_count, "0..=point_count")?;
         Ok([3 * s * s, p * p, 3 * n])
     }
 
@@ -119,11 +98,7 @@ impl ObservationHeader {
     pub fn view<'a>(&self, payload: &'a [f32]) -> Result<ObservationView<'a>, ContractError> {
         self.check_payload(payload)?;
         let [image, token_mask, points] = sections(payload, self.section_lengths()?);
-        Ok(ObservationView {
-            image,
-            token_mask,
-            points,
-        })
+        Ok(ObservationView { image, token_mask, points })
     }
 }
 

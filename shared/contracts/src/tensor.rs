@@ -33,12 +33,7 @@ pub struct TensorHeader {
 impl TensorHeader {
     /// A rank-1 tensor of `len` values.
     pub fn vector(header: Header, len: u32) -> Self {
-        Self {
-            header,
-            shape: [len, 0, 0, 0],
-            rank: 1,
-            reserved: 0,
-        }
+        Self { header, shape: [len, 0, 0, 0], rank: 1, reserved: 0 }
     }
 }
 
@@ -55,18 +50,15 @@ impl MessageHeader for TensorHeader {
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         let rank = bounded(Self::NAME, "rank", self.rank, 1, 4, "1..=4")?;
-        let len = self.shape[..rank].iter().try_fold(1u64, |acc, &d| {
-            acc.checked_mul(u64::from(d))
-                .filter(|n| *n <= MAX_TENSOR_LEN)
-        });
+        let len = self.shape[..rank]
+            .iter()
+            .try_fold(1u64, |acc, &d| acc.checked_mul(u64::from(d)).filter(|n| *n <= MAX_TENSOR_LEN));
         match len {
             Some(n) => Ok(n as usize),
             None => Err(ContractError::FieldOutOfRange {
                 message: Self::NAME,
                 field: "shape",
-                value: self.shape[..rank]
-                    .iter()
-                    .fold(1u64, |acc, &d| acc.saturating_mul(u64::from(d))),
+                value: self.shape[..rank].iter().fold(1u64, |acc, &d| acc.saturating_mul(u64::from(d))),
                 expected: "a product of extents of at most 2^26 values",
             }),
         }

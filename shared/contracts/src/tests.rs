@@ -14,14 +14,8 @@ fn type_names_are_stable_and_versioned() {
     assert_eq!(type_name::<Header>(), "poseflow/Header/v1");
     assert_eq!(type_name::<ObservationHeader>(), "poseflow/Observation/v1");
     assert_eq!(type_name::<ConditionHandle>(), "poseflow/Condition/v1");
-    assert_eq!(
-        type_name::<VelocityRequest>(),
-        "poseflow/VelocityRequest/v1"
-    );
-    assert_eq!(
-        type_name::<VelocityResponse>(),
-        "poseflow/VelocityResponse/v1"
-    );
+    assert_eq!(type_name::<VelocityRequest>(), "poseflow/VelocityRequest/v1");
+    assert_eq!(type_name::<VelocityResponse>(), "poseflow/VelocityResponse/v1");
     assert_eq!(type_name::<HypothesesHeader>(), "poseflow/Hypotheses/v1");
     assert_eq!(type_name::<EstimateHeader>(), "poseflow/Estimate/v1");
     assert_eq!(type_name::<GraspsHeader>(), "poseflow/Grasps/v1");
@@ -59,44 +53,22 @@ fn observation_payload_splits_into_its_sections() {
 fn inconsistent_lengths_are_named() {
     let header = observation(4, 2, 3);
     let err = header.view(&[0.0; 60]).unwrap_err().to_string();
-    assert_eq!(
-        err,
-        "Observation: payload holds 60 f32 values, the header announces 61"
-    );
+    assert_eq!(err, "Observation: payload holds 60 f32 values, the header announces 61");
 
-    let err = observation(224, 15, 1024)
-        .payload_len()
-        .unwrap_err()
-        .to_string();
-    assert!(
-        err.contains("patch_grid") && err.contains("divisor"),
-        "{err}"
-    );
+    let err = observation(224, 15, 1024).payload_len().unwrap_err().to_string();
+    assert!(err.contains("patch_grid") && err.contains("divisor"), "{err}");
 
-    let err = observation(224, 16, 0)
-        .payload_len()
-        .unwrap_err()
-        .to_string();
+    let err = observation(224, 16, 0).payload_len().unwrap_err().to_string();
     assert!(err.contains("`point_count` = 0"), "{err}");
 
     let mut resampled = observation(224, 16, 10);
     resampled.valid_point_count = 11;
-    assert!(
-        resampled
-            .payload_len()
-            .unwrap_err()
-            .to_string()
-            .contains("valid_point_count")
-    );
+    assert!(resampled.payload_len().unwrap_err().to_string().contains("valid_point_count"));
 }
 
 #[test]
 fn velocity_request_rejects_flow_time_outside_unit_interval() {
-    let mut request = VelocityRequest {
-        sample_count: 50,
-        t: 0.8,
-        ..Default::default()
-    };
+    let mut request = VelocityRequest { sample_count: 50, t: 0.8, ..Default::default() };
     assert_eq!(request.payload_len().unwrap(), 50 * POSE_LEN);
     for t in [1.0, -0.1, f32::NAN] {
         request.t = t;
@@ -107,23 +79,11 @@ fn velocity_request_rejects_flow_time_outside_unit_interval() {
 
 #[test]
 fn failed_velocity_response_has_no_payload() {
-    let ok = VelocityResponse {
-        sample_count: 50,
-        status: status::OK,
-        ..Default::default()
-    };
+    let ok = VelocityResponse { sample_count: 50, status: status::OK, ..Default::default() };
     assert_eq!(ok.payload_len().unwrap(), 300);
-    let failed = VelocityResponse {
-        sample_count: 0,
-        status: status::UNKNOWN_CONDITION,
-        ..Default::default()
-    };
+    let failed = VelocityResponse { sample_count: 0, status: status::UNKNOWN_CONDITION, ..Default::default() };
     assert_eq!(failed.payload_len().unwrap(), 0);
-    let inconsistent = VelocityResponse {
-        sample_count: 50,
-        status: status::INFERENCE_FAILED,
-        ..Default::default()
-    };
+    let inconsistent = VelocityResponse { sample_count: 50, status: status::INFERENCE_FAILED, ..Default::default() };
     assert!(inconsistent.payload_len().is_err());
 }
 
@@ -139,74 +99,30 @@ fn estimate_sections_and_selection_codes() {
     let view = header.view(&payload).unwrap();
     assert_eq!(view.modes.len(), 26);
     assert_eq!(view.hypotheses.len(), 130);
-    let bad = EstimateHeader {
-        selection: 9,
-        ..header
-    };
-    assert!(
-        bad.payload_len()
-            .unwrap_err()
-            .to_string()
-            .contains("selection")
-    );
+    let bad = EstimateHeader { selection: 9, ..header };
+    assert!(bad.payload_len().unwrap_err().to_string().contains("selection"));
     assert_eq!(SelectionMethod::from_code(3), Some(SelectionMethod::Sdf));
 }
 
 #[test]
 fn grasps_next_view_hypotheses_and_condition_lengths() {
-    let grasps = GraspsHeader {
-        grasp_count: 4,
-        hypothesis_count: 10,
-        ..Default::default()
-    };
+    let grasps = GraspsHeader { grasp_count: 4, hypothesis_count: 10, ..Default::default() };
     assert_eq!(grasps.payload_len().unwrap(), 4 * GRASP_LEN);
-    let view = NextViewHeader {
-        candidate_count: 3,
-        ..Default::default()
-    };
+    let view = NextViewHeader { candidate_count: 3, ..Default::default() };
     assert_eq!(view.payload_len().unwrap(), 3 * CANDIDATE_LEN);
-    let hyps = HypothesesHeader {
-        sample_count: 50,
-        step_count: 5,
-        ..Default::default()
-    };
+    let hyps = HypothesesHeader { sample_count: 50, step_count: 5, ..Default::default() };
     assert_eq!(hyps.payload_len().unwrap(), 600);
     assert_eq!(ConditionHandle::default().payload_len().unwrap(), 0);
-    assert!(
-        HypothesesHeader {
-            sample_count: 5000,
-            ..hyps
-        }
-        .payload_len()
-        .is_err()
-    );
+    assert!(HypothesesHeader { sample_count: 5000, ..hyps }.payload_len().is_err());
 }
 
 #[test]
 fn tensor_length_is_the_product_of_its_shape() {
-    let t = TensorHeader {
-        shape: [3, 224, 224, 99],
-        rank: 3,
-        ..Default::default()
-    };
+    let t = TensorHeader { shape: [3, 224, 224, 99], rank: 3, ..Default::default() };
     assert_eq!(t.payload_len().unwrap(), 3 * 224 * 224);
-    assert_eq!(
-        TensorHeader::vector(Header::new(0, 0), 7)
-            .payload_len()
-            .unwrap(),
-        7
-    );
-    let huge = TensorHeader {
-        shape: [u32::MAX, u32::MAX, 2, 2],
-        rank: 4,
-        ..Default::default()
-    };
-    assert!(
-        huge.payload_len()
-            .unwrap_err()
-            .to_string()
-            .contains("shape")
-    );
+    assert_eq!(TensorHeader::vector(Header::new(0, 0), 7).payload_len().unwrap(), 7);
+    let huge = TensorHeader { shape: [u32::MAX, u32::MAX, 2, 2], rank: 4, ..Default::default() };
+    assert!(huge.payload_len().unwrap_err().to_string().contains("shape"));
     assert!(TensorHeader { rank: 0, ..t }.payload_len().is_err());
 }
 

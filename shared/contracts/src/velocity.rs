@@ -46,14 +46,7 @@ impl MessageHeader for VelocityRequest {
     }
 
     fn payload_len(&self) -> Result<usize, ContractError> {
-        let n = bounded(
-            Self::NAME,
-            "sample_count",
-            self.sample_count,
-            1,
-            limits::MAX_SAMPLES,
-            "1..=4096",
-        )?;
+        let n = bounded(Self::NAME, "sample_count", self.sample_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
         if !(0.0..1.0).contains(&self.t) {
             return Err(ContractError::FieldOutOfRange {
                 message: Self::NAME,
@@ -111,19 +104,8 @@ impl MessageHeader for VelocityResponse {
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         let min = if self.status == status::OK { 1 } else { 0 };
-        let max = if self.status == status::OK {
-            limits::MAX_SAMPLES
-        } else {
-            0
-        };
-        let n = bounded(
-            Self::NAME,
-            "sample_count",
-            self.sample_count,
-            min,
-            max,
-            "1..=4096 when status is OK, else 0",
-        )?;
+        let max = if self.status == status::OK { limits::MAX_SAMPLES } else { 0 };
+        let n = bounded(Self::NAME, "sample_count", self.sample_count, min, max, "1..=4096 when status is OK, else 0")?;
         Ok(n * VELOCITY_LEN)
     }
 }

@@ -21,10 +21,7 @@ impl Default for PoseMetric {
     /// distinct noisy samples far apart; we read it as 0.03 m (3 cm), the scale
     /// of its 5°2cm / 5°5cm thresholds.
     fn default() -> Self {
-        Self {
-            rotation_scale: 10f64.to_radians(),
-            translation_scale: 0.03,
-        }
+        Self { rotation_scale: 10f64.to_radians(), translation_scale: 0.03 }
     }
 }
 
@@ -45,10 +42,7 @@ mod tests {
     fn one_epsilon_in_each_part_gives_sqrt2() {
         let metric = PoseMetric::default();
         let a = Pose::identity();
-        let b = Pose::new(
-            so3::exp(&Vector3::new(10f64.to_radians(), 0.0, 0.0)),
-            Vector3::new(0.0, 0.03, 0.0),
-        );
+        let b = Pose::new(so3::exp(&Vector3::new(10f64.to_radians(), 0.0, 0.0)), Vector3::new(0.0, 0.03, 0.0));
         assert!((metric.distance(&a, &b) - 2f64.sqrt()).abs() < 1e-12);
     }
 }

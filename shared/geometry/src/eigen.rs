@@ -14,19 +14,12 @@ pub struct SymmetricEigen<const N: usize> {
 
 /// Decomposes `m`, reading only its lower triangle (so a covariance that is
 /// symmetric up to rounding needs no clean-up).
-pub fn symmetric_eigen<const N: usize>(
-    m: &SMatrix<f64, N, N>,
-) -> Result<SymmetricEigen<N>, GeometryError> {
+pub fn symmetric_eigen<const N: usize>(m: &SMatrix<f64, N, N>) -> Result<SymmetricEigen<N>, GeometryError> {
     let dense = faer::Mat::<f64>::from_fn(N, N, |i, j| m[(i, j)]);
-    let evd = dense
-        .self_adjoint_eigen(faer::Side::Lower)
-        .map_err(|_| GeometryError::EigenNoConvergence { size: N })?;
+    let evd = dense.self_adjoint_eigen(faer::Side::Lower).map_err(|_| GeometryError::EigenNoConvergence { size: N })?;
     let values = evd.S().column_vector();
     let vectors = evd.U();
-    Ok(SymmetricEigen {
-        values: SVector::from_fn(|i, _| values[i]),
-        vectors: SMatrix::from_fn(|i, j| vectors[(i, j)]),
-    })
+    Ok(SymmetricEigen { values: SVector::from_fn(|i, _| values[i]), vectors: SMatrix::from_fn(|i, j| vectors[(i, j)]) })
 }
 
 #[cfg(test)]

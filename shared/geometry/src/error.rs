@@ -8,11 +8,7 @@ pub enum GeometryError {
     Empty { what: &'static str },
 
     #[error("{what}: expected {expected} elements, got {actual}")]
-    LengthMismatch {
-        what: &'static str,
-        expected: usize,
-        actual: usize,
-    },
+    LengthMismatch { what: &'static str, expected: usize, actual: usize },
 
     #[error("weights: expected finite, non-negative values with a positive sum, got {detail}")]
     InvalidWeights { detail: String },
@@ -21,10 +17,7 @@ pub enum GeometryError {
     FlowTimeOutOfRange { t: f64 },
 
     #[error("{what}: expected finite values, got {values:?}")]
-    NonFinite {
-        what: &'static str,
-        values: Vec<f64>,
-    },
+    NonFinite { what: &'static str, values: Vec<f64> },
 
     #[error("{what}: expected a rotation matrix (orthonormal, det +1), got {detail}")]
     NotARotation { what: String, detail: String },
@@ -55,11 +48,5 @@ pub enum GeometryError {
     },
 
     #[error("{path}: object {object}: field `{field}`: {expected}, got {value}")]
-    ModelInfoField {
-        path: PathBuf,
-        object: String,
-        field: &'static str,
-        expected: &'static str,
-        value: String,
-    },
+    ModelInfoField { path: PathBuf, object: String, field: &'static str, expected: &'static str, value: String },
 }

@@ -31,20 +31,14 @@ impl Velocity {
 
     pub fn from_f32(values: &[f32; 6]) -> Self {
         let v = values.map(f64::from);
-        Self {
-            linear: Vector3::new(v[0], v[1], v[2]),
-            angular: Vector3::new(v[3], v[4], v[5]),
-        }
+        Self { linear: Vector3::new(v[0], v[1], v[2]), angular: Vector3::new(v[3], v[4], v[5]) }
     }
 }
 
 /// The point at time `t ∈ [0, 1]` on the path from `start` to `target`.
 pub fn interpolate(start: &Pose, target: &Pose, t: f64) -> Pose {
     let relative = so3::log(&(start.rotation.inverse() * target.rotation));
-    Pose::new(
-        start.rotation * so3::exp(&(relative * t)),
-        start.translation * (1.0 - t) + target.translation * t,
-    )
+    Pose::new(start.rotation * so3::exp(&(relative * t)), start.translation * (1.0 - t) + target.translation * t)
 }
 
 /// The conditional target velocity at `current` = the path point at time `t`,
@@ -61,11 +55,7 @@ pub fn target_velocity(current: &Pose, target: &Pose, t: f64) -> Result<Velocity
 }
 
 /// One explicit Euler step for a batch: `R ← R exp(dt ω)`, `p ← p + dt v`.
-pub fn euler_step(
-    poses: &mut [Pose],
-    velocities: &[Velocity],
-    dt: f64,
-) -> Result<(), GeometryError> {
+pub fn euler_step(poses: &mut [Pose], velocities: &[Velocity], dt: f64) -> Result<(), GeometryError> {
     if poses.len() != velocities.len() {
         return Err(GeometryError::LengthMismatch {
             what: "velocities for an Euler step (one per pose)",
@@ -93,10 +83,7 @@ mod tests {
     use crate::pose::Twist;
 
     fn sample_pair() -> (Pose, Pose) {
-        (
-            Pose::exp(&Twist::new(0.1, 0.2, 0.3, 0.5, -1.0, 0.7)),
-            Pose::exp(&Twist::new(-0.3, 0.0, 0.9, -1.2, 0.4, 0.2)),
-        )
+        (Pose::exp(&Twist::new(0.1, 0.2, 0.3, 0.5, -1.0, 0.7)), Pose::exp(&Twist::new(-0.3, 0.0, 0.9, -1.2, 0.4, 0.2)))
     }
 
     #[test]
@@ -110,9 +97,7 @@ mod tests {
                 let v = target_velocity(&poses[0], &target, t).unwrap();
                 euler_step(&mut poses, &[v], 1.0 / steps as f64).unwrap();
             }
-            let err = (poses[0].to_homogeneous() - target.to_homogeneous())
-                .abs()
-                .max();
+            let err = (poses[0].to_homogeneous() - target.to_homogeneous()).abs().max();
             assert!(err < 1e-12, "steps {steps}: {err}");
         }
     }
@@ -120,9 +105,7 @@ mod tests {
     #[test]
     fn velocity_at_t1_is_an_error() {
         let (start, target) = sample_pair();
-        let err = target_velocity(&start, &target, 1.0)
-            .unwrap_err()
-            .to_string();
+        let err = target_velocity(&start, &target, 1.0).unwrap_err().to_string();
         assert!(err.contains("t = 1"), "{err}");
         assert!(target_velocity(&start, &target, f64::NAN).is_err());
     }
@@ -130,20 +113,14 @@ mod tests {
     #[test]
     fn euler_rejects_length_mismatch() {
         let mut poses = [Pose::identity(); 3];
-        let v = Velocity {
-            linear: Vector3::zeros(),
-            angular: Vector3::zeros(),
-        };
+        let v = Velocity { linear: Vector3::zeros(), angular: Vector3::zeros() };
         assert!(euler_step(&mut poses, &[v; 2], 0.1).is_err());
     }
 
     #[test]
     fn interpolation_midpoint_about_one_axis() {
         let start = Pose::identity();
-        let target = Pose::new(
-            so3::exp(&Vector3::new(0.0, 0.0, 1.0)),
-            Vector3::new(2.0, 0.0, 0.0),
-        );
+        let target = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, 1.0)), Vector3::new(2.0, 0.0, 0.0));
         let mid = interpolate(&start, &target, 0.5);
         assert!((so3::log(&mid.rotation) - Vector3::new(0.0, 0.0, 0.5)).norm() < 1e-15);
         assert_eq!(mid.translation, Vector3::new(1.0, 0.0, 0.0));

@@ -21,10 +21,7 @@ pub struct KarcherOptions {
 
 impl Default for KarcherOptions {
     fn default() -> Self {
-        Self {
-            tolerance: 1e-10,
-            max_iterations: 50,
-        }
+        Self { tolerance: 1e-10, max_iterations: 50 }
     }
 }
 
@@ -41,9 +38,7 @@ pub struct KarcherMean<T> {
 /// Weights normalised to sum 1; uniform when `weights` is `None`.
 fn normalised_weights(count: usize, weights: Option<&[f64]>) -> Result<Vec<f64>, GeometryError> {
     if count == 0 {
-        return Err(GeometryError::Empty {
-            what: "samples to average",
-        });
+        return Err(GeometryError::Empty { what: "samples to average" });
     }
     let Some(weights) = weights else {
         return Ok(vec![1.0 / count as f64; count]);
@@ -58,9 +53,7 @@ fn normalised_weights(count: usize, weights: Option<&[f64]>) -> Result<Vec<f64>,
     let sum: f64 = weights.iter().sum();
     let all_valid = weights.iter().all(|w| w.is_finite() && *w >= 0.0);
     if !all_valid || !sum.is_finite() || sum <= 0.0 {
-        return Err(GeometryError::InvalidWeights {
-            detail: format!("{weights:?}"),
-        });
+        return Err(GeometryError::InvalidWeights { detail: format!("{weights:?}") });
     }
     Ok(weights.iter().map(|w| w / sum).collect())
 }
@@ -69,23 +62,13 @@ fn normalised_weights(count: usize, weights: Option<&[f64]>) -> Result<Vec<f64>,
 /// aligned to the heaviest sample (the chordal mean), which leaves the
 /// geodesic iteration only a few steps to go.
 fn chordal_start(rotations: &[Rotation3<f64>], weights: &[f64]) -> Rotation3<f64> {
-    let heaviest = weights
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1.total_cmp(b.1))
-        .map_or(0, |(i, _)| i);
-    let quaternions: Vec<UnitQuaternion<f64>> = rotations
-        .iter()
-        .map(|r| so3::quaternion_from_matrix(r.matrix()))
-        .collect();
+    let heaviest = weights.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |(i, _)| i);
+    let quaternions: Vec<UnitQuaternion<f64>> =
+        rotations.iter().map(|r| so3::quaternion_from_matrix(r.matrix())).collect();
     let reference = quaternions[heaviest].coords;
     let mut sum = Quaternion::identity().coords * 0.0;
     for (q, w) in quaternions.iter().zip(weights) {
-        let sign = if q.coords.dot(&reference) < 0.0 {
-            -1.0
-        } else {
-            1.0
-        };
+        let sign = if q.coords.dot(&reference) < 0.0 { -1.0 } else { 1.0 };
         sum += q.coords * (sign * w);
     }
     if sum.norm() < 1e-9 {
@@ -105,25 +88,13 @@ pub fn karcher_mean_rotations(
     let mut mean = chordal_start(rotations, &weights);
     for iteration in 1..=options.max_iterations {
         let mean_inverse = mean.inverse();
-        let step: Vector3<f64> = rotations
-            .iter()
-            .zip(&weights)
-            .map(|(r, w)| so3::log(&(mean_inverse * r)) * *w)
-            .sum();
+        let step: Vector3<f64> = rotations.iter().zip(&weights).map(|(r, w)| so3::log(&(mean_inverse * r)) * *w).sum();
         mean *= so3::exp(&step);
         if step.norm() < options.tolerance {
-            return Ok(KarcherMean {
-                mean,
-                iterations: iteration,
-                converged: true,
-            });
+            return Ok(KarcherMean { mean, iterations: iteration, converged: true });
         }
     }
-    Ok(KarcherMean {
-        mean,
-        iterations: options.max_iterations,
-        converged: false,
-    })
+    Ok(KarcherMean { mean, iterations: options.max_iterations, converged: false })
 }
 
 /// The weighted Karcher mean of poses on SO(3) × ℝ³ (see the module docs).
@@ -135,11 +106,7 @@ pub fn karcher_mean_poses(
     let rotations: Vec<_> = poses.iter().map(|p| p.rotation).collect();
     let rotation = karcher_mean_rotations(&rotations, weights, options)?;
     let weights = normalised_weights(poses.len(), weights)?;
-    let translation: Vector3<f64> = poses
-        .iter()
-        .zip(&weights)
-        .map(|(p, w)| p.translation * *w)
-        .sum();
+    let translation: Vector3<f64> = poses.iter().zip(&weights).map(|(p, w)| p.translation * *w).sum();
     Ok(KarcherMean {
         mean: Pose::new(rotation.mean, translation),
         iterations: rotation.iterations,
@@ -160,11 +127,7 @@ pub struct PoseStatistics {
 }
 
 impl PoseStatistics {
-    pub fn compute(
-        poses: &[Pose],
-        weights: Option<&[f64]>,
-        options: &KarcherOptions,
-    ) -> Result<Self, GeometryError> {
+    pub fn compute(poses: &[Pose], weights: Option<&[f64]>, options: &KarcherOptions) -> Result<Self, GeometryError> {
         let mean = karcher_mean_poses(poses, weights, options)?;
         let weights = normalised_weights(poses.len(), weights)?;
         let mean_inverse = mean.mean.rotation.inverse();
@@ -216,8 +179,7 @@ mod tests {
     fn weights_pull_the_mean() {
         let a = so3::exp(&Vector3::new(0.0, 0.0, 0.0));
         let b = so3::exp(&Vector3::new(0.0, 0.0, 1.0));
-        let m =
-            karcher_mean_rotations(&[a, b], Some(&[3.0, 1.0]), &KarcherOptions::default()).unwrap();
+        let m = karcher_mean_rotations(&[a, b], Some(&[3.0, 1.0]), &KarcherOptions::default()).unwrap();
         assert!((so3::log(&m.mean) - Vector3::new(0.0, 0.0, 0.25)).norm() < 1e-12);
     }
 
@@ -239,14 +201,8 @@ mod tests {
         // the covariance is diag(0, s², 0, σ², 0, 0) with zero cross terms.
         let (sigma, s) = (0.1, 0.02);
         let poses = [
-            Pose::new(
-                so3::exp(&Vector3::new(sigma, 0.0, 0.0)),
-                Vector3::new(0.0, s, 0.0),
-            ),
-            Pose::new(
-                so3::exp(&Vector3::new(-sigma, 0.0, 0.0)),
-                Vector3::new(0.0, -s, 0.0),
-            ),
+            Pose::new(so3::exp(&Vector3::new(sigma, 0.0, 0.0)), Vector3::new(0.0, s, 0.0)),
+            Pose::new(so3::exp(&Vector3::new(-sigma, 0.0, 0.0)), Vector3::new(0.0, -s, 0.0)),
         ];
         let stats = PoseStatistics::compute(&poses, None, &KarcherOptions::default()).unwrap();
         let mut expected = Matrix6::zeros();
@@ -254,11 +210,7 @@ mod tests {
         expected[(3, 3)] = sigma * sigma;
         expected[(1, 3)] = s * sigma;
         expected[(3, 1)] = s * sigma;
-        assert!(
-            (stats.covariance - expected).abs().max() < 1e-14,
-            "{}",
-            stats.covariance
-        );
+        assert!((stats.covariance - expected).abs().max() < 1e-14, "{}", stats.covariance);
         assert!((stats.rotation_covariance().trace() - sigma * sigma).abs() < 1e-14);
         let eig = stats.rotation_eigen().unwrap();
         assert!((eig.values[2] - sigma * sigma).abs() < 1e-14);

@@ -73,36 +73,24 @@ struct RawContinuousSymmetry {
 
 impl ModelsInfo {
     pub fn from_path(path: &Path) -> Result<Self, GeometryError> {
-        let text = std::fs::read_to_string(path).map_err(|source| GeometryError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text =
+            std::fs::read_to_string(path).map_err(|source| GeometryError::Io { path: path.to_path_buf(), source })?;
         Self::from_json_str(&text, path)
     }
 
     /// Parses file contents; `path` only names the source in errors.
     pub fn from_json_str(text: &str, path: &Path) -> Result<Self, GeometryError> {
-        let json_error = |source| GeometryError::Json {
-            path: path.to_path_buf(),
-            source,
-        };
-        let raw: BTreeMap<String, serde_json::Value> =
-            serde_json::from_str(text).map_err(json_error)?;
+        let json_error = |source| GeometryError::Json { path: path.to_path_buf(), source };
+        let raw: BTreeMap<String, serde_json::Value> = serde_json::from_str(text).map_err(json_error)?;
         let mut objects = BTreeMap::new();
         for (key, value) in raw {
-            let context = FieldContext {
-                path: path.to_path_buf(),
-                object: key.clone(),
-            };
-            let id = key.parse::<u32>().map_err(|_| {
-                context.error("(key)", "expected a non-negative integer object id", &key)
+            let context = FieldContext { path: path.to_path_buf(), object: key.clone() };
+            let id = key
+                .parse::<u32>()
+                .map_err(|_| context.error("(key)", "expected a non-negative integer object id", &key))?;
+            let entry: RawModelInfo = serde_json::from_value(value).map_err(|source| {
+                GeometryError::ModelInfoEntry { path: path.to_path_buf(), object: key.clone(), source }
             })?;
-            let entry: RawModelInfo =
-                serde_json::from_value(value).map_err(|source| GeometryError::ModelInfoEntry {
-                    path: path.to_path_buf(),
-                    object: key.clone(),
-                    source,
-                })?;
             objects.insert(id, entry.into_model_info(&context)?);
         }
         Ok(Self { objects })
@@ -119,12 +107,7 @@ struct FieldContext {
 }
 
 impl FieldContext {
-    fn error(
-        &self,
-        field: &'static str,
-        expected: &'static str,
-        value: impl std::fmt::Debug,
-    ) -> GeometryError {
+    fn error(&self, field: &'static str, expected: &'static str, value: impl std::fmt::Debug) -> GeometryError {
         GeometryError::ModelInfoField {
             path: self.path.clone(),
             object: self.object.clone(),
@@ -150,11 +133,7 @@ fn optional_vector(x: Option<f64>, y: Option<f64>, z: Option<f64>) -> Option<Vec
 impl RawModelInfo {
     fn into_model_info(self, context: &FieldContext) -> Result<ModelInfo, GeometryError> {
         if !(self.diameter.is_finite() && self.diameter > 0.0) {
-            return Err(context.error(
-                "diameter",
-                "expected a positive number of millimetres",
-                self.diameter,
-            ));
+            return Err(context.error("diameter", "expected a positive number of millimetres", self.diameter));
         }
         let min = optional_vector(self.min_x, self.min_y, self.min_z);
         let size = optional_vector(self.size_x, self.size_y, self.size_z);
@@ -180,13 +159,8 @@ impl RawModelInfo {
                 values[8], values[9], values[10],
             );
             let rotation =
-                project_to_rotation(&m, "symmetries_discrete", SYMMETRY_ORTHONORMALITY_TOLERANCE)
-                    .map_err(|_| {
-                    context.error(
-                        "symmetries_discrete",
-                        "expected a rotation in the upper-left 3x3 block",
-                        values,
-                    )
+                project_to_rotation(&m, "symmetries_discrete", SYMMETRY_ORTHONORMALITY_TOLERANCE).map_err(|_| {
+                    context.error("symmetries_discrete", "expected a rotation in the upper-left 3x3 block", values)
                 })?;
             let translation = Vector3::new(values[3], values[7], values[11]) * MM_TO_M;
             symmetries_discrete.push(Pose::new(rotation, translation));
@@ -196,26 +170,12 @@ impl RawModelInfo {
         for sym in &self.symmetries_continuous {
             context.finite("symmetries_continuous.axis", &sym.axis)?;
             context.finite("symmetries_continuous.offset", &sym.offset)?;
-            let axis = Unit::try_new(Vector3::from(sym.axis), 1e-9).ok_or_else(|| {
-                context.error(
-                    "symmetries_continuous.axis",
-                    "expected a non-zero axis",
-                    sym.axis,
-                )
-            })?;
-            symmetries_continuous.push(ContinuousSymmetry {
-                axis,
-                offset: Vector3::from(sym.offset) * MM_TO_M,
-            });
+            let axis = Unit::try_new(Vector3::from(sym.axis), 1e-9)
+                .ok_or_else(|| context.error("symmetries_continuous.axis", "expected a non-zero axis", sym.axis))?;
+            symmetries_continuous.push(ContinuousSymmetry { axis, offset: Vector3::from(sym.offset) * MM_TO_M });
         }
 
-        Ok(ModelInfo {
-            diameter: self.diameter * MM_TO_M,
-            min,
-            size,
-            symmetries_discrete,
-            symmetries_continuous,
-        })
+        Ok(ModelInfo { diameter: self.diameter * MM_TO_M, min, size, symmetries_discrete, symmetries_continuous })
     }
 }
 
@@ -245,63 +205,36 @@ mod tests {
         assert!((ape.size.unwrap().z - 0.0918).abs() < 1e-12);
         let eggbox = info.get(10).unwrap();
         assert_eq!(eggbox.symmetries_discrete.len(), 1);
-        assert!(
-            (eggbox.symmetries_discrete[0].translation - Vector3::new(0.2e-3, 0.7e-3, -0.1e-3))
-                .norm()
-                < 1e-15
-        );
+        assert!((eggbox.symmetries_discrete[0].translation - Vector3::new(0.2e-3, 0.7e-3, -0.1e-3)).norm() < 1e-15);
         let bowl = info.get(13).unwrap();
-        assert_eq!(
-            bowl.symmetries_continuous[0].axis.into_inner(),
-            Vector3::z()
-        );
+        assert_eq!(bowl.symmetries_continuous[0].axis.into_inner(), Vector3::z());
         assert!((bowl.symmetries_continuous[0].offset.z - 0.005).abs() < 1e-15);
     }
 
     #[test]
     fn errors_name_object_field_and_value() {
         let err = parse(r#"{"5": {"diameter": -3}}"#).unwrap_err().to_string();
-        assert!(
-            err.contains("object 5") && err.contains("diameter") && err.contains("-3"),
-            "{err}"
-        );
+        assert!(err.contains("object 5") && err.contains("diameter") && err.contains("-3"), "{err}");
 
-        let err = parse(r#"{"5": {"diameter": 3, "symmetries_discrete": [[1, 0, 0]]}}"#)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            err.contains("symmetries_discrete") && err.contains("16 numbers"),
-            "{err}"
-        );
+        let err = parse(r#"{"5": {"diameter": 3, "symmetries_discrete": [[1, 0, 0]]}}"#).unwrap_err().to_string();
+        assert!(err.contains("symmetries_discrete") && err.contains("16 numbers"), "{err}");
 
         let err = parse(r#"{"5": {"diameter": 3, "symmetries_discrete": [[2,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]]}}"#)
             .unwrap_err()
             .to_string();
         assert!(err.contains("rotation"), "{err}");
 
-        let err = parse(r#"{"abc": {"diameter": 3}}"#)
-            .unwrap_err()
-            .to_string();
+        let err = parse(r#"{"abc": {"diameter": 3}}"#).unwrap_err().to_string();
         assert!(err.contains("object id"), "{err}");
 
         let err = parse(r#"{"7": {"size_x": 3}}"#).unwrap_err().to_string();
-        assert!(
-            err.contains("models_info.json")
-                && err.contains("object 7")
-                && err.contains("diameter"),
-            "{err}"
-        );
+        assert!(err.contains("models_info.json") && err.contains("object 7") && err.contains("diameter"), "{err}");
 
         let err = parse(r#"{"7": {"diameter": 3, "symmetries_continuous": [{"axis": [0,0,0], "offset": [0,0,0]}]}}"#)
             .unwrap_err()
             .to_string();
         assert!(err.contains("non-zero axis"), "{err}");
 
-        assert!(
-            parse("not json")
-                .unwrap_err()
-                .to_string()
-                .contains("invalid JSON")
-        );
+        assert!(parse("not json").unwrap_err().to_string().contains("invalid JSON"));
     }
 }

@@ -19,10 +19,7 @@ pub type Twist = Vector6<f64>;
 
 impl Pose {
     pub fn new(rotation: Rotation3<f64>, translation: Vector3<f64>) -> Self {
-        Self {
-            rotation,
-            translation,
-        }
+        Self { rotation, translation }
     }
 
     pub fn identity() -> Self {
@@ -41,8 +38,7 @@ impl Pose {
     /// The homogeneous 4×4 matrix `[R t; 0 1]`.
     pub fn to_homogeneous(&self) -> Matrix4<f64> {
         let mut m = Matrix4::identity();
-        m.fixed_view_mut::<3, 3>(0, 0)
-            .copy_from(self.rotation.matrix());
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(self.rotation.matrix());
         m.fixed_view_mut::<3, 1>(0, 3).copy_from(&self.translation);
         m
     }
@@ -84,37 +80,24 @@ impl Pose {
     pub fn from_f32_row_major(values: &[f32; 12]) -> Result<Self, GeometryError> {
         let as_f64: Vec<f64> = values.iter().map(|&v| f64::from(v)).collect();
         if as_f64.iter().any(|v| !v.is_finite()) {
-            return Err(GeometryError::NonFinite {
-                what: "pose (row-major R, t)",
-                values: as_f64,
-            });
+            return Err(GeometryError::NonFinite { what: "pose (row-major R, t)", values: as_f64 });
         }
         let m = Matrix3::from_row_slice(&as_f64[..9]);
         let rotation = project_to_rotation(&m, "pose rotation", 1e-3)?;
-        Ok(Self::new(
-            rotation,
-            Vector3::new(as_f64[9], as_f64[10], as_f64[11]),
-        ))
+        Ok(Self::new(rotation, Vector3::new(as_f64[9], as_f64[10], as_f64[11])))
     }
 }
 
 impl std::ops::Mul for Pose {
     type Output = Pose;
     fn mul(self, rhs: Pose) -> Pose {
-        Pose::new(
-            self.rotation * rhs.rotation,
-            self.rotation * rhs.translation + self.translation,
-        )
+        Pose::new(self.rotation * rhs.rotation, self.rotation * rhs.translation + self.translation)
     }
 }
 
 /// Projects an almost-orthonormal matrix onto SO(3) after checking that it is
 /// within `tolerance` of one (max-abs of `MᵀM − I`, and `det M > 0`).
-pub fn project_to_rotation(
-    m: &Matrix3<f64>,
-    what: &str,
-    tolerance: f64,
-) -> Result<Rotation3<f64>, GeometryError> {
+pub fn project_to_rotation(m: &Matrix3<f64>, what: &str, tolerance: f64) -> Result<Rotation3<f64>, GeometryError> {
     let orthogonality = (m.transpose() * m - Matrix3::identity()).abs().max();
     let det = m.determinant();
     // NaN entries make `orthogonality` NaN, which must fail too.

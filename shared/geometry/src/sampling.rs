@@ -24,13 +24,8 @@ pub fn uniform_rotation<R: Rng + ?Sized>(rng: &mut R) -> Rotation3<f64> {
     let u2: f64 = rng.random::<f64>() * std::f64::consts::TAU;
     let u3: f64 = rng.random::<f64>() * std::f64::consts::TAU;
     let (a, b) = ((1.0 - u1).sqrt(), u1.sqrt());
-    UnitQuaternion::from_quaternion(Quaternion::new(
-        b * u3.cos(),
-        a * u2.sin(),
-        a * u2.cos(),
-        b * u3.sin(),
-    ))
-    .to_rotation_matrix()
+    UnitQuaternion::from_quaternion(Quaternion::new(b * u3.cos(), a * u2.sin(), a * u2.cos(), b * u3.sin()))
+        .to_rotation_matrix()
 }
 
 /// The distribution of the flow's initial translation `p₀`, in the same
@@ -51,9 +46,7 @@ impl TranslationNoise {
                 let z: f64 = StandardNormal.sample(rng);
                 z * std_dev
             }),
-            Self::UniformBox { half_extent } => {
-                Vector3::from_fn(|_, _| rng.random_range(-1.0..=1.0) * half_extent)
-            }
+            Self::UniformBox { half_extent } => Vector3::from_fn(|_, _| rng.random_range(-1.0..=1.0) * half_extent),
         }
     }
 }
@@ -84,10 +77,7 @@ mod tests {
             mean_matrix += r.matrix() / n as f64;
         }
         let expected = std::f64::consts::FRAC_PI_2 + 2.0 / std::f64::consts::PI;
-        assert!(
-            (mean_angle - expected).abs() < 0.02,
-            "mean angle {mean_angle}"
-        );
+        assert!((mean_angle - expected).abs() < 0.02, "mean angle {mean_angle}");
         // E[R] = 0 under Haar measure; each entry has σ = 1/√(3n) ≈ 0.004.
         assert!(mean_matrix.abs().max() < 0.03, "{mean_matrix}");
     }
@@ -105,10 +95,7 @@ mod tests {
         let mut rng = seeded_rng(11);
         let n = 20_000;
         let gaussian = TranslationNoise::Gaussian { std_dev: 0.2 };
-        let var: f64 = (0..n)
-            .map(|_| gaussian.sample(&mut rng).x.powi(2))
-            .sum::<f64>()
-            / n as f64;
+        let var: f64 = (0..n).map(|_| gaussian.sample(&mut rng).x.powi(2)).sum::<f64>() / n as f64;
         assert!((var.sqrt() - 0.2).abs() < 0.005, "std {}", var.sqrt());
 
         let cube = TranslationNoise::UniformBox { half_extent: 0.5 };

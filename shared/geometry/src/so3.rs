@@ -23,22 +23,14 @@ pub fn hat(omega: &Vector3<f64>) -> Matrix3<f64> {
 
 /// The inverse of [`hat`]: reads `ω` from the skew-symmetric part of `m`.
 pub fn vee(m: &Matrix3<f64>) -> Vector3<f64> {
-    Vector3::new(
-        0.5 * (m[(2, 1)] - m[(1, 2)]),
-        0.5 * (m[(0, 2)] - m[(2, 0)]),
-        0.5 * (m[(1, 0)] - m[(0, 1)]),
-    )
+    Vector3::new(0.5 * (m[(2, 1)] - m[(1, 2)]), 0.5 * (m[(0, 2)] - m[(2, 0)]), 0.5 * (m[(1, 0)] - m[(0, 1)]))
 }
 
 /// `sin θ / θ`, `(1 − cos θ)/θ²` and `(θ − sin θ)/θ³`, stable at θ → 0.
 fn rodrigues_coefficients(theta: f64) -> (f64, f64, f64) {
     if theta < SMALL_ANGLE {
         let t2 = theta * theta;
-        (
-            1.0 - t2 / 6.0 + t2 * t2 / 120.0,
-            0.5 - t2 / 24.0 + t2 * t2 / 720.0,
-            1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0,
-        )
+        (1.0 - t2 / 6.0 + t2 * t2 / 120.0, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0)
     } else {
         let half_sin = (0.5 * theta).sin();
         (
@@ -93,12 +85,7 @@ pub fn quaternion_from_matrix(m: &Matrix3<f64>) -> UnitQuaternion<f64> {
         z = 0.25 * s;
     }
     let sign = if w < 0.0 { -1.0 } else { 1.0 };
-    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-        sign * w,
-        sign * x,
-        sign * y,
-        sign * z,
-    ))
+    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(sign * w, sign * x, sign * y, sign * z))
 }
 
 /// The rotation vector of a unit quaternion with non-negative scalar part;
@@ -109,11 +96,7 @@ fn log_quaternion(q: &UnitQuaternion<f64>) -> Vector3<f64> {
     let w = q.scalar();
     // θ = 2·atan2(|v|, w) is well conditioned for every angle; the ratio θ/|v|
     // tends to 2/w as |v| → 0.
-    let scale = if n < 1e-12 {
-        2.0 / w
-    } else {
-        2.0 * n.atan2(w) / n
-    };
+    let scale = if n < 1e-12 { 2.0 / w } else { 2.0 * n.atan2(w) / n };
     imag * scale
 }
 
@@ -185,9 +168,7 @@ mod tests {
     fn log_at_pi_returns_a_valid_axis() {
         // Diagonal matrices with two −1 entries are rotations by exactly π.
         for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
-            let r = Rotation3::from_matrix_unchecked(Matrix3::from_diagonal(
-                &(axis * 2.0 - Vector3::repeat(1.0)),
-            ));
+            let r = Rotation3::from_matrix_unchecked(Matrix3::from_diagonal(&(axis * 2.0 - Vector3::repeat(1.0))));
             let omega = log(&r);
             assert!(omega.iter().all(|x| x.is_finite()));
             assert!((omega.norm() - PI).abs() < 1e-12);
@@ -225,9 +206,6 @@ mod tests {
     fn hat_vee_round_trip() {
         let w = Vector3::new(0.1, -2.0, 3.5);
         assert_eq!(vee(&hat(&w)), w);
-        assert_eq!(
-            hat(&w) * Vector3::new(1.0, 2.0, 3.0),
-            w.cross(&Vector3::new(1.0, 2.0, 3.0))
-        );
+        assert_eq!(hat(&w) * Vector3::new(1.0, 2.0, 3.0), w.cross(&Vector3::new(1.0, 2.0, 3.0)));
     }
 }

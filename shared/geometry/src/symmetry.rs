@@ -42,9 +42,7 @@ impl Default for SymmetrySet {
 impl SymmetrySet {
     /// An asymmetric object: only the identity.
     pub fn identity_only() -> Self {
-        Self {
-            transforms: vec![Pose::identity()],
-        }
+        Self { transforms: vec![Pose::identity()] }
     }
 
     /// The BOP discretisation: each continuous symmetry becomes
@@ -74,10 +72,7 @@ impl SymmetrySet {
         let transforms = if continuous.is_empty() {
             discrete
         } else {
-            discrete
-                .iter()
-                .flat_map(|d| continuous.iter().map(move |c| *c * *d))
-                .collect()
+            discrete.iter().flat_map(|d| continuous.iter().map(move |c| *c * *d)).collect()
         };
         Self { transforms }
     }
@@ -102,11 +97,7 @@ impl SymmetrySet {
     /// Rotation error minimised over the set, and the translation error
     /// against the same twin (`t_truth + R_truth t_S`).
     pub fn pose_error(&self, estimate: &Pose, truth: &Pose) -> SymmetricError {
-        let mut best = SymmetricError {
-            rotation: f64::INFINITY,
-            translation: f64::INFINITY,
-            symmetry_index: 0,
-        };
+        let mut best = SymmetricError { rotation: f64::INFINITY, translation: f64::INFINITY, symmetry_index: 0 };
         for (index, twin) in self.equivalent_poses(truth).enumerate() {
             let rotation = so3::geodesic_angle(&estimate.rotation, &twin.rotation);
             if rotation < best.rotation {
@@ -142,10 +133,7 @@ mod tests {
         let set = SymmetrySet::from_model_info(&info(vec![], vec![]), BOP_MAX_SYMMETRY_STEP);
         assert_eq!(set.transforms().len(), 1);
         let truth = Pose::identity();
-        let est = Pose::new(
-            so3::exp(&Vector3::new(0.0, 0.0, 0.3)),
-            Vector3::new(0.01, 0.0, 0.0),
-        );
+        let est = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, 0.3)), Vector3::new(0.01, 0.0, 0.0));
         let err = set.pose_error(&est, &truth);
         assert!((err.rotation - 0.3).abs() < 1e-14);
         assert!((err.translation - 0.01).abs() < 1e-15);
@@ -154,15 +142,9 @@ mod tests {
     #[test]
     fn flipped_box_has_zero_error_under_its_discrete_symmetry() {
         // 180° about z through the point (0.01, 0, 0): S = (R_z(π), t = 2·(0.01, 0, 0)).
-        let flip = Pose::new(
-            so3::exp(&Vector3::new(0.0, 0.0, std::f64::consts::PI)),
-            Vector3::new(0.02, 0.0, 0.0),
-        );
+        let flip = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, std::f64::consts::PI)), Vector3::new(0.02, 0.0, 0.0));
         let set = SymmetrySet::from_model_info(&info(vec![flip], vec![]), BOP_MAX_SYMMETRY_STEP);
-        let truth = Pose::new(
-            so3::exp(&Vector3::new(0.4, -0.2, 1.0)),
-            Vector3::new(0.1, 0.2, 0.8),
-        );
+        let truth = Pose::new(so3::exp(&Vector3::new(0.4, -0.2, 1.0)), Vector3::new(0.1, 0.2, 0.8));
         let twin = truth * flip;
         let err = set.pose_error(&twin, &truth);
         assert!(err.rotation < 1e-7 && err.translation < 1e-12, "{err:?}");
@@ -174,21 +156,14 @@ mod tests {
 
     #[test]
     fn continuous_axis_uses_bop_step_count_and_keeps_identity() {
-        let cylinder = ContinuousSymmetry {
-            axis: Unit::new_normalize(Vector3::z()),
-            offset: Vector3::zeros(),
-        };
-        let set =
-            SymmetrySet::from_model_info(&info(vec![], vec![cylinder]), BOP_MAX_SYMMETRY_STEP);
+        let cylinder = ContinuousSymmetry { axis: Unit::new_normalize(Vector3::z()), offset: Vector3::zeros() };
+        let set = SymmetrySet::from_model_info(&info(vec![], vec![cylinder]), BOP_MAX_SYMMETRY_STEP);
         assert_eq!(set.transforms().len(), 315);
         assert_eq!(set.transforms()[0], Pose::identity());
         // Any spin about z is within half a step (π/315 rad) of a member.
         let truth = Pose::identity();
         let spun = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, 1.2345)), Vector3::zeros());
-        assert!(
-            set.rotation_error(&spun.rotation, &truth.rotation)
-                <= std::f64::consts::PI / 315.0 + 1e-12
-        );
+        assert!(set.rotation_error(&spun.rotation, &truth.rotation) <= std::f64::consts::PI / 315.0 + 1e-12);
         // A tilt off the axis is not forgiven.
         let tilted = so3::exp(&Vector3::new(0.2, 0.0, 0.0));
         assert!((set.rotation_error(&tilted, &truth.rotation) - 0.2).abs() < 1e-12);
@@ -196,14 +171,8 @@ mod tests {
 
     #[test]
     fn discrete_and_continuous_combine() {
-        let flip = Pose::new(
-            so3::exp(&Vector3::new(std::f64::consts::PI, 0.0, 0.0)),
-            Vector3::zeros(),
-        );
-        let cylinder = ContinuousSymmetry {
-            axis: Unit::new_normalize(Vector3::z()),
-            offset: Vector3::zeros(),
-        };
+        let flip = Pose::new(so3::exp(&Vector3::new(std::f64::consts::PI, 0.0, 0.0)), Vector3::zeros());
+        let cylinder = ContinuousSymmetry { axis: Unit::new_normalize(Vector3::z()), offset: Vector3::zeros() };
         let set = SymmetrySet::from_model_info(&info(vec![flip], vec![cylinder]), 0.1);
         assert_eq!(set.transforms().len(), 2 * 32);
     }

@@ -70,10 +70,7 @@ fn vec3(v: &Vector3<f64>) -> [f64; 3] {
 }
 
 fn so3_case(omega: Vector3<f64>) -> So3Case {
-    So3Case {
-        omega: vec3(&omega),
-        rotation: rotation_row_major(&so3::exp(&omega)),
-    }
+    So3Case { omega: vec3(&omega), rotation: rotation_row_major(&so3::exp(&omega)) }
 }
 
 fn flow_case(start: Pose, target: Pose, t: f64, dt: f64) -> FlowCase {
@@ -104,10 +101,8 @@ pub fn generate() -> TestVectors {
     let mut rng = seeded_rng(20_261_123);
     let axis = Vector3::new(2.0, -1.0, 0.5).normalize();
 
-    let mut so3_exp: Vec<So3Case> = [0.0, 1e-9, 1e-6, 0.5, PI / 2.0, PI - 1e-6, PI]
-        .iter()
-        .map(|&angle| so3_case(axis * angle))
-        .collect();
+    let mut so3_exp: Vec<So3Case> =
+        [0.0, 1e-9, 1e-6, 0.5, PI / 2.0, PI - 1e-6, PI].iter().map(|&angle| so3_case(axis * angle)).collect();
     so3_exp.extend((0..16).map(|_| so3_case(so3::log(&uniform_rotation(&mut rng)))));
 
     let noise = TranslationNoise::Gaussian { std_dev: 0.5 };
@@ -127,10 +122,7 @@ pub fn generate() -> TestVectors {
     let mut flow_cases = Vec::new();
     // A start that is π − 1e-6 from the target about a fixed axis.
     let start = Pose::new(so3::exp(&(axis * 0.3)), Vector3::new(0.1, 0.2, 0.3));
-    let far = Pose::new(
-        start.rotation * so3::exp(&(axis * (PI - 1e-6))),
-        Vector3::zeros(),
-    );
+    let far = Pose::new(start.rotation * so3::exp(&(axis * (PI - 1e-6))), Vector3::zeros());
     flow_cases.push(flow_case(start, far, 0.0, 0.2));
     flow_cases.push(flow_case(start, start, 0.5, 0.2));
     for k in 0..24 {

@@ -12,17 +12,12 @@ use poseflow_geometry::{Pose, PoseMetric, so3};
 use proptest::prelude::*;
 
 fn config() -> ProptestConfig {
-    ProptestConfig {
-        cases: 10_000,
-        ..ProptestConfig::default()
-    }
+    ProptestConfig { cases: 10_000, ..ProptestConfig::default() }
 }
 
 fn unit_axis() -> impl Strategy<Value = Vector3<f64>> {
     (-1.0..1.0f64, -1.0..1.0f64, -1.0..1.0f64)
-        .prop_filter("axis must not vanish", |(x, y, z)| {
-            x * x + y * y + z * z > 1e-4
-        })
+        .prop_filter("axis must not vanish", |(x, y, z)| x * x + y * y + z * z > 1e-4)
         .prop_map(|(x, y, z)| Vector3::new(x, y, z).normalize())
 }
 

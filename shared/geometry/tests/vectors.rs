@@ -7,14 +7,10 @@ use poseflow_geometry::pose::Twist;
 use poseflow_geometry::vectors::{FORMAT, TestVectors, generate};
 use poseflow_geometry::{Pose, flow, so3};
 
-const PATH: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/../../tests/vectors/se3_flow.json"
-);
+const PATH: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/vectors/se3_flow.json");
 
 fn stored() -> TestVectors {
-    let text =
-        std::fs::read_to_string(PATH).expect("tests/vectors/se3_flow.json is in the repository");
+    let text = std::fs::read_to_string(PATH).expect("tests/vectors/se3_flow.json is in the repository");
     serde_json::from_str(&text).expect("vectors file parses")
 }
 
@@ -71,17 +67,9 @@ fn stored_vectors_are_self_consistent() {
     let v = stored();
     for case in &v.so3_exp {
         let omega = Vector3::from(case.omega);
-        assert!(close(
-            so3::exp(&omega).matrix().transpose().as_slice(),
-            &case.rotation,
-            1e-12
-        ));
+        assert!(close(so3::exp(&omega).matrix().transpose().as_slice(), &case.rotation, 1e-12));
         if omega.norm() < std::f64::consts::PI - 1e-9 {
-            assert!(close(
-                so3::log(&rotation(&case.rotation)).as_slice(),
-                &case.omega,
-                1e-9
-            ));
+            assert!(close(so3::log(&rotation(&case.rotation)).as_slice(), &case.omega, 1e-9));
         }
     }
     for case in &v.se3_exp {
@@ -95,21 +83,13 @@ fn stored_vectors_are_self_consistent() {
         let target = Pose::new(rotation(&case.r1), Vector3::from(case.p1));
         let here = flow::interpolate(&start, &target, case.t);
         assert!(close(here.translation.as_slice(), &case.p_t, 1e-12));
-        assert!(close(
-            here.rotation.matrix().transpose().as_slice(),
-            &case.r_t,
-            1e-9
-        ));
+        assert!(close(here.rotation.matrix().transpose().as_slice(), &case.r_t, 1e-9));
         let vel = flow::target_velocity(&here, &target, case.t).unwrap();
         assert!(close(vel.linear.as_slice(), &case.v_pos, 1e-9));
         assert!(close(vel.angular.as_slice(), &case.v_rot, 1e-6));
         let next_p = Vector3::from(case.p_t) + Vector3::from(case.v_pos) * case.dt;
         assert!(close(next_p.as_slice(), &case.p_next, 1e-12));
         let next_r = rotation(&case.r_t) * so3::exp(&(Vector3::from(case.v_rot) * case.dt));
-        assert!(close(
-            next_r.matrix().transpose().as_slice(),
-            &case.r_next,
-            1e-9
-        ));
+        assert!(close(next_r.matrix().transpose().as_slice(), &case.r_next, 1e-9));
     }
 }

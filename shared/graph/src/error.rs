@@ -15,10 +15,5 @@ pub enum GraphError {
     Syntax { file: PathBuf, message: String },
 
     #[error("{file}: `{key}`: expected {expected}, found {found}")]
-    Invalid {
-        file: PathBuf,
-        key: String,
-        expected: String,
-        found: String,
-    },
+    Invalid { file: PathBuf, key: String, expected: String, found: String },
 }

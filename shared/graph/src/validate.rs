@@ -6,9 +6,7 @@ use std::time::Duration;
 
 use crate::spec::{EdgePattern, EdgeSpec, GraphFile, OverflowPolicy, RestartPolicy, StageSpec};
 use crate::wiring::{EdgeWiring, StageWiring};
-use crate::{
-    GraphError, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, resolve_executable,
-};
+use crate::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, resolve_executable};
 
 /// A validated graph.
 #[derive(Debug, Clone)]
@@ -58,20 +56,15 @@ pub struct Stage {
 /// Reads and validates a graph file. `search_path` is where bare executable
 /// names are looked up before `PATH`.
 pub fn load(file: &Path, search_path: &[PathBuf]) -> Result<Graph, GraphError> {
-    let text = std::fs::read_to_string(file).map_err(|source| GraphError::Read {
-        file: file.to_path_buf(),
-        source,
-    })?;
+    let text = std::fs::read_to_string(file).map_err(|source| GraphError::Read { file: file.to_path_buf(), source })?;
     parse(&text, file, search_path)
 }
 
 /// Validates file contents; `file` names the source in errors and anchors
 /// relative paths.
 pub fn parse(text: &str, file: &Path, search_path: &[PathBuf]) -> Result<Graph, GraphError> {
-    let spec: GraphFile = toml::from_str(text).map_err(|e| GraphError::Syntax {
-        file: file.to_path_buf(),
-        message: e.to_string().trim_end().to_string(),
-    })?;
+    let spec: GraphFile = toml::from_str(text)
+        .map_err(|e| GraphError::Syntax { file: file.to_path_buf(), message: e.to_string().trim_end().to_string() })?;
     Checker { file }.graph(spec, search_path)
 }
 
@@ -80,12 +73,7 @@ struct Checker<'a> {
 }
 
 impl Checker<'_> {
-    fn invalid(
-        &self,
-        key: impl Into<String>,
-        expected: impl Into<String>,
-        found: impl Into<String>,
-    ) -> GraphError {
+    fn invalid(&self, key: impl Into<String>, expected: impl Into<String>, found: impl Into<String>) -> GraphError {
         GraphError::Invalid {
             file: self.file.to_path_buf(),
             key: key.into(),
@@ -95,13 +83,8 @@ impl Checker<'_> {
     }
 
     fn name(&self, key: &str, kind: &'static str, name: &str) -> Result<(), GraphError> {
-        poseflow_transport::validate_name(kind, name).map_err(|_| {
-            self.invalid(
-                key,
-                "1-64 characters of A-Z, a-z, 0-9, '-' or '_'",
-                format!("{name:?}"),
-            )
-        })
+        poseflow_transport::validate_name(kind, name)
+            .map_err(|_| self.invalid(key, "1-64 characters of A-Z, a-z, 0-9, '-' or '_'", format!("{name:?}")))
     }
 
     fn graph(&self, spec: GraphFile, search_path: &[PathBuf]) -> Result<Graph, GraphError> {
@@ -132,12 +115,7 @@ impl Checker<'_> {
         let stages = spec
             .stages
             .into_iter()
-            .map(|(name, stage)| {
-                Ok((
-                    name.clone(),
-                    self.stage(name, stage, graph_dir, search_path, &edges)?,
-                ))
-            })
+            .map(|(name, stage)| Ok((name.clone(), self.stage(name, stage, graph_dir, search_path, &edges)?)))
             .collect::<Result<BTreeMap<_, _>, GraphError>>()?;
         self.connections(&edges, &stages)?;
         self.acyclic(&stages)?;
@@ -167,11 +145,7 @@ impl Checker<'_> {
             ));
         }
         if !(1..=1024).contains(&spec.queue) {
-            return Err(self.invalid(
-                format!("{key}.queue"),
-                "1..=1024 messages",
-                spec.queue.to_string(),
-            ));
+            return Err(self.invalid(format!("{key}.queue"), "1..=1024 messages", spec.queue.to_string()));
         }
         if !(1..=(1 << 26)).contains(&spec.max_payload_len) {
             return Err(self.invalid(
@@ -233,11 +207,7 @@ impl Checker<'_> {
                         ));
                     }
                     Some(_) if !seen.insert(edge) => {
-                        return Err(self.invalid(
-                            field_key,
-                            "each edge once",
-                            format!("{edge:?} twice"),
-                        ));
+                        return Err(self.invalid(field_key, "each edge once", format!("{edge:?} twice")));
                     }
                     Some(_) => {}
                 }
@@ -248,10 +218,7 @@ impl Checker<'_> {
             return Err(self.invalid(
                 format!("{key}.backoff_ms"),
                 "1 <= backoff_ms <= max_backoff_ms",
-                format!(
-                    "backoff_ms = {}, max_backoff_ms = {}",
-                    spec.backoff_ms, spec.max_backoff_ms
-                ),
+                format!("backoff_ms = {}, max_backoff_ms = {}", spec.backoff_ms, spec.max_backoff_ms),
             ));
         }
         Ok(Stage {
@@ -301,45 +268,20 @@ impl Checker<'_> {
             }
         };
         merged.extend(inline);
-        serde_json::to_value(&merged).map_err(|e| {
-            self.invalid(
-                format!("{key}.params"),
-                "parameters representable as JSON",
-                e.to_string(),
-            )
-        })
+        serde_json::to_value(&merged)
+            .map_err(|e| self.invalid(format!("{key}.params"), "parameters representable as JSON", e.to_string()))
     }
 
-    fn connections(
-        &self,
-        edges: &BTreeMap<String, Edge>,
-        stages: &BTreeMap<String, Stage>,
-    ) -> Result<(), GraphError> {
+    fn connections(&self, edges: &BTreeMap<String, Edge>, stages: &BTreeMap<String, Stage>) -> Result<(), GraphError> {
         for edge in edges.values() {
             let (producers, consumers): (Vec<&str>, Vec<&str>) = match edge.pattern {
                 EdgePattern::PublishSubscribe => (
-                    stages
-                        .values()
-                        .filter(|s| s.outputs.contains(&edge.name))
-                        .map(|s| s.name.as_str())
-                        .collect(),
-                    stages
-                        .values()
-                        .filter(|s| s.inputs.contains(&edge.name))
-                        .map(|s| s.name.as_str())
-                        .collect(),
+                    stages.values().filter(|s| s.outputs.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
+                    stages.values().filter(|s| s.inputs.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
                 ),
                 EdgePattern::RequestResponse => (
-                    stages
-                        .values()
-                        .filter(|s| s.serves.contains(&edge.name))
-                        .map(|s| s.name.as_str())
-                        .collect(),
-                    stages
-                        .values()
-                        .filter(|s| s.calls.contains(&edge.name))
-                        .map(|s| s.name.as_str())
-                        .collect(),
+                    stages.values().filter(|s| s.serves.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
+                    stages.values().filter(|s| s.calls.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
                 ),
             };
             let (produce, consume) = match edge.pattern {
@@ -391,10 +333,7 @@ impl Checker<'_> {
             OnPath,
             Done,
         }
-        let mut marks: BTreeMap<&str, Mark> = stages
-            .keys()
-            .map(|k| (k.as_str(), Mark::Unvisited))
-            .collect();
+        let mut marks: BTreeMap<&str, Mark> = stages.keys().map(|k| (k.as_str(), Mark::Unvisited)).collect();
         fn visit<'a>(
             name: &'a str,
             path: &mut Vec<&'a str>,
@@ -456,8 +395,7 @@ impl Graph {
                     let edge = &self.edges[name];
                     Ok(EdgeWiring {
                         edge: name.clone(),
-                        service: poseflow_transport::edge_service_name(instance, name)
-                            .map_err(invalid_instance)?,
+                        service: poseflow_transport::edge_service_name(instance, name).map_err(invalid_instance)?,
                         message: edge.message.clone(),
                         queue: edge.queue,
                         overflow: edge.overflow,

@@ -52,9 +52,8 @@ impl StageWiring {
 
     /// Reads the wiring the launcher put in [`WIRING_ENV`].
     pub fn from_env() -> Result<Self, String> {
-        let text = std::env::var(WIRING_ENV).map_err(|_| {
-            format!("{WIRING_ENV} is not set: stages are started by `poseflow run --graph FILE`")
-        })?;
+        let text = std::env::var(WIRING_ENV)
+            .map_err(|_| format!("{WIRING_ENV} is not set: stages are started by `poseflow run --graph FILE`"))?;
         serde_json::from_str(&text).map_err(|e| format!("{WIRING_ENV}: invalid stage wiring: {e}"))
     }
 }

@@ -4,19 +4,15 @@
 use std::path::{Path, PathBuf};
 
 use poseflow_contracts::{
-    ConditionHandle, EstimateHeader, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader,
-    ObservationHeader, TensorHeader,
+    ConditionHandle, EstimateHeader, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader, ObservationHeader,
+    TensorHeader,
 };
 use poseflow_graph::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, StageWiring, parse};
 
 const FILE: &str = "/deploy/test.toml";
 
 fn check(text: &str) -> Result<poseflow_graph::Graph, GraphError> {
-    parse(
-        text,
-        Path::new(FILE),
-        &[PathBuf::from("/bin"), PathBuf::from("/usr/bin")],
-    )
+    parse(text, Path::new(FILE), &[PathBuf::from("/bin"), PathBuf::from("/usr/bin")])
 }
 
 fn error(text: &str) -> String {
@@ -65,11 +61,7 @@ fn a_valid_chain_loads_with_defaults() {
     assert_eq!(wiring.heartbeat_service, "poseflow/g7/_heartbeat/middle");
     let back: StageWiring = serde_json::from_str(&wiring.to_json()).unwrap();
     assert_eq!(back, wiring);
-    assert!(
-        graph
-            .wiring(&graph.stages["middle"], "bad/instance")
-            .is_err()
-    );
+    assert!(graph.wiring(&graph.stages["middle"], "bad/instance").is_err());
 }
 
 #[test]
@@ -85,15 +77,9 @@ fn bad_values_name_key_and_expectation() {
     let err = error(&CHAIN.replace("restart = \"always\"", "restart = \"sometimes\""));
     assert!(err.contains("sometimes"), "{err}");
     let err = error(&CHAIN.replace("queue = 8", "queue = 0"));
-    assert!(
-        err.contains("`edges.raw.queue`") && err.contains("1..=1024"),
-        "{err}"
-    );
+    assert!(err.contains("`edges.raw.queue`") && err.contains("1..=1024"), "{err}");
     let err = error(&CHAIN.replace("message = \"Estimate\"", "message = \"Pose\""));
-    assert!(
-        err.contains("`edges.out.message`") && err.contains("\"Pose\""),
-        "{err}"
-    );
+    assert!(err.contains("`edges.out.message`") && err.contains("\"Pose\""), "{err}");
     let err = error(&CHAIN.replace("name = \"chain\"", "name = \"my graph\""));
     assert!(err.contains("`graph.name`"), "{err}");
 }
@@ -101,10 +87,7 @@ fn bad_values_name_key_and_expectation() {
 #[test]
 fn missing_executables_list_where_they_were_sought() {
     let err = error(&CHAIN.replace("exe = \"/bin/true\"", "exe = \"no-such-stage-binary\""));
-    assert!(
-        err.contains("`stages.middle.exe`") && err.contains("/bin/no-such-stage-binary"),
-        "{err}"
-    );
+    assert!(err.contains("`stages.middle.exe`") && err.contains("/bin/no-such-stage-binary"), "{err}");
     let err = error(&CHAIN.replace("exe = \"/bin/true\"", "exe = \"./missing.py\""));
     assert!(err.contains("/deploy/./missing.py"), "{err}");
 }
@@ -112,28 +95,13 @@ fn missing_executables_list_where_they_were_sought() {
 #[test]
 fn unconnected_inputs_and_undeclared_edges() {
     let err = error(&CHAIN.replace("outputs = [\"raw\"]", "outputs = []"));
-    assert!(
-        err.contains("`stages.middle.inputs`") && err.contains("unconnected input"),
-        "{err}"
-    );
+    assert!(err.contains("`stages.middle.inputs`") && err.contains("unconnected input"), "{err}");
     let err = error(&CHAIN.replace("inputs = [\"out\"]", "inputs = [\"result\"]"));
-    assert!(
-        err.contains("`stages.sink.inputs`") && err.contains("\"result\""),
-        "{err}"
-    );
+    assert!(err.contains("`stages.sink.inputs`") && err.contains("\"result\""), "{err}");
     let err = error(&format!("{CHAIN}\n[edges.spare]\nmessage = \"Grasps\"\n"));
-    assert!(
-        err.contains("`edges.spare`") && err.contains("no stage lists it"),
-        "{err}"
-    );
-    let err = error(&CHAIN.replace(
-        "inputs = [\"out\"]",
-        "inputs = [\"out\"]\noutputs = [\"raw\"]",
-    ));
-    assert!(
-        err.contains("`edges.raw`") && err.contains("exactly one"),
-        "{err}"
-    );
+    assert!(err.contains("`edges.spare`") && err.contains("no stage lists it"), "{err}");
+    let err = error(&CHAIN.replace("inputs = [\"out\"]", "inputs = [\"out\"]\noutputs = [\"raw\"]"));
+    assert!(err.contains("`edges.raw`") && err.contains("exactly one"), "{err}");
 }
 
 #[test]
@@ -155,10 +123,7 @@ inputs = ["a"]
 outputs = ["b"]
 "#;
     let err = error(cyclic);
-    assert!(
-        err.contains("`stages`") && err.contains("one -> two -> one"),
-        "{err}"
-    );
+    assert!(err.contains("`stages`") && err.contains("one -> two -> one"), "{err}");
 
     let velocity_loop = r#"
 [graph]
@@ -181,39 +146,21 @@ inputs = ["hyps"]
 "#;
     check(velocity_loop).unwrap();
     let err = error(&velocity_loop.replace("calls = [\"velocity\"]", "inputs = [\"velocity\"]"));
-    assert!(
-        err.contains("`stages.sampler.inputs`") && err.contains("PublishSubscribe edges only"),
-        "{err}"
-    );
+    assert!(err.contains("`stages.sampler.inputs`") && err.contains("PublishSubscribe edges only"), "{err}");
 }
 
 #[test]
 fn parameter_files_are_read_relative_to_the_graph() {
     let dir = std::env::temp_dir().join(format!("poseflow-graph-test-{}", std::process::id()));
     std::fs::create_dir_all(dir.join("config")).unwrap();
-    std::fs::write(
-        dir.join("config/middle.toml"),
-        "factor = 1\nname = \"from file\"\n",
-    )
-    .unwrap();
-    let text = CHAIN.replace(
-        "params = { factor = 2 }",
-        "config = \"config/middle.toml\"\nparams = { factor = 2 }",
-    );
+    std::fs::write(dir.join("config/middle.toml"), "factor = 1\nname = \"from file\"\n").unwrap();
+    let text = CHAIN.replace("params = { factor = 2 }", "config = \"config/middle.toml\"\nparams = { factor = 2 }");
     let graph = parse(&text, &dir.join("g.toml"), &[PathBuf::from("/bin")]).unwrap();
-    assert_eq!(
-        graph.stages["middle"].params["factor"], 2,
-        "inline overrides the file"
-    );
+    assert_eq!(graph.stages["middle"].params["factor"], 2, "inline overrides the file");
     assert_eq!(graph.stages["middle"].params["name"], "from file");
     std::fs::write(dir.join("config/middle.toml"), "factor = \n").unwrap();
-    let err = parse(&text, &dir.join("g.toml"), &[PathBuf::from("/bin")])
-        .unwrap_err()
-        .to_string();
-    assert!(
-        err.contains("`stages.middle.config`") && err.contains("middle.toml"),
-        "{err}"
-    );
+    let err = parse(&text, &dir.join("g.toml"), &[PathBuf::from("/bin")]).unwrap_err().to_string();
+    assert!(err.contains("`stages.middle.config`") && err.contains("middle.toml"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -5,11 +5,7 @@ pub enum RuntimeError {
     Wiring(String),
 
     #[error("stage `{stage}`: expected {expected}, the graph gives {found}")]
-    Shape {
-        stage: String,
-        expected: &'static str,
-        found: String,
-    },
+    Shape { stage: String, expected: &'static str, found: String },
 
     #[error("stage `{stage}`: cannot build from its parameters: {reason}")]
     Build { stage: String, reason: String },

@@ -37,31 +37,18 @@ pub(crate) struct HeartbeatThread {
 impl HeartbeatThread {
     /// Starts publishing on `service` every `period`. Returns once the
     /// publisher exists, so start-up failures surface here.
-    pub fn spawn(
-        stage: &str,
-        service: &str,
-        period: Duration,
-        liveness: Arc<Liveness>,
-    ) -> Result<Self, RuntimeError> {
+    pub fn spawn(stage: &str, service: &str, period: Duration, liveness: Arc<Liveness>) -> Result<Self, RuntimeError> {
         let stop = Arc::new(AtomicBool::new(false));
         let (ready_tx, ready_rx) = std::sync::mpsc::channel();
         let handle = std::thread::Builder::new()
             .name("heartbeat".into())
             .spawn({
-                let (stop, node_name, service) = (
-                    stop.clone(),
-                    format!("{stage}-heartbeat"),
-                    service.to_string(),
-                );
+                let (stop, node_name, service) = (stop.clone(), format!("{stage}-heartbeat"), service.to_string());
                 move || {
                     block_termination_signals();
                     // iceoryx2 ports are bound to the thread that made them.
                     let setup = create_node(&node_name).and_then(|node| {
-                        let options = EdgeOptions {
-                            queue: 1,
-                            overflow: Overflow::DropOldest,
-                            max_payload_len: 1,
-                        };
+                        let options = EdgeOptions { queue: 1, overflow: Overflow::DropOldest, max_payload_len: 1 };
                         Publisher::<Heartbeat>::create(&node, &service, &options).map(|p| (node, p))
                     });
                     let (_node, publisher) = match setup {
@@ -95,15 +82,11 @@ impl HeartbeatThread {
                     }
                 }
             })
-            .map_err(|e| {
-                RuntimeError::WaitSet(format!("cannot start the heartbeat thread: {e}"))
-            })?;
+            .map_err(|e| RuntimeError::WaitSet(format!("cannot start the heartbeat thread: {e}")))?;
         match ready_rx.recv() {
             Ok(Ok(())) => Ok(Self { stop, handle }),
             Ok(Err(err)) => Err(err.into()),
-            Err(_) => Err(RuntimeError::WaitSet(
-                "heartbeat thread died at start-up".into(),
-            )),
+            Err(_) => Err(RuntimeError::WaitSet("heartbeat thread died at start-up".into())),
         }
     }
 

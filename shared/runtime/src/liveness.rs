@@ -47,9 +47,7 @@ impl Liveness {
             work_send_ns: AtomicU64::new(0),
             send_started_ns: AtomicU64::new(0),
             // 1 µs .. 60 s at 3 significant digits.
-            latency_us: Mutex::new(
-                Histogram::new_with_bounds(1, 60_000_000, 3).expect("valid histogram bounds"),
-            ),
+            latency_us: Mutex::new(Histogram::new_with_bounds(1, 60_000_000, 3).expect("valid histogram bounds")),
         }
     }
 
@@ -96,8 +94,7 @@ impl Liveness {
     pub fn send_finished(&self) {
         let started = self.send_started_ns.swap(0, Relaxed);
         if started != 0 {
-            self.work_send_ns
-                .fetch_add(monotonic_ns().saturating_sub(started), Relaxed);
+            self.work_send_ns.fetch_add(monotonic_ns().saturating_sub(started), Relaxed);
         }
     }
 
@@ -109,18 +106,12 @@ impl Liveness {
         let mut header = Header::new(if last == u64::MAX { 0 } else { last }, 0);
         header.stamps.ns[0] = now;
         let send_started = self.send_started_ns.load(Relaxed);
-        let blocked = if send_started == 0 {
-            0
-        } else {
-            now.saturating_sub(send_started)
-        };
+        let blocked = if send_started == 0 { 0 } else { now.saturating_sub(send_started) };
         let work_started = self.work_started_ns.load(Relaxed);
         let busy = if work_started == 0 {
             0
         } else {
-            now.saturating_sub(work_started)
-                .saturating_sub(self.work_send_ns.load(Relaxed))
-                .saturating_sub(blocked)
+            now.saturating_sub(work_started).saturating_sub(self.work_send_ns.load(Relaxed)).saturating_sub(blocked)
         };
         let histogram = self.latency_us.lock().unwrap_or_else(|e| e.into_inner());
         let quantile = |q| histogram.value_at_quantile(q).min(u64::from(u32::MAX)) as u32;

@@ -10,9 +10,7 @@ pub const LOG_FORMAT_ENV: &str = "POSEFLOW_LOG_FORMAT";
 /// Installs the subscriber; a second call is a no-op.
 pub fn init_logging() {
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr);
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
     let _ = if std::env::var(LOG_FORMAT_ENV).as_deref() == Ok("json") {
         builder.json().try_init()
     } else {

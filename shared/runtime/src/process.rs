@@ -8,9 +8,7 @@ use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
 use poseflow_contracts::{MessageHeader, Stage, StageState};
 use poseflow_graph::{EdgeWiring, OverflowPolicy, StageWiring};
-use poseflow_transport::{
-    EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, Publisher, TransportError, create_node,
-};
+use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, Publisher, TransportError, create_node};
 
 use crate::heartbeat::HeartbeatThread;
 use crate::liveness::Liveness;
@@ -65,37 +63,19 @@ impl StageProcess {
             return Err(RuntimeError::Shape {
                 stage: wiring.stage.clone(),
                 expected,
-                found: format!(
-                    "{} input(s) and {} output(s)",
-                    wiring.inputs.len(),
-                    wiring.outputs.len()
-                ),
+                found: format!("{} input(s) and {} output(s)", wiring.inputs.len(), wiring.outputs.len()),
             });
         }
         let node = create_node(&wiring.stage)?;
         let liveness = Arc::new(Liveness::new());
         let period = Duration::from_millis(wiring.heartbeat_ms);
-        let heartbeat = HeartbeatThread::spawn(
-            &wiring.stage,
-            &wiring.heartbeat_service,
-            period,
-            liveness.clone(),
-        )?;
-        Ok(Self {
-            wiring,
-            node,
-            liveness,
-            heartbeat,
-        })
+        let heartbeat = HeartbeatThread::spawn(&wiring.stage, &wiring.heartbeat_service, period, liveness.clone())?;
+        Ok(Self { wiring, node, liveness, heartbeat })
     }
 
     fn input<H: MessageHeader>(&self) -> Result<EdgeSubscriber<H>, RuntimeError> {
         let edge = &self.wiring.inputs[0];
-        Ok(EdgeSubscriber::create(
-            &self.node,
-            &edge.service,
-            &edge_options(edge),
-        )?)
+        Ok(EdgeSubscriber::create(&self.node, &edge.service, &edge_options(edge))?)
     }
 
     /// The output edge, once its readers are connected (or the start-up
@@ -117,9 +97,7 @@ impl StageProcess {
         input: &EdgeSubscriber<H>,
         mut on_input: impl FnMut(Input<'_, H>),
     ) -> Result<LoopEnd, RuntimeError> {
-        let waitset = WaitSetBuilder::new()
-            .create::<Ipc>()
-            .map_err(waitset_error)?;
+        let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(waitset_error)?;
         let input_guard = waitset.attach_notification(input).map_err(waitset_error)?;
         let mut ended = false;
         let mut failure = None;
@@ -173,10 +151,7 @@ fn drain<H: MessageHeader>(
         let _span = tracing::debug_span!("frame", id = frame).entered();
         let started = Instant::now();
         liveness.work_started();
-        on_input(Input {
-            header,
-            payload: message.payload(),
-        });
+        on_input(Input { header, payload: message.payload() });
         liveness.work_finished(started.elapsed());
     }
     Ok(())
@@ -190,12 +165,7 @@ struct IpcEmitter<'a, H: MessageHeader> {
 }
 
 impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
-    fn emit(
-        &mut self,
-        mut header: H,
-        len: usize,
-        fill: &mut dyn FnMut(&mut [f32]),
-    ) -> Result<(), EmitError> {
+    fn emit(&mut self, mut header: H, len: usize, fill: &mut dyn FnMut(&mut [f32])) -> Result<(), EmitError> {
         if let Some(slot) = self.slot {
             header.header_mut().stamps.stamp(slot);
         }
@@ -232,21 +202,13 @@ fn exit(result: Result<(), RuntimeError>) -> ExitCode {
     }
 }
 
-fn build<T>(
-    wiring: &StageWiring,
-    make: impl FnOnce(&StageWiring) -> Result<T, String>,
-) -> Result<T, RuntimeError> {
-    make(wiring).map_err(|reason| RuntimeError::Build {
-        stage: wiring.stage.clone(),
-        reason,
-    })
+fn build<T>(wiring: &StageWiring, make: impl FnOnce(&StageWiring) -> Result<T, String>) -> Result<T, RuntimeError> {
+    make(wiring).map_err(|reason| RuntimeError::Build { stage: wiring.stage.clone(), reason })
 }
 
 /// Runs a [`Transform`] as a graph process; `make` builds it from the
 /// stage's wiring (its `params` in particular). Call it from `main`.
-pub fn run_transform<T: Transform>(
-    make: impl FnOnce(&StageWiring) -> Result<T, String>,
-) -> ExitCode {
+pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, String>) -> ExitCode {
     exit((|| {
         let process = StageProcess::start(1, 1)?;
         let mut stage = build(&process.wiring, make)?;
@@ -256,11 +218,7 @@ pub fn run_transform<T: Transform>(
         tracing::info!(input = input.name(), output = output.name(), "running");
         let liveness = &process.liveness;
         let end = process.event_loop(&input, |message| {
-            let mut emitter = IpcEmitter {
-                publisher: &output,
-                slot: T::SLOT,
-                liveness,
-            };
+            let mut emitter = IpcEmitter { publisher: &output, slot: T::SLOT, liveness };
             if let Err(err) = stage.process(message, &mut emitter) {
                 liveness.count_error();
                 tracing::warn!(%err, "process failed; frame skipped");
@@ -310,20 +268,11 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
         let mut source = build(&process.wiring, make)?;
         let _span = tracing::info_span!("stage", name = %process.wiring.stage).entered();
         let output = process.output::<S::Out>()?;
-        let rate_hz = process
-            .wiring
-            .params
-            .get("rate_hz")
-            .and_then(|v| v.as_f64())
-            .filter(|hz| *hz > 0.0);
+        let rate_hz = process.wiring.params.get("rate_hz").and_then(|v| v.as_f64()).filter(|hz| *hz > 0.0);
         tracing::info!(output = output.name(), ?rate_hz, "running");
         let liveness = &process.liveness;
         let mut step = || -> SourceStep {
-            let mut emitter = IpcEmitter {
-                publisher: &output,
-                slot: S::SLOT,
-                liveness,
-            };
+            let mut emitter = IpcEmitter { publisher: &output, slot: S::SLOT, liveness };
             let started = Instant::now();
             liveness.work_started();
             let result = source.next(&mut emitter);
@@ -357,9 +306,7 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
 
 /// The timer-driven source loop; returns whether the source finished.
 fn paced(period: Duration, step: &mut impl FnMut() -> SourceStep) -> Result<bool, RuntimeError> {
-    let waitset = WaitSetBuilder::new()
-        .create::<Ipc>()
-        .map_err(waitset_error)?;
+    let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(waitset_error)?;
     let tick = waitset.attach_interval(period).map_err(waitset_error)?;
     let mut finished = false;
     waitset

@@ -23,12 +23,7 @@ impl<H: MessageHeader> Input<'_, H> {
 pub trait Emitter<H: MessageHeader> {
     /// Publishes a message with a payload of `len` floats written by `fill`
     /// in place. `len` must equal `header.payload_len()`.
-    fn emit(
-        &mut self,
-        header: H,
-        len: usize,
-        fill: &mut dyn FnMut(&mut [f32]),
-    ) -> Result<(), EmitError>;
+    fn emit(&mut self, header: H, len: usize, fill: &mut dyn FnMut(&mut [f32])) -> Result<(), EmitError>;
 }
 
 /// Why a message could not be sent.
@@ -46,11 +41,7 @@ pub trait Transform {
     const SLOT: Option<Stage>;
 
     /// Handles one input; may emit zero or more outputs.
-    fn process(
-        &mut self,
-        input: Input<'_, Self::In>,
-        output: &mut dyn Emitter<Self::Out>,
-    ) -> Result<(), Self::Error>;
+    fn process(&mut self, input: Input<'_, Self::In>, output: &mut dyn Emitter<Self::Out>) -> Result<(), Self::Error>;
 }
 
 /// What a source did on one call.

@@ -13,23 +13,13 @@ pub fn remove_dead_nodes() -> Result<usize, TransportError> {
     let mut failure = None;
     iceoryx2::node::Node::<Ipc>::list(Config::global_config(), |state| {
         if let NodeState::Dead(dead) = state {
-            let name = dead
-                .details()
-                .as_ref()
-                .map(|d| d.name().to_string())
-                .unwrap_or_default();
+            let name = dead.details().as_ref().map(|d| d.name().to_string()).unwrap_or_default();
             match dead.try_remove_stale_resources() {
                 Ok(_) => {
                     tracing::info!(node = %name, "removed stale resources of a dead node");
                     removed += 1;
                 }
-                Err(e) => {
-                    failure = Some(TransportError::iceoryx(
-                        "remove stale resources of",
-                        &name,
-                        e,
-                    ))
-                }
+                Err(e) => failure = Some(TransportError::iceoryx("remove stale resources of", &name, e)),
             }
         }
         CallbackProgression::Continue

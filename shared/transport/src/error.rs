@@ -6,11 +6,7 @@ pub enum TransportError {
     Name { name: String, detail: String },
 
     #[error("{operation} `{target}` failed: {detail}")]
-    Iceoryx {
-        operation: &'static str,
-        target: String,
-        detail: String,
-    },
+    Iceoryx { operation: &'static str, target: String, detail: String },
 
     #[error("payload of {len} f32 values exceeds the edge's max_payload_len of {max}")]
     PayloadTooLarge { len: usize, max: usize },
@@ -20,15 +16,7 @@ pub enum TransportError {
 }
 
 impl TransportError {
-    pub(crate) fn iceoryx(
-        operation: &'static str,
-        target: &str,
-        err: impl std::fmt::Debug,
-    ) -> Self {
-        Self::Iceoryx {
-            operation,
-            target: target.to_string(),
-            detail: format!("{err:?}"),
-        }
+    pub(crate) fn iceoryx(operation: &'static str, target: &str, err: impl std::fmt::Debug) -> Self {
+        Self::Iceoryx { operation, target: target.to_string(), detail: format!("{err:?}") }
     }
 }

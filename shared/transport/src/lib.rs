@@ -28,10 +28,8 @@ pub type Node = iceoryx2::node::Node<Ipc>;
 /// WaitSet loops, and the stage then drops its ports and node, which removes
 /// their shared memory.
 pub fn create_node(name: &str) -> Result<Node, TransportError> {
-    let node_name = name.try_into().map_err(|e| TransportError::Name {
-        name: name.to_string(),
-        detail: format!("{e:?}"),
-    })?;
+    let node_name =
+        name.try_into().map_err(|e| TransportError::Name { name: name.to_string(), detail: format!("{e:?}") })?;
     iceoryx2::node::NodeBuilder::new()
         .name(&node_name)
         .create::<Ipc>()

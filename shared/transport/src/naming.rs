@@ -5,11 +5,8 @@ use crate::TransportError;
 /// Graph instance and edge names: ASCII letters, digits, `-` and `_`, 1 to
 /// 64 characters, so they are safe in service names and file names alike.
 pub fn validate_name(kind: &'static str, name: &str) -> Result<(), TransportError> {
-    let ok = !name.is_empty()
-        && name.len() <= 64
-        && name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    let ok =
+        !name.is_empty() && name.len() <= 64 && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
     if ok {
         Ok(())
     } else {
@@ -40,16 +37,10 @@ mod tests {
 
     #[test]
     fn names_are_namespaced_and_checked() {
-        assert_eq!(
-            edge_service_name("g1", "hypotheses").unwrap(),
-            "poseflow/g1/hypotheses"
-        );
+        assert_eq!(edge_service_name("g1", "hypotheses").unwrap(), "poseflow/g1/hypotheses");
         assert!(edge_service_name("g/1", "x").is_err());
         assert!(edge_service_name("g", "").is_err());
         let err = edge_service_name("g", "a b").unwrap_err().to_string();
-        assert!(
-            err.contains("\"a b\"") && err.contains("edge name"),
-            "{err}"
-        );
+        assert!(err.contains("\"a b\"") && err.contains("edge name"), "{err}");
     }
 }

@@ -13,8 +13,7 @@ use iceoryx2::port::publisher::Publisher as IoxPublisher;
 use iceoryx2::port::subscriber::Subscriber as IoxSubscriber;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::{
-    AllocationStrategy, BackpressureStrategy, FileDescriptor, FileDescriptorBased,
-    SynchronousMultiplexing,
+    AllocationStrategy, BackpressureStrategy, FileDescriptor, FileDescriptorBased, SynchronousMultiplexing,
 };
 use iceoryx2::sample::Sample;
 use iceoryx2::service::port_factory::PortFactory as _;
@@ -69,11 +68,7 @@ pub struct EdgeOptions {
 
 impl Default for EdgeOptions {
     fn default() -> Self {
-        Self {
-            queue: 4,
-            overflow: Overflow::DropOldest,
-            max_payload_len: 4096,
-        }
+        Self { queue: 4, overflow: Overflow::DropOldest, max_payload_len: 4096 }
     }
 }
 
@@ -84,10 +79,7 @@ const MAX_SUBSCRIBERS: usize = 16;
 const MAX_NODES: usize = 32;
 
 fn service_name(name: &str) -> Result<iceoryx2::prelude::ServiceName, TransportError> {
-    name.try_into().map_err(|e| TransportError::Name {
-        name: name.to_string(),
-        detail: format!("{e:?}"),
-    })
+    name.try_into().map_err(|e| TransportError::Name { name: name.to_string(), detail: format!("{e:?}") })
 }
 
 fn open_pubsub<H: MessageHeader>(
@@ -124,16 +116,8 @@ fn ack_name(edge: &str) -> String {
     format!("{edge}/ack")
 }
 
-fn notify(
-    notifier: &Notifier<Ipc>,
-    id: EventId,
-    what: &'static str,
-    edge: &str,
-) -> Result<(), TransportError> {
-    notifier
-        .notify_with_custom_event_id(id)
-        .map(|_| ())
-        .map_err(|e| TransportError::iceoryx(what, edge, e))
+fn notify(notifier: &Notifier<Ipc>, id: EventId, what: &'static str, edge: &str) -> Result<(), TransportError> {
+    notifier.notify_with_custom_event_id(id).map(|_| ()).map_err(|e| TransportError::iceoryx(what, edge, e))
 }
 
 /// Whether SIGINT/SIGTERM arrived, without hiding it from the stage's own
@@ -193,14 +177,7 @@ impl<H: MessageHeader> Publisher<H> {
             .notifier_builder()
             .create()
             .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
-        Ok(Self {
-            name: name.to_string(),
-            service,
-            publisher,
-            notifier,
-            acks,
-            max_payload_len,
-        })
+        Ok(Self { name: name.to_string(), service, publisher, notifier, acks, max_payload_len })
     }
 
     pub fn name(&self) -> &str {
@@ -213,26 +190,13 @@ impl<H: MessageHeader> Publisher<H> {
     ///
     /// The loaned memory is not cleared: until `fill` writes it, it holds an
     /// earlier sample's values, so `fill` must write every element.
-    pub fn publish(
-        &self,
-        header: H,
-        len: usize,
-        fill: impl FnOnce(&mut [f32]),
-    ) -> Result<usize, TransportError> {
+    pub fn publish(&self, header: H, len: usize, fill: impl FnOnce(&mut [f32])) -> Result<usize, TransportError> {
         let expected = header.payload_len()?;
         if expected != len {
-            return Err(ContractError::PayloadLength {
-                message: H::NAME,
-                expected,
-                actual: len,
-            }
-            .into());
+            return Err(ContractError::PayloadLength { message: H::NAME, expected, actual: len }.into());
         }
         if len > self.max_payload_len {
-            return Err(TransportError::PayloadTooLarge {
-                len,
-                max: self.max_payload_len,
-            });
+            return Err(TransportError::PayloadTooLarge { len, max: self.max_payload_len });
         }
         let mut sample = self
             .publisher
@@ -246,15 +210,11 @@ impl<H: MessageHeader> Publisher<H> {
         // skip `loan_slice`'s memset, which costs more than the whole
         // transfer at megabyte sizes. `fill` overwrites the payload before it
         // is sent.
-        let floats = unsafe {
-            std::slice::from_raw_parts_mut(payload.as_mut_ptr().cast::<f32>(), payload.len())
-        };
+        let floats = unsafe { std::slice::from_raw_parts_mut(payload.as_mut_ptr().cast::<f32>(), payload.len()) };
         fill(floats);
         // SAFETY: as above, the memory holds initialised f32 values.
         let sample = unsafe { sample.assume_init() };
-        let receivers = sample
-            .send()
-            .map_err(|e| TransportError::iceoryx("send on", &self.name, e))?;
+        let receivers = sample.send().map_err(|e| TransportError::iceoryx("send on", &self.name, e))?;
         notify(&self.notifier, events::DATA, "notify on", &self.name)?;
         Ok(receivers)
     }
@@ -266,11 +226,7 @@ impl<H: MessageHeader> Publisher<H> {
     /// its port, and a blocking send into a half-made connection is dropped;
     /// so a fast source must not start before its readers answer. Returns
     /// how many answered.
-    pub fn wait_for_receivers(
-        &self,
-        count: usize,
-        timeout: Duration,
-    ) -> Result<usize, TransportError> {
+    pub fn wait_for_receivers(&self, count: usize, timeout: Duration) -> Result<usize, TransportError> {
         self.connect()?;
         let ready = self.wait_for_acks(events::READY, count, timeout)?;
         self.connect()?;
@@ -285,44 +241,27 @@ impl<H: MessageHeader> Publisher<H> {
     /// whatever its receivers had not yet taken.
     pub fn end_of_stream(&self, timeout: Duration) -> Result<EndOfStream, TransportError> {
         let receivers = self.service.dynamic_config().number_of_subscribers();
-        notify(
-            &self.notifier,
-            events::END_OF_STREAM,
-            "notify on",
-            &self.name,
-        )?;
+        notify(&self.notifier, events::END_OF_STREAM, "notify on", &self.name)?;
         let acknowledged = self.wait_for_acks(events::END_ACKNOWLEDGED, receivers, timeout)?;
         if acknowledged < receivers {
             tracing::warn!(edge = %self.name, receivers, acknowledged, "end-of-stream not acknowledged by every receiver in time");
         }
-        Ok(EndOfStream {
-            receivers,
-            acknowledged,
-        })
+        Ok(EndOfStream { receivers, acknowledged })
     }
 
     fn connect(&self) -> Result<(), TransportError> {
-        self.publisher
-            .update_connections()
-            .map_err(|e| TransportError::iceoryx("connect receivers of", &self.name, e))
+        self.publisher.update_connections().map_err(|e| TransportError::iceoryx("connect receivers of", &self.name, e))
     }
 
     /// Counts `id` notifications on the ack service until `count` arrived,
     /// `timeout` passed or SIGINT/SIGTERM arrived; other ids are discarded.
-    fn wait_for_acks(
-        &self,
-        id: EventId,
-        count: usize,
-        timeout: Duration,
-    ) -> Result<usize, TransportError> {
+    fn wait_for_acks(&self, id: EventId, count: usize, timeout: Duration) -> Result<usize, TransportError> {
         // Short slices, so a termination request is noticed promptly.
         const SLICE: Duration = Duration::from_millis(50);
         let deadline = Instant::now() + timeout;
         let mut seen = 0u64;
         while seen < count as u64 {
-            let left = deadline
-                .saturating_duration_since(Instant::now())
-                .min(SLICE);
+            let left = deadline.saturating_duration_since(Instant::now()).min(SLICE);
             if left.is_zero() || termination_requested() {
                 break;
             }
@@ -391,12 +330,7 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
             .notifier_builder()
             .create()
             .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
-        let edge = Self {
-            name: name.to_string(),
-            subscriber,
-            listener,
-            ack,
-        };
+        let edge = Self { name: name.to_string(), subscriber, listener, ack };
         edge.connect()?;
         Ok(edge)
     }
@@ -432,12 +366,7 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
     /// Tells the publisher this receiver has drained the edge after its
     /// end-of-stream.
     pub fn acknowledge_end(&self) -> Result<(), TransportError> {
-        notify(
-            &self.ack,
-            events::END_ACKNOWLEDGED,
-            "acknowledge end-of-stream on",
-            &self.name,
-        )
+        notify(&self.ack, events::END_ACKNOWLEDGED, "acknowledge end-of-stream on", &self.name)
     }
 
     /// The next queued message, if any. The header is not yet validated:

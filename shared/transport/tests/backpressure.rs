@@ -4,18 +4,12 @@
 use std::time::Duration;
 
 use poseflow_contracts::{Header, HypothesesHeader, POSE_LEN};
-use poseflow_transport::{
-    EdgeOptions, EdgeSubscriber, Overflow, Publisher, create_node, edge_service_name,
-};
+use poseflow_transport::{EdgeOptions, EdgeSubscriber, Overflow, Publisher, create_node, edge_service_name};
 
 #[test]
 fn block_overflow_loses_nothing() {
     let name = edge_service_name(&format!("test-block-{}", std::process::id()), "poses").unwrap();
-    let options = EdgeOptions {
-        queue: 16,
-        overflow: Overflow::Block,
-        max_payload_len: 4096,
-    };
+    let options = EdgeOptions { queue: 16, overflow: Overflow::Block, max_payload_len: 4096 };
     let node = create_node("block-receiver").unwrap();
     let subscriber = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
     let sender = std::thread::spawn({
@@ -23,21 +17,10 @@ fn block_overflow_loses_nothing() {
         move || {
             let node = create_node("block-sender").unwrap();
             let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
-            assert_eq!(
-                publisher
-                    .wait_for_receivers(1, Duration::from_secs(10))
-                    .unwrap(),
-                1
-            );
+            assert_eq!(publisher.wait_for_receivers(1, Duration::from_secs(10)).unwrap(), 1);
             for frame in 0..200u64 {
-                let header = HypothesesHeader {
-                    header: Header::new(frame, 1),
-                    sample_count: 1,
-                    step_count: 1,
-                };
-                publisher
-                    .publish(header, POSE_LEN, |p| p.fill(frame as f32))
-                    .unwrap();
+                let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 };
+                publisher.publish(header, POSE_LEN, |p| p.fill(frame as f32)).unwrap();
             }
             publisher.end_of_stream(Duration::from_secs(10)).unwrap()
         }

@@ -15,9 +15,7 @@ use clap::{Args, ValueEnum};
 use hdrhistogram::Histogram;
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use poseflow_contracts::{Header, MessageHeader, TensorHeader, monotonic_ns};
-use poseflow_transport::{
-    EdgeOptions, EdgeSubscriber, Ipc, Overflow, Publisher, create_node, edge_service_name,
-};
+use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Overflow, Publisher, create_node, edge_service_name};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
@@ -108,15 +106,11 @@ struct WireMessage {
 
 pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
     let mut results = serde_json::Map::new();
-    for transport in [
-        Transport::Iceoryx2,
-        Transport::InProcess,
-        Transport::UnixSocketBincode,
-    ] {
+    for transport in [Transport::Iceoryx2, Transport::InProcess, Transport::UnixSocketBincode] {
         let mut per_size = serde_json::Map::new();
         for bytes in PAYLOAD_BYTES {
-            let summary = measure(transport, bytes, args)
-                .with_context(|| format!("{} at {bytes} bytes", transport.name()))?;
+            let summary =
+                measure(transport, bytes, args).with_context(|| format!("{} at {bytes} bytes", transport.name()))?;
             tracing::info!(
                 transport = transport.name(),
                 bytes,
@@ -149,11 +143,7 @@ fn table(results: &serde_json::Map<String, serde_json::Value>, args: &IpcArgs) -
     for (transport, sizes) in results {
         for bytes in PAYLOAD_BYTES {
             let s = &sizes[bytes.to_string()];
-            let size = if bytes >= 1 << 20 {
-                format!("{} MiB", bytes >> 20)
-            } else {
-                format!("{} KiB", bytes >> 10)
-            };
+            let size = if bytes >= 1 << 20 { format!("{} MiB", bytes >> 20) } else { format!("{} KiB", bytes >> 10) };
             out.push_str(&format!(
                 "{transport:<21} {size:>9} {:>9.1} {:>9.1} {:>9.1} {:>9.1}\n",
                 s["p50_us"].as_f64().unwrap_or(f64::NAN),
@@ -172,26 +162,14 @@ fn measure(transport: Transport, bytes: usize, args: &IpcArgs) -> anyhow::Result
     match transport {
         Transport::InProcess => Ok(in_process(bytes, messages, args.warmup, period)),
         Transport::Iceoryx2 => {
-            let address = edge_service_name(
-                &format!("bench-{}", std::process::id()),
-                &format!("ipc-{bytes}"),
-            )?;
+            let address = edge_service_name(&format!("bench-{}", std::process::id()), &format!("ipc-{bytes}"))?;
             let child = spawn_receiver(transport, &address, bytes, messages, args.warmup)?;
             send_iceoryx2(&address, bytes, messages, period)?;
             child.finish()
         }
         Transport::UnixSocketBincode => {
-            let path = std::env::temp_dir().join(format!(
-                "poseflow-bench-{}-{bytes}.sock",
-                std::process::id()
-            ));
-            let child = spawn_receiver(
-                transport,
-                &path.display().to_string(),
-                bytes,
-                messages,
-                args.warmup,
-            )?;
+            let path = std::env::temp_dir().join(format!("poseflow-bench-{}-{bytes}.sock", std::process::id()));
+            let child = spawn_receiver(transport, &path.display().to_string(), bytes, messages, args.warmup)?;
             let result = send_socket(&path, bytes, messages, period);
             let _ = std::fs::remove_file(&path);
             result?;
@@ -224,19 +202,9 @@ fn spawn_receiver(
 ) -> anyhow::Result<Receiver> {
     let mut child = Command::new(std::env::current_exe()?)
         .args(["bench", "ipc-receive", "--transport"])
-        .arg(
-            transport
-                .to_possible_value()
-                .expect("named variant")
-                .get_name(),
-        )
+        .arg(transport.to_possible_value().expect("named variant").get_name())
         .args(["--address", address, "--payload-bytes", &bytes.to_string()])
-        .args([
-            "--messages",
-            &messages.to_string(),
-            "--warmup",
-            &warmup.to_string(),
-        ])
+        .args(["--messages", &messages.to_string(), "--warmup", &warmup.to_string()])
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -260,18 +228,9 @@ fn floats(bytes: usize) -> usize {
     bytes / std::mem::size_of::<f32>()
 }
 
-fn send_iceoryx2(
-    address: &str,
-    bytes: usize,
-    messages: u32,
-    period: Duration,
-) -> anyhow::Result<()> {
+fn send_iceoryx2(address: &str, bytes: usize, messages: u32, period: Duration) -> anyhow::Result<()> {
     let node = create_node("bench-sender")?;
-    let options = EdgeOptions {
-        queue: 4,
-        overflow: Overflow::Block,
-        max_payload_len: floats(bytes),
-    };
+    let options = EdgeOptions { queue: 4, overflow: Overflow::Block, max_payload_len: floats(bytes) };
     let publisher = Publisher::<TensorHeader>::create(&node, address, &options)?;
     if publisher.wait_for_receivers(1, Duration::from_secs(10))? < 1 {
         bail!("the receiver never connected to {address}");
@@ -289,12 +248,7 @@ fn send_iceoryx2(
     Ok(())
 }
 
-fn send_socket(
-    path: &PathBuf,
-    bytes: usize,
-    messages: u32,
-    period: Duration,
-) -> anyhow::Result<()> {
+fn send_socket(path: &PathBuf, bytes: usize, messages: u32, period: Duration) -> anyhow::Result<()> {
     let deadline = Instant::now() + Duration::from_secs(10);
     let mut stream = loop {
         match UnixStream::connect(path) {
@@ -307,11 +261,7 @@ fn send_socket(
     for frame in 0..u64::from(messages) {
         std::thread::sleep(period);
         payload[0] = frame as f32;
-        let message = WireMessage {
-            frame_id: frame,
-            sent_ns: monotonic_ns(),
-            payload,
-        };
+        let message = WireMessage { frame_id: frame, sent_ns: monotonic_ns(), payload };
         let encoded = bincode::serde::encode_to_vec(&message, bincode::config::standard())?;
         stream.write_all(&(encoded.len() as u64).to_le_bytes())?;
         stream.write_all(&encoded)?;
@@ -338,11 +288,7 @@ fn in_process(bytes: usize, messages: u32, warmup: u32, period: Duration) -> Sum
         std::thread::sleep(period);
         let mut payload = spare.pop().expect("one buffer per message");
         payload[0] = frame as f32;
-        let _ = tx.send(WireMessage {
-            frame_id: frame,
-            sent_ns: monotonic_ns(),
-            payload,
-        });
+        let _ = tx.send(WireMessage { frame_id: frame, sent_ns: monotonic_ns(), payload });
     }
     drop(tx);
     summarize(&receiver.join().expect("receiver thread"))
@@ -362,18 +308,10 @@ pub fn receive(args: &ReceiveArgs) -> anyhow::Result<()> {
 
 fn receive_iceoryx2(args: &ReceiveArgs, h: &mut Histogram<u64>) -> anyhow::Result<()> {
     let node = create_node("bench-receiver")?;
-    let options = EdgeOptions {
-        queue: 4,
-        overflow: Overflow::Block,
-        max_payload_len: floats(args.payload_bytes),
-    };
+    let options = EdgeOptions { queue: 4, overflow: Overflow::Block, max_payload_len: floats(args.payload_bytes) };
     let subscriber = EdgeSubscriber::<TensorHeader>::create(&node, &args.address, &options)?;
-    let waitset = WaitSetBuilder::new()
-        .create::<Ipc>()
-        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    let guard = waitset
-        .attach_notification(&subscriber)
-        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let guard = waitset.attach_notification(&subscriber).map_err(|e| anyhow::anyhow!("{e:?}"))?;
     eprintln!("ready");
     let mut failure = None;
     let mut ended = false;
@@ -385,8 +323,7 @@ fn receive_iceoryx2(args: &ReceiveArgs, h: &mut Histogram<u64>) -> anyhow::Resul
             let step = subscriber.take_events().and_then(|end| {
                 ended = end;
                 while let Some(message) = subscriber.receive()? {
-                    let latency =
-                        monotonic_ns().saturating_sub(message.header().header.stamps.ns[0]);
+                    let latency = monotonic_ns().saturating_sub(message.header().header.stamps.ns[0]);
                     message.header().check_payload(message.payload())?;
                     if message.header().header.frame_id >= u64::from(args.warmup) {
                         h.saturating_record(latency);
@@ -398,11 +335,7 @@ fn receive_iceoryx2(args: &ReceiveArgs, h: &mut Histogram<u64>) -> anyhow::Resul
                 failure = Some(err);
                 return CallbackProgression::Stop;
             }
-            if ended {
-                CallbackProgression::Stop
-            } else {
-                CallbackProgression::Continue
-            }
+            if ended { CallbackProgression::Stop } else { CallbackProgression::Continue }
         })
         .map_err(|e| anyhow::anyhow!("{e:?}"))?;
     if let Some(err) = failure {

@@ -48,10 +48,7 @@ fn search_path(args: &RunArgs) -> Vec<PathBuf> {
     if let Some(env) = std::env::var_os("POSEFLOW_STAGE_PATH") {
         dirs.extend(std::env::split_paths(&env));
     }
-    if let Some(own_dir) = std::env::current_exe()
-        .ok()
-        .and_then(|p| p.parent().map(PathBuf::from))
-    {
+    if let Some(own_dir) = std::env::current_exe().ok().and_then(|p| p.parent().map(PathBuf::from)) {
         dirs.push(own_dir);
     }
     dirs
@@ -59,10 +56,7 @@ fn search_path(args: &RunArgs) -> Vec<PathBuf> {
 
 pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
     let graph = poseflow_graph::load(&args.graph, &search_path(&args))?;
-    let instance = args
-        .instance
-        .clone()
-        .unwrap_or_else(|| format!("{}-{}", graph.name, std::process::id()));
+    let instance = args.instance.clone().unwrap_or_else(|| format!("{}-{}", graph.name, std::process::id()));
     poseflow_transport::validate_name("graph instance", &instance).context("--instance")?;
     if args.check {
         println!(
@@ -76,8 +70,7 @@ pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
     }
     let options = supervisor::Options {
         instance,
-        status_every: (args.status_ms > 0)
-            .then(|| std::time::Duration::from_millis(args.status_ms)),
+        status_every: (args.status_ms > 0).then(|| std::time::Duration::from_millis(args.status_ms)),
         log_format,
     };
     let report = supervisor::supervise(&graph, &options)?;
@@ -86,9 +79,5 @@ pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
     } else {
         eprintln!("{}", report.table());
     }
-    Ok(if report.failed() {
-        ExitCode::FAILURE
-    } else {
-        ExitCode::SUCCESS
-    })
+    Ok(if report.failed() { ExitCode::FAILURE } else { ExitCode::SUCCESS })
 }

@@ -91,11 +91,7 @@ impl StageReport {
     }
 }
 
-pub fn status_lines<'a>(
-    instance: &str,
-    elapsed: Duration,
-    stages: impl Iterator<Item = &'a StageReport>,
-) -> String {
+pub fn status_lines<'a>(instance: &str, elapsed: Duration, stages: impl Iterator<Item = &'a StageReport>) -> String {
     let stages: Vec<_> = stages.collect();
     let width = stages.iter().map(|s| s.name.len()).max().unwrap_or(0);
     let mut out = format!("poseflow {instance} [{:.1} s]", elapsed.as_secs_f64());
@@ -117,9 +113,7 @@ pub struct Report {
 
 impl Report {
     pub fn failed(&self) -> bool {
-        self.stages
-            .values()
-            .any(|s| matches!(s.outcome, Outcome::Failed(_)))
+        self.stages.values().any(|s| matches!(s.outcome, Outcome::Failed(_)))
     }
 
     pub fn table(&self) -> String {

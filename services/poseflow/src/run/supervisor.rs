@@ -9,9 +9,7 @@ use anyhow::Context;
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use poseflow_contracts::Heartbeat;
 use poseflow_graph::{Graph, RestartPolicy, Stage, WIRING_ENV};
-use poseflow_transport::{
-    EdgeOptions, EdgeSubscriber, Ipc, Overflow, create_node, remove_dead_nodes,
-};
+use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Overflow, create_node, remove_dead_nodes};
 
 use super::status::{Outcome, Report, StageReport};
 use crate::logging::LogFormat;
@@ -56,7 +54,10 @@ impl Supervised<'_> {
                     LogFormat::Json => "json",
                 },
             )
-            .stdin(Stdio::null());
+            .stdin(Stdio::null())
+            // Stage output joins the launcher's logs; its stdout is reserved
+            // for `--json`.
+            .stdout(std::io::stderr());
         // SAFETY: prctl is async-signal-safe; it only asks the kernel to send
         // SIGTERM to the child if this supervisor dies, so no stage outlives it.
         unsafe {
@@ -66,13 +67,9 @@ impl Supervised<'_> {
                 Ok(())
             });
         }
-        let child = command.spawn().with_context(|| {
-            format!(
-                "stage `{}`: cannot start {}",
-                self.stage.name,
-                self.stage.exe.display()
-            )
-        })?;
+        let child = command
+            .spawn()
+            .with_context(|| format!("stage `{}`: cannot start {}", self.stage.name, self.stage.exe.display()))?;
         tracing::info!(stage = %self.stage.name, pid = child.id(), "started");
         self.report.pid = child.id();
         self.child = Some(child);
@@ -80,9 +77,7 @@ impl Supervised<'_> {
         self.last_heartbeat_at = self.started;
         self.report.outcome = Outcome::Running;
         if let Some(died) = self.died_at.take() {
-            self.report
-                .restart_latency_ms
-                .push(died.elapsed().as_secs_f64() * 1e3);
+            self.report.restart_latency_ms.push(died.elapsed().as_secs_f64() * 1e3);
         }
         Ok(())
     }
@@ -121,18 +116,13 @@ impl Supervised<'_> {
         };
         tracing::info!(stage = %self.stage.name, %status, "exited");
         if !restart {
-            self.report.outcome = if success {
-                Outcome::Finished
-            } else {
-                Outcome::Failed(format!("exited with {status}"))
-            };
+            self.report.outcome =
+                if success { Outcome::Finished } else { Outcome::Failed(format!("exited with {status}")) };
             return;
         }
         if self.report.restarts >= self.stage.restart.max_restarts {
-            self.report.outcome = Outcome::Failed(format!(
-                "exited with {status} after {} restarts (max_restarts)",
-                self.report.restarts
-            ));
+            self.report.outcome =
+                Outcome::Failed(format!("exited with {status} after {} restarts (max_restarts)", self.report.restarts));
             return;
         }
         self.report.outcome = Outcome::Restarting;
@@ -167,10 +157,7 @@ impl Supervised<'_> {
 pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
     let removed = remove_dead_nodes()?;
     if removed > 0 {
-        tracing::info!(
-            removed,
-            "cleaned up resources of dead processes from earlier runs"
-        );
+        tracing::info!(removed, "cleaned up resources of dead processes from earlier runs");
     }
     let node = create_node("poseflow-supervisor")?;
     let mut stages = Vec::new();
@@ -179,11 +166,7 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
         let heartbeats = EdgeSubscriber::create(
             &node,
             &wiring.heartbeat_service,
-            &EdgeOptions {
-                queue: 1,
-                overflow: Overflow::DropOldest,
-                max_payload_len: 1,
-            },
+            &EdgeOptions { queue: 1, overflow: Overflow::DropOldest, max_payload_len: 1 },
         )?;
         stages.push(Supervised {
             stage,
@@ -204,12 +187,8 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
     }
     tracing::info!(graph = %graph.name, instance = %options.instance, stages = stages.len(), "graph running");
 
-    let waitset = WaitSetBuilder::new()
-        .create::<Ipc>()
-        .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
-    let tick = waitset
-        .attach_interval(TICK)
-        .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+    let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+    let tick = waitset.attach_interval(TICK).map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
     let mut last_status = Instant::now();
     let mut failure: Option<anyhow::Error> = None;
     waitset
@@ -225,21 +204,12 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
                 && last_status.elapsed() >= every
             {
                 let reports = stages.iter().map(|s| &s.report);
-                eprintln!(
-                    "{}",
-                    super::status::status_lines(&options.instance, started.elapsed(), reports)
-                );
+                eprintln!("{}", super::status::status_lines(&options.instance, started.elapsed(), reports));
                 last_status = Instant::now();
             }
             let all_finished = stages.iter().all(|s| s.report.outcome == Outcome::Finished);
-            let any_failed = stages
-                .iter()
-                .any(|s| matches!(s.report.outcome, Outcome::Failed(_)));
-            if all_finished || any_failed {
-                CallbackProgression::Stop
-            } else {
-                CallbackProgression::Continue
-            }
+            let any_failed = stages.iter().any(|s| matches!(s.report.outcome, Outcome::Failed(_)));
+            if all_finished || any_failed { CallbackProgression::Stop } else { CallbackProgression::Continue }
         })
         .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
     stop_all(&mut stages);
@@ -252,10 +222,7 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
         instance: options.instance.clone(),
         elapsed: started.elapsed(),
         stale_nodes_removed_at_exit: removed,
-        stages: stages
-            .into_iter()
-            .map(|s| (s.stage.name.clone(), s.report))
-            .collect::<BTreeMap<_, _>>(),
+        stages: stages.into_iter().map(|s| (s.stage.name.clone(), s.report)).collect::<BTreeMap<_, _>>(),
     })
 }
 
@@ -302,9 +269,7 @@ fn stop_all(stages: &mut [Supervised<'_>]) {
                     }
                     s.child = None;
                 }
-                Ok(None) if Instant::now() < deadline => {
-                    std::thread::sleep(Duration::from_millis(10))
-                }
+                Ok(None) if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(10)),
                 _ => {
                     tracing::warn!(stage = %s.stage.name, "did not stop after SIGTERM; killing");
                     s.kill(libc::SIGKILL);

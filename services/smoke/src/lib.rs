@@ -1,6 +1,9 @@
-//! Test-bed stages: a counting source, a relay that negates, and a sink that
-//! checks every value. Frame `f` carries the values [`value`]`(f, i)`, so any
-//! corruption on the way is detected exactly.
+//! Smoke-test stages: a counting source, a relay that negates, and a sink
+//! that checks every value. Frame `f` carries the values [`value`]`(f, i)`,
+//! so any corruption, loss or reordering on the way is detected exactly.
+//!
+//! `deploy/smoke.toml` wires them into a graph; run it to check the
+//! transport, the supervisor and a machine's shared memory without a model.
 
 use std::path::PathBuf;
 
@@ -14,29 +17,19 @@ pub fn value(frame: u64, index: usize) -> f32 {
 }
 
 #[derive(Debug, thiserror::Error)]
-pub enum TestbedError {
+pub enum SmokeError {
     #[error("frame {frame}: value {index} is {found}, expected {expected}")]
-    Corrupted {
-        frame: u64,
-        index: usize,
-        found: f32,
-        expected: f32,
-    },
+    Corrupted { frame: u64, index: usize, found: f32, expected: f32 },
     #[error("{0}")]
     Emit(#[from] poseflow_runtime::EmitError),
     #[error("cannot write report {path}: {source}")]
-    Report {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Report { path: PathBuf, source: std::io::Error },
 }
 
 fn param_u64(wiring: &StageWiring, key: &str, default: u64) -> Result<u64, String> {
     match wiring.params.get(key) {
         None => Ok(default),
-        Some(v) => v
-            .as_u64()
-            .ok_or_else(|| format!("param `{key}`: expected a non-negative integer, got {v}")),
+        Some(v) => v.as_u64().ok_or_else(|| format!("param `{key}`: expected a non-negative integer, got {v}")),
     }
 }
 
@@ -60,23 +53,16 @@ impl CountingSource {
 
 impl Source for CountingSource {
     type Out = HypothesesHeader;
-    type Error = TestbedError;
+    type Error = SmokeError;
     const SLOT: Option<Stage> = Some(Stage::Source);
 
-    fn next(
-        &mut self,
-        output: &mut dyn Emitter<HypothesesHeader>,
-    ) -> Result<SourceStep, TestbedError> {
+    fn next(&mut self, output: &mut dyn Emitter<HypothesesHeader>) -> Result<SourceStep, SmokeError> {
         if self.next_frame >= self.frames {
             return Ok(SourceStep::Finished);
         }
         let frame = self.next_frame;
         self.next_frame += 1;
-        let header = HypothesesHeader {
-            header: Header::new(frame, 1),
-            sample_count: self.samples,
-            step_count: 1,
-        };
+        let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: self.samples, step_count: 1 };
         let len = self.samples as usize * POSE_LEN;
         output.emit(header, len, &mut |payload| {
             for (i, v) in payload.iter_mut().enumerate() {
@@ -94,14 +80,14 @@ pub struct NegatingRelay;
 impl Transform for NegatingRelay {
     type In = HypothesesHeader;
     type Out = HypothesesHeader;
-    type Error = TestbedError;
+    type Error = SmokeError;
     const SLOT: Option<Stage> = Some(Stage::Sampler);
 
     fn process(
         &mut self,
         input: Input<'_, HypothesesHeader>,
         output: &mut dyn Emitter<HypothesesHeader>,
-    ) -> Result<(), TestbedError> {
+    ) -> Result<(), SmokeError> {
         let payload = input.payload;
         output.emit(*input.header, payload.len(), &mut |out| {
             for (o, v) in out.iter_mut().zip(payload) {
@@ -129,34 +115,32 @@ pub struct SinkReport {
 /// Checks that every frame carries `-value(f, i)` (one negating relay).
 #[derive(Debug)]
 pub struct CheckingSink {
-    report_path: PathBuf,
+    /// Where to write the report as JSON; logged when absent.
+    report_path: Option<PathBuf>,
     report: SinkReport,
 }
 
 impl CheckingSink {
     pub fn from_wiring(wiring: &StageWiring) -> Result<Self, String> {
-        let path = wiring
-            .params
-            .get("report")
-            .and_then(|v| v.as_str())
-            .ok_or("param `report`: expected a file path")?;
-        Ok(Self {
-            report_path: PathBuf::from(path),
-            report: SinkReport::default(),
-        })
+        let report_path = match wiring.params.get("report") {
+            None => None,
+            Some(v) => {
+                Some(PathBuf::from(v.as_str().ok_or_else(|| format!("param `report`: expected a path, got {v}"))?))
+            }
+        };
+        Ok(Self { report_path, report: SinkReport::default() })
     }
 
-    fn check(input: &Input<'_, HypothesesHeader>) -> Result<(), TestbedError> {
+    pub fn report(&self) -> &SinkReport {
+        &self.report
+    }
+
+    fn check(input: &Input<'_, HypothesesHeader>) -> Result<(), SmokeError> {
         let frame = input.header.header().frame_id;
         for (index, found) in input.payload.iter().enumerate() {
             let expected = -value(frame, index);
             if *found != expected {
-                return Err(TestbedError::Corrupted {
-                    frame,
-                    index,
-                    found: *found,
-                    expected,
-                });
+                return Err(SmokeError::Corrupted { frame, index, found: *found, expected });
             }
         }
         Ok(())
@@ -165,9 +149,9 @@ impl CheckingSink {
 
 impl Sink for CheckingSink {
     type In = HypothesesHeader;
-    type Error = TestbedError;
+    type Error = SmokeError;
 
-    fn consume(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestbedError> {
+    fn consume(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), SmokeError> {
         let frame = input.header.header().frame_id;
         let report = &mut self.report;
         report.received += 1;
@@ -191,11 +175,16 @@ impl Sink for CheckingSink {
         }
     }
 
-    fn finish(&mut self) -> Result<(), TestbedError> {
+    fn finish(&mut self) -> Result<(), SmokeError> {
         let json = serde_json::to_string_pretty(&self.report).expect("plain data");
-        std::fs::write(&self.report_path, json).map_err(|source| TestbedError::Report {
-            path: self.report_path.clone(),
-            source,
-        })
+        match &self.report_path {
+            Some(path) => {
+                std::fs::write(path, json).map_err(|source| SmokeError::Report { path: path.clone(), source })
+            }
+            None => {
+                tracing::info!("smoke sink report: {json}");
+                Ok(())
+            }
+        }
     }
 }

@@ -1,0 +1,3 @@
+fn main() -> std::process::ExitCode {
+    poseflow_runtime::run_transform(|_| Ok(poseflow_smoke::NegatingRelay))
+}

@@ -1,3 +1,0 @@
-fn main() -> std::process::ExitCode {
-    poseflow_runtime::run_transform(|_| Ok(poseflow_e2e::NegatingRelay))
-}
