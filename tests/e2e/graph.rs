@@ -355,3 +355,36 @@ fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
     let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
     assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
 }
+
+/// `--in-process`: the same stage libraries as threads, same results.
+#[test]
+fn the_same_graph_runs_in_process() {
+    let scratch = Scratch::new("in-process");
+    let graph = scratch.graph(1000, 0.0, "block");
+    let output = poseflow()
+        .args(["run", "--in-process", "--json", "--graph"])
+        .arg(&graph)
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    assert_eq!(summary["stages"]["relay"]["frames_in"], 1000, "{summary}");
+    let report = scratch.report();
+    assert_eq!((report.received, report.intact, report.relayed, report.gaps), (1000, 1000, 1000, 0), "{report:?}");
+
+    // A stage without an in-process build is named, with the alternatives.
+    let text = std::fs::read_to_string(&graph).unwrap().replace("exe = \"smoke-relay\"", "exe = \"/bin/true\"");
+    std::fs::write(&graph, text).unwrap();
+    let output = poseflow()
+        .args(["run", "--in-process", "--graph"])
+        .arg(&graph)
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("`stages.relay.exe`") && stderr.contains("smoke-relay"), "{stderr}");
+}

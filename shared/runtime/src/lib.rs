@@ -12,11 +12,13 @@
 mod error;
 mod heartbeat;
 mod liveness;
+mod local;
 mod logging;
 mod process;
 mod stage;
 
 pub use error::RuntimeError;
+pub use local::{LocalGraph, LocalOverflow, LocalReport};
 pub use logging::init_logging;
 pub use process::{run_sink, run_source, run_transform};
 pub use stage::{EmitError, Emitter, Input, Sink, Source, SourceStep, Transform};

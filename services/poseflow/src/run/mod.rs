@@ -1,5 +1,6 @@
 //! `poseflow run`: launch a graph file as supervised processes.
 
+mod local;
 mod status;
 mod supervisor;
 
@@ -31,6 +32,12 @@ pub struct RunArgs {
     /// Print a status line per stage this often (milliseconds; 0 = never).
     #[arg(long, default_value_t = 1000)]
     pub status_ms: u64,
+
+    /// Run the stages as threads of this process, connected by in-memory
+    /// queues instead of shared memory: the baseline of the latency
+    /// benchmarks. Only stages linked into poseflow can run this way.
+    #[arg(long)]
+    pub in_process: bool,
 
     /// Validate the graph file and exit without starting anything.
     #[arg(long)]
@@ -73,7 +80,8 @@ pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
         status_every: (args.status_ms > 0).then(|| std::time::Duration::from_millis(args.status_ms)),
         log_format,
     };
-    let report = supervisor::supervise(&graph, &options)?;
+    let report =
+        if args.in_process { local::run(&graph, &options.instance)? } else { supervisor::supervise(&graph, &options)? };
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report.to_json())?);
     } else {
