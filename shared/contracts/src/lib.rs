@@ -53,6 +53,7 @@ mod next_view;
 mod observation;
 mod tensor;
 mod velocity;
+mod visit;
 
 #[cfg(test)]
 mod tests;
@@ -68,6 +69,7 @@ pub use next_view::{CANDIDATE_LEN, NextViewHeader};
 pub use observation::{CameraIntrinsics, ObservationHeader, ObservationView};
 pub use tensor::{MAX_TENSOR_LEN, TensorHeader};
 pub use velocity::{VelocityRequest, VelocityResponse, status};
+pub use visit::{MessageVisitor, visit_message};
 
 /// The layout tables in the docs, checked by the compiler.
 mod layout {

@@ -164,3 +164,18 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn message_names_resolve_to_their_header_types() {
+    struct Size;
+    impl MessageVisitor for Size {
+        type Output = usize;
+        fn visit<H: MessageHeader + Send + 'static>(self) -> usize {
+            std::mem::size_of::<H>()
+        }
+    }
+    assert_eq!(visit_message("Observation", Size), Some(152));
+    assert_eq!(visit_message("Estimate", Size), Some(336));
+    assert_eq!(visit_message("Tensor", Size), Some(104));
+    assert_eq!(visit_message("Pose", Size), None);
+}

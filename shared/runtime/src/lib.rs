@@ -15,6 +15,7 @@ mod liveness;
 mod local;
 mod logging;
 mod process;
+pub mod recording;
 mod stage;
 
 pub use error::RuntimeError;

@@ -105,5 +105,6 @@ pub fn run(graph: &Graph, instance: &str) -> anyhow::Result<Report> {
         elapsed: started.elapsed(),
         stale_nodes_removed_at_exit: 0,
         stages,
+        recording: None,
     })
 }

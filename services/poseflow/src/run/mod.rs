@@ -1,6 +1,7 @@
 //! `poseflow run`: launch a graph file as supervised processes.
 
 mod local;
+mod record;
 mod status;
 mod supervisor;
 
@@ -39,6 +40,16 @@ pub struct RunArgs {
     #[arg(long)]
     pub in_process: bool,
 
+    /// Record the messages of the graph's edges, with the time they were
+    /// received, to FILE (replay them with the `replay-source` stage).
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<PathBuf>,
+
+    /// Edges to record (comma-separated); default: every publish-subscribe
+    /// edge.
+    #[arg(long, value_delimiter = ',', requires = "record")]
+    pub record_edges: Vec<String>,
+
     /// Validate the graph file and exit without starting anything.
     #[arg(long)]
     pub check: bool,
@@ -75,7 +86,15 @@ pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
         );
         return Ok(ExitCode::SUCCESS);
     }
+    let recorded_edges = match &args.record {
+        Some(_) if args.in_process => {
+            anyhow::bail!("--record records shared-memory traffic; it cannot be combined with --in-process")
+        }
+        Some(_) => record::chosen_edges(&graph, &args.record_edges)?,
+        None => Vec::new(),
+    };
     let options = supervisor::Options {
+        record: args.record.clone().map(|path| (path, recorded_edges)),
         instance,
         status_every: (args.status_ms > 0).then(|| std::time::Duration::from_millis(args.status_ms)),
         log_format,

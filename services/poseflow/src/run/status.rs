@@ -109,6 +109,8 @@ pub struct Report {
     pub elapsed: Duration,
     pub stale_nodes_removed_at_exit: usize,
     pub stages: BTreeMap<String, StageReport>,
+    /// Messages recorded per edge, with `--record`.
+    pub recording: Option<Vec<(String, u64)>>,
 }
 
 impl Report {
@@ -127,6 +129,7 @@ impl Report {
             "elapsed_s": self.elapsed.as_secs_f64(),
             "failed": self.failed(),
             "stale_nodes_removed_at_exit": self.stale_nodes_removed_at_exit,
+            "recorded": self.recording.as_ref().map(|edges| edges.iter().cloned().collect::<BTreeMap<_, _>>()),
             "stages": self.stages.iter().map(|(name, s)| (name.clone(), s.to_json())).collect::<serde_json::Map<_, _>>(),
         })
     }

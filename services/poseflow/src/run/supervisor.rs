@@ -23,6 +23,8 @@ const STOP_GRACE: Duration = Duration::from_secs(5);
 #[derive(Debug)]
 pub struct Options {
     pub instance: String,
+    /// Recording file and the edges to record.
+    pub record: Option<(std::path::PathBuf, Vec<String>)>,
     pub status_every: Option<Duration>,
     pub log_format: LogFormat,
 }
@@ -161,8 +163,20 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
     }
     let node = create_node("poseflow-supervisor")?;
     let mut stages = Vec::new();
+    let recorded: &[String] = options.record.as_ref().map_or(&[], |(_, edges)| edges);
+    // Before any stage starts, so the first messages are recorded too.
+    let recorder = match &options.record {
+        Some((path, edges)) => Some(super::record::Recorder::start(graph, &options.instance, edges, path.clone())?),
+        None => None,
+    };
     for stage in graph.stages.values() {
-        let wiring = graph.wiring(stage, &options.instance)?;
+        let mut wiring = graph.wiring(stage, &options.instance)?;
+        // The recorder is one more reader for publishers to wait for.
+        for output in &mut wiring.outputs {
+            if recorded.contains(&output.edge) {
+                output.readers += 1;
+            }
+        }
         let heartbeats = EdgeSubscriber::create(
             &node,
             &wiring.heartbeat_service,
@@ -213,6 +227,7 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
         })
         .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
     stop_all(&mut stages);
+    let recording = recorder.map(|r| r.finish()).transpose()?;
     if let Some(err) = failure {
         return Err(err);
     }
@@ -222,6 +237,7 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
         instance: options.instance.clone(),
         elapsed: started.elapsed(),
         stale_nodes_removed_at_exit: removed,
+        recording,
         stages: stages.into_iter().map(|s| (s.stage.name.clone(), s.report)).collect::<BTreeMap<_, _>>(),
     })
 }

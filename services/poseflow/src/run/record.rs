@@ -1,0 +1,228 @@
+//! `poseflow run --record FILE`: a recorder thread in the launcher that
+//! subscribes to chosen edges and writes their messages to a recording.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use iceoryx2::prelude::{
+    CallbackProgression, FileDescriptorBased, SignalHandlingMode, SynchronousMultiplexing, WaitSetBuilder,
+};
+use poseflow_contracts::{MessageHeader, MessageVisitor, monotonic_ns, visit_message};
+use poseflow_graph::{EdgePattern, Graph, OverflowPolicy};
+use poseflow_runtime::recording::{RecordedEdge, RecordedMessage, RecordingInfo, RecordingWriter, header_bytes};
+use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, create_node, edge_service_name};
+
+/// How often the recorder checks whether it should stop.
+const STOP_POLL: Duration = Duration::from_millis(50);
+
+/// One recorded edge, whatever its message type.
+trait RecordedInput: FileDescriptorBased + SynchronousMultiplexing + std::fmt::Debug {
+    /// Writes every queued message; returns whether END_OF_STREAM was seen.
+    fn drain(&self, writer: &mut RecordingWriter) -> anyhow::Result<bool>;
+    fn acknowledge_end(&self) -> anyhow::Result<()>;
+    fn recorded(&self) -> u64;
+}
+
+#[derive(Debug)]
+struct TypedInput<H: MessageHeader> {
+    edge: String,
+    subscriber: EdgeSubscriber<H>,
+    recorded: std::cell::Cell<u64>,
+}
+
+impl<H: MessageHeader> FileDescriptorBased for TypedInput<H> {
+    fn file_descriptor(&self) -> &iceoryx2::prelude::FileDescriptor {
+        self.subscriber.file_descriptor()
+    }
+}
+
+impl<H: MessageHeader> SynchronousMultiplexing for TypedInput<H> {}
+
+impl<H: MessageHeader> RecordedInput for TypedInput<H> {
+    fn drain(&self, writer: &mut RecordingWriter) -> anyhow::Result<bool> {
+        let ended = self.subscriber.take_events()?;
+        while let Some(message) = self.subscriber.receive()? {
+            writer.write(&RecordedMessage {
+                edge: self.edge.clone(),
+                received_ns: monotonic_ns(),
+                header: header_bytes(message.header()),
+                payload: message.payload().to_vec(),
+            })?;
+            self.recorded.set(self.recorded.get() + 1);
+        }
+        Ok(ended)
+    }
+
+    fn acknowledge_end(&self) -> anyhow::Result<()> {
+        Ok(self.subscriber.acknowledge_end()?)
+    }
+
+    fn recorded(&self) -> u64 {
+        self.recorded.get()
+    }
+}
+
+struct Subscribe<'a> {
+    node: &'a Node,
+    edge: &'a str,
+    service: String,
+    options: EdgeOptions,
+}
+
+impl MessageVisitor for Subscribe<'_> {
+    type Output = anyhow::Result<Box<dyn RecordedInput>>;
+
+    fn visit<H: MessageHeader + Send + 'static>(self) -> Self::Output {
+        let subscriber = EdgeSubscriber::<H>::create(self.node, &self.service, &self.options)?;
+        Ok(Box::new(TypedInput { edge: self.edge.to_string(), subscriber, recorded: Default::default() }))
+    }
+}
+
+/// A running recorder; [`Recorder::finish`] stops it and reports counts.
+#[derive(Debug)]
+pub struct Recorder {
+    stop: Arc<AtomicBool>,
+    handle: JoinHandle<anyhow::Result<Vec<(String, u64)>>>,
+}
+
+/// The edges `--record-edges` names, or every publish-subscribe edge.
+pub fn chosen_edges(graph: &Graph, requested: &[String]) -> anyhow::Result<Vec<String>> {
+    if requested.is_empty() {
+        return Ok(graph
+            .edges
+            .values()
+            .filter(|e| e.pattern == EdgePattern::PublishSubscribe)
+            .map(|e| e.name.clone())
+            .collect());
+    }
+    for edge in requested {
+        match graph.edges.get(edge) {
+            Some(e) if e.pattern == EdgePattern::PublishSubscribe => {}
+            Some(_) => {
+                bail!("--record-edges: `{edge}` is a request-response edge; only publish-subscribe edges are recorded")
+            }
+            None => bail!(
+                "--record-edges: `{edge}` is not an edge of {} (edges: {:?})",
+                graph.file.display(),
+                graph.edges.keys().collect::<Vec<_>>()
+            ),
+        }
+    }
+    Ok(requested.to_vec())
+}
+
+impl Recorder {
+    /// Subscribes to `edges` and starts writing `path`. Returns once the
+    /// subscriptions exist, so the stages started next are all recorded.
+    pub fn start(graph: &Graph, instance: &str, edges: &[String], path: PathBuf) -> anyhow::Result<Self> {
+        let info = RecordingInfo {
+            graph: graph.name.clone(),
+            instance: instance.to_string(),
+            edges: edges
+                .iter()
+                .map(|e| RecordedEdge { edge: e.clone(), message: graph.edges[e].message.clone() })
+                .collect(),
+        };
+        let specs: Vec<(String, String, EdgeOptions)> = edges
+            .iter()
+            .map(|name| {
+                let edge = &graph.edges[name];
+                let options = EdgeOptions {
+                    queue: edge.queue,
+                    overflow: match edge.overflow {
+                        OverflowPolicy::DropOldest => Overflow::DropOldest,
+                        OverflowPolicy::Block => Overflow::Block,
+                    },
+                    max_payload_len: edge.max_payload_len,
+                };
+                Ok((name.clone(), edge_service_name(instance, name)?, options))
+            })
+            .collect::<anyhow::Result<_>>()?;
+        let stop = Arc::new(AtomicBool::new(false));
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        let handle = std::thread::spawn({
+            let stop = stop.clone();
+            move || -> anyhow::Result<Vec<(String, u64)>> {
+                let node = create_node("poseflow-recorder")?;
+                let mut inputs = Vec::new();
+                for (edge, service, options) in &specs {
+                    let message = &info.edges.iter().find(|e| &e.edge == edge).expect("listed").message;
+                    let subscribe = Subscribe { node: &node, edge, service: service.clone(), options: *options };
+                    inputs.push(visit_message(message, subscribe).context("unknown message type")??);
+                }
+                let mut writer = RecordingWriter::create(&path, &info)?;
+                let _ = ready_tx.send(());
+                record(&inputs, &mut writer, &stop)?;
+                writer.finish()?;
+                Ok(inputs.iter().zip(&specs).map(|(input, (edge, _, _))| (edge.clone(), input.recorded())).collect())
+            }
+        });
+        if ready_rx.recv().is_err() {
+            // The thread ended before it was ready: report why.
+            return Err(handle
+                .join()
+                .map_err(|_| anyhow::anyhow!("recorder panicked"))?
+                .err()
+                .unwrap_or_else(|| anyhow::anyhow!("recorder stopped")));
+        }
+        Ok(Self { stop, handle })
+    }
+
+    /// Stops recording (after what is queued) and returns the number of
+    /// messages written per edge.
+    pub fn finish(self) -> anyhow::Result<Vec<(String, u64)>> {
+        self.stop.store(true, Ordering::Relaxed);
+        self.handle.join().map_err(|_| anyhow::anyhow!("recorder panicked"))?
+    }
+}
+
+fn record(inputs: &[Box<dyn RecordedInput>], writer: &mut RecordingWriter, stop: &AtomicBool) -> anyhow::Result<()> {
+    // SIGINT/SIGTERM belong to the supervisor's loop; this WaitSet must not
+    // consume them.
+    let waitset = WaitSetBuilder::new()
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<Ipc>()
+        .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+    let guards = inputs
+        .iter()
+        .map(|input| waitset.attach_notification(input.as_ref()).map_err(|e| anyhow::anyhow!("waitset: {e:?}")))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let tick = waitset.attach_interval(STOP_POLL).map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+    let mut ended = vec![false; inputs.len()];
+    let mut failure = None;
+    waitset
+        .wait_and_process(|id| {
+            for (i, guard) in guards.iter().enumerate() {
+                if id.has_event_from(guard) {
+                    let step = inputs[i].drain(writer).and_then(|end| {
+                        if end && !ended[i] {
+                            ended[i] = true;
+                            inputs[i].acknowledge_end()?;
+                        }
+                        Ok(())
+                    });
+                    if let Err(err) = step {
+                        failure = Some(err);
+                        return CallbackProgression::Stop;
+                    }
+                }
+            }
+            if id.has_event_from(&tick) && stop.load(Ordering::Relaxed) {
+                return CallbackProgression::Stop;
+            }
+            if ended.iter().all(|e| *e) { CallbackProgression::Stop } else { CallbackProgression::Continue }
+        })
+        .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+    if let Some(err) = failure {
+        return Err(err);
+    }
+    // What arrived between the last wake-up and the stop.
+    for input in inputs {
+        input.drain(writer)?;
+    }
+    Ok(())
+}
