@@ -11,6 +11,9 @@ pub enum TransportError {
     #[error("payload of {len} f32 values exceeds the edge's max_payload_len of {max}")]
     PayloadTooLarge { len: usize, max: usize },
 
+    #[error("no {operation} on `{target}` within {after:?}")]
+    Timeout { operation: &'static str, target: String, after: std::time::Duration },
+
     #[error(transparent)]
     Contract(#[from] poseflow_contracts::ContractError),
 }

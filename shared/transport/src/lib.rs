@@ -11,11 +11,13 @@ mod cleanup;
 mod error;
 mod naming;
 mod pubsub;
+mod request;
 
 pub use cleanup::remove_dead_nodes;
 pub use error::TransportError;
 pub use naming::{edge_service_name, heartbeat_service_name, validate_name};
 pub use pubsub::{EdgeOptions, EdgeSubscriber, EndOfStream, Overflow, Publisher, Received, events};
+pub use request::{Reply, RequestClient, RequestServer, Responder};
 
 /// The iceoryx2 service variant used across the project: inter-process.
 pub type Ipc = iceoryx2::service::ipc::Service;

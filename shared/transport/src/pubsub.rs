@@ -78,7 +78,7 @@ const MAX_PUBLISHERS: usize = 4;
 const MAX_SUBSCRIBERS: usize = 16;
 const MAX_NODES: usize = 32;
 
-fn service_name(name: &str) -> Result<iceoryx2::prelude::ServiceName, TransportError> {
+pub(crate) fn service_name(name: &str) -> Result<iceoryx2::prelude::ServiceName, TransportError> {
     name.try_into().map_err(|e| TransportError::Name { name: name.to_string(), detail: format!("{e:?}") })
 }
 
@@ -100,7 +100,7 @@ fn open_pubsub<H: MessageHeader>(
         .map_err(|e| TransportError::iceoryx("open publish-subscribe service", name, e))
 }
 
-fn open_event(node: &Node, name: &str) -> Result<EventFactory<Ipc>, TransportError> {
+pub(crate) fn open_event(node: &Node, name: &str) -> Result<EventFactory<Ipc>, TransportError> {
     node.service_builder(&service_name(name)?)
         .event()
         .max_notifiers(MAX_SUBSCRIBERS)
