@@ -25,10 +25,13 @@ fn response_events(edge: &str) -> String {
     format!("{edge}/response")
 }
 
+/// The request-response service of an edge: `[f32]` both ways.
+type Service<Req, Resp> = PortFactory<Ipc, [f32], Req, [f32], Resp>;
+
 fn open<Req: MessageHeader, Resp: MessageHeader>(
     node: &Node,
     name: &str,
-) -> Result<PortFactory<Ipc, [f32], Req, [f32], Resp>, TransportError> {
+) -> Result<Service<Req, Resp>, TransportError> {
     node.service_builder(&service_name(name)?)
         .request_response::<[f32], [f32]>()
         .request_user_header::<Req>()
