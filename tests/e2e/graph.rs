@@ -29,6 +29,20 @@ fn poseflow() -> Command {
     command
 }
 
+/// `poseflow run ARGS --graph GRAPH` with the workspace's stages on the
+/// stage path.
+fn run_graph(args: &[&str], graph: &Path) -> Command {
+    let mut command = poseflow();
+    command.arg("run").args(args).arg("--graph").arg(graph).arg("--stage-path").arg(bin_dir());
+    command
+}
+
+/// Fails if a run left iceoryx2 files behind that were not there `before`.
+fn assert_nothing_leaked(before: &BTreeSet<PathBuf>) {
+    let leaked: Vec<_> = iceoryx_files().difference(before).cloned().collect();
+    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+}
+
 /// Every file iceoryx2 keeps in shared memory or under /tmp/iceoryx2.
 fn iceoryx_files() -> BTreeSet<PathBuf> {
     fn walk(dir: &Path, out: &mut BTreeSet<PathBuf>) {
@@ -103,13 +117,7 @@ fn three_processes_pass_every_frame_intact() {
     let before = iceoryx_files();
     let scratch = Scratch::new("intact");
     let graph = scratch.graph(1000, 0.0, "block");
-    let output = poseflow()
-        .args(["run", "--json", "--status-ms", "0", "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
     for stage in ["source", "relay", "sink"] {
@@ -125,8 +133,7 @@ fn three_processes_pass_every_frame_intact() {
     assert_eq!(report.relayed, 1000);
     assert_eq!((report.first_frame, report.last_frame, report.gaps), (Some(0), Some(999), 0));
 
-    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
-    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+    assert_nothing_leaked(&before);
 }
 
 /// Processes whose stage wiring names this stage of this instance.
@@ -148,11 +155,7 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     // source never waits for the dead relay.
     let graph = scratch.graph(1500, 500.0, "drop-oldest");
     let instance = format!("kill-{}", std::process::id());
-    let run = poseflow()
-        .args(["run", "--json", "--status-ms", "0", "--instance", &instance, "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
+    let run = run_graph(&["--json", "--status-ms", "0", "--instance", &instance], &graph)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -192,8 +195,7 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     assert_eq!(report.received + report.gaps, 1500 - first, "{report:?}");
     eprintln!("sink: {report:?}");
 
-    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
-    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+    assert_nothing_leaked(&before);
 }
 
 #[test]
@@ -203,7 +205,7 @@ fn an_invalid_graph_is_rejected_before_anything_starts() {
     let text =
         std::fs::read_to_string(&graph).unwrap().replace("inputs = [\"raw\"]", "inputs = [\"raw\", \"missing\"]");
     std::fs::write(&graph, text).unwrap();
-    let output = poseflow().args(["run", "--graph"]).arg(&graph).arg("--stage-path").arg(bin_dir()).output().unwrap();
+    let output = run_graph(&[], &graph).output().unwrap();
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
@@ -233,13 +235,7 @@ fn a_python_stage_replaces_a_rust_one() {
         .unwrap()
         .replace("exe = \"smoke-relay\"", &format!("exe = \"{}\"\nargs = [\"{plugin}\"]", plugin_python().display()));
     std::fs::write(&graph, text).unwrap();
-    let output = poseflow()
-        .args(["run", "--json", "--status-ms", "0", "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
     assert_eq!(summary["stages"]["relay"]["frames_in"], 500, "{summary}");
@@ -247,8 +243,7 @@ fn a_python_stage_replaces_a_rust_one() {
     // The Rust sink checks the Python relay's output value by value.
     let report = scratch.report();
     assert_eq!((report.received, report.intact, report.relayed), (500, 500, 500), "{report:?}");
-    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
-    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+    assert_nothing_leaked(&before);
 }
 
 #[test]
@@ -259,11 +254,7 @@ fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
     // A stream far longer than the test: only SIGINT ends it.
     let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
     let instance = format!("sigint-{}", std::process::id());
-    let run = poseflow()
-        .args(["run", "--json", "--status-ms", "0", "--instance", &instance, "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
+    let run = run_graph(&["--json", "--status-ms", "0", "--instance", &instance], &graph)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -287,8 +278,7 @@ fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
     // The sink finished normally on SIGTERM and wrote what it had seen.
     let report = scratch.report();
     assert!(report.received > 0 && report.corrupted == 0, "{report:?}");
-    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
-    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+    assert_nothing_leaked(&before);
 }
 
 #[test]
@@ -303,13 +293,7 @@ fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
         .replace("exe = \"smoke-relay\"", "exe = \"/bin/false\"\nmax_restarts = 2")
         .replace("backoff_ms = 100", "backoff_ms = 10");
     std::fs::write(&graph, text).unwrap();
-    let output = poseflow()
-        .args(["run", "--json", "--status-ms", "0", "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
     assert_eq!(output.status.code(), Some(1));
     let summary = summary(&output);
     assert_eq!(summary["failed"], true);
@@ -318,8 +302,7 @@ fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
     assert_eq!(relay["restarts"], 2, "{summary}");
     assert!(relay["failure"].as_str().unwrap().contains("max_restarts"), "{summary}");
     assert_eq!(summary["stages"]["source"]["outcome"], "stopped", "{summary}");
-    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
-    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+    assert_nothing_leaked(&before);
 }
 
 /// Every graph shipped in deploy/ validates, and the smoke graph runs clean.
@@ -330,30 +313,17 @@ fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
     for entry in std::fs::read_dir(deploy).unwrap().flatten() {
         let path = entry.path();
         if path.extension().is_some_and(|e| e == "toml") {
-            let output = poseflow()
-                .args(["run", "--check", "--graph"])
-                .arg(&path)
-                .arg("--stage-path")
-                .arg(bin_dir())
-                .output()
-                .unwrap();
+            let output = run_graph(&["--check"], &path).output().unwrap();
             assert!(output.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&output.stderr));
         }
     }
     let before = iceoryx_files();
-    let output = poseflow()
-        .args(["run", "--json", "--status-ms", "0", "--graph"])
-        .arg(deploy.join("smoke.toml"))
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &deploy.join("smoke.toml")).output().unwrap();
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
     assert_eq!(summary["stages"]["source"]["frames_out"], 3000, "{summary}");
     assert_eq!(summary["stages"]["sink"]["errors"], 0, "{summary}");
-    let leaked: Vec<_> = iceoryx_files().difference(&before).cloned().collect();
-    assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
+    assert_nothing_leaked(&before);
 }
 
 /// `--in-process`: the same stage libraries as threads, same results.
@@ -361,13 +331,7 @@ fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
 fn the_same_graph_runs_in_process() {
     let scratch = Scratch::new("in-process");
     let graph = scratch.graph(1000, 0.0, "block");
-    let output = poseflow()
-        .args(["run", "--in-process", "--json", "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
+    let output = run_graph(&["--in-process", "--json"], &graph).output().unwrap();
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
     assert_eq!(summary["stages"]["relay"]["frames_in"], 1000, "{summary}");
@@ -377,13 +341,7 @@ fn the_same_graph_runs_in_process() {
     // A stage without an in-process build is named, with the alternatives.
     let text = std::fs::read_to_string(&graph).unwrap().replace("exe = \"smoke-relay\"", "exe = \"/bin/true\"");
     std::fs::write(&graph, text).unwrap();
-    let output = poseflow()
-        .args(["run", "--in-process", "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
+    let output = run_graph(&["--in-process"], &graph).output().unwrap();
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("`stages.relay.exe`") && stderr.contains("smoke-relay"), "{stderr}");
@@ -397,15 +355,8 @@ fn a_recorded_edge_replays_into_a_sink() {
     let scratch = Scratch::new("record");
     let recording = scratch.dir.join("negated.rec");
     let graph = scratch.graph(300, 500.0, "block");
-    let output = poseflow()
-        .args(["run", "--json", "--status-ms", "0", "--record"])
-        .arg(&recording)
-        .args(["--record-edges", "negated", "--graph"])
-        .arg(&graph)
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
+    let record = ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "negated"];
+    let output = run_graph(&record, &graph).output().unwrap();
     let recorded = summary(&output);
     assert!(output.status.success(), "{recorded}");
     assert_eq!(recorded["recorded"]["negated"], 300, "{recorded}");
@@ -419,13 +370,7 @@ fn a_recorded_edge_replays_into_a_sink() {
             .replace("speed = \"max\"", &format!("speed = \"{speed}\""))
             .replace("report = \"sink-report.json\"", &format!("report = \"{}\"", report.display()));
         std::fs::write(&replay, text).unwrap();
-        let output = poseflow()
-            .args(["run", "--json", "--status-ms", "0", "--graph"])
-            .arg(&replay)
-            .arg("--stage-path")
-            .arg(bin_dir())
-            .output()
-            .unwrap();
+        let output = run_graph(&["--json", "--status-ms", "0"], &replay).output().unwrap();
         let replayed = summary(&output);
         assert!(output.status.success(), "{replayed}");
         eprintln!("replay at {speed} speed took {:.2} s", replayed["elapsed_s"].as_f64().unwrap());
