@@ -136,6 +136,27 @@ fn three_processes_pass_every_frame_intact() {
     assert_nothing_leaked(&before);
 }
 
+/// Starts `graph` as `instance` in the background and waits until its
+/// stage `stage` is running; returns the launcher and the stage's pid.
+fn start_and_wait_for(graph: &Path, instance: &str, stage: &str) -> (std::process::Child, u32) {
+    let run = run_graph(&["--json", "--status-ms", "0", "--instance", instance], graph)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut run = run;
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while Instant::now() < deadline {
+        if let Some(pid) = find_stage_pid(instance, stage) {
+            return (run, pid);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let _ = run.kill();
+    let _ = run.wait();
+    panic!("{stage} never started");
+}
+
 /// Processes whose stage wiring names this stage of this instance.
 fn find_stage_pid(instance: &str, stage: &str) -> Option<u32> {
     let needle = format!("\"instance\":\"{instance}\",\"stage\":\"{stage}\"");
@@ -155,20 +176,7 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     // source never waits for the dead relay.
     let graph = scratch.graph(1500, 500.0, "drop-oldest");
     let instance = format!("kill-{}", std::process::id());
-    let run = run_graph(&["--json", "--status-ms", "0", "--instance", &instance], &graph)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-
-    let deadline = Instant::now() + Duration::from_secs(20);
-    let relay = loop {
-        if let Some(pid) = find_stage_pid(&instance, "relay") {
-            break pid;
-        }
-        assert!(Instant::now() < deadline, "relay never started");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let (run, relay) = start_and_wait_for(&graph, &instance, "relay");
     // Let traffic flow for a moment, then kill the relay mid-stream.
     std::thread::sleep(Duration::from_millis(800));
     // SAFETY: signalling a process this test started (through poseflow).
@@ -254,16 +262,7 @@ fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
     // A stream far longer than the test: only SIGINT ends it.
     let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
     let instance = format!("sigint-{}", std::process::id());
-    let run = run_graph(&["--json", "--status-ms", "0", "--instance", &instance], &graph)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while find_stage_pid(&instance, "sink").is_none() {
-        assert!(Instant::now() < deadline, "sink never started");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let (run, _) = start_and_wait_for(&graph, &instance, "sink");
     std::thread::sleep(Duration::from_millis(500));
     // SAFETY: signalling the poseflow process this test started.
     assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGINT) }, 0);

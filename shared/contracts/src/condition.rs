@@ -4,7 +4,7 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::message::MessageHeader;
+use crate::message::{MessageHeader, header_accessors};
 use crate::{ContractError, Header};
 
 /// User header of a Condition handle (120 bytes, alignment 8). No payload.
@@ -36,13 +36,7 @@ pub struct ConditionHandle {
 impl MessageHeader for ConditionHandle {
     const NAME: &'static str = "Condition";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         Ok(0)

@@ -3,7 +3,7 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::message::{MessageHeader, POSE_LEN, bounded, limits, sections};
+use crate::message::{MessageHeader, POSE_LEN, bounded, header_accessors, limits, sections};
 use crate::{ContractError, Header};
 
 /// User header of Hypotheses (88 bytes, alignment 8).
@@ -28,13 +28,7 @@ pub struct HypothesesHeader {
 impl MessageHeader for HypothesesHeader {
     const NAME: &'static str = "Hypotheses";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         let n = bounded(Self::NAME, "sample_count", self.sample_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
@@ -139,13 +133,7 @@ impl EstimateHeader {
 impl MessageHeader for EstimateHeader {
     const NAME: &'static str = "Estimate";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         Ok(self.section_lengths()?.iter().sum())

@@ -3,7 +3,7 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::message::{MessageHeader, POSE_LEN, bounded, limits};
+use crate::message::{MessageHeader, POSE_LEN, bounded, header_accessors, limits};
 use crate::{ContractError, Header};
 
 /// `f32` values per grasp: gripper pose (12), opening width, valid share,
@@ -34,13 +34,7 @@ pub struct GraspsHeader {
 impl MessageHeader for GraspsHeader {
     const NAME: &'static str = "Grasps";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         bounded(Self::NAME, "hypothesis_count", self.hypothesis_count, 1, limits::MAX_SAMPLES, "1..=4096")?;

@@ -3,7 +3,7 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::message::MessageHeader;
+use crate::message::{MessageHeader, header_accessors};
 use crate::{ContractError, Header};
 
 /// Lifecycle of a stage process, as reported in its heartbeat.
@@ -59,13 +59,7 @@ pub struct Heartbeat {
 impl MessageHeader for Heartbeat {
     const NAME: &'static str = "Heartbeat";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         Ok(0)

@@ -44,6 +44,21 @@ pub trait MessageHeader: ZeroCopySend + Copy + Default + std::fmt::Debug {
     }
 }
 
+/// The `header`/`header_mut` accessors of a contract header whose common
+/// [`Header`] is its field `header`.
+macro_rules! header_accessors {
+    () => {
+        fn header(&self) -> &$crate::Header {
+            &self.header
+        }
+
+        fn header_mut(&mut self) -> &mut $crate::Header {
+            &mut self.header
+        }
+    };
+}
+pub(crate) use header_accessors;
+
 /// Checks `min <= value <= max` and widens to `usize`.
 pub(crate) fn bounded(
     message: &'static str,

@@ -3,7 +3,7 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::message::{MessageHeader, POSE_LEN, bounded, limits};
+use crate::message::{MessageHeader, POSE_LEN, bounded, header_accessors, limits};
 use crate::{ContractError, Header};
 
 /// `f32` values per candidate view: camera pose (12), expected rotational
@@ -39,13 +39,7 @@ pub struct NextViewHeader {
 impl MessageHeader for NextViewHeader {
     const NAME: &'static str = "NextView";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         let c = bounded(Self::NAME, "candidate_count", self.candidate_count, 1, limits::MAX_CANDIDATES, "1..=4096")?;

@@ -3,7 +3,7 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::message::{MessageHeader, bounded, limits, sections};
+use crate::message::{MessageHeader, bounded, header_accessors, limits, sections};
 use crate::{ContractError, Header};
 
 /// Pinhole intrinsics of the full camera image (pixels): `u = fx·x/z + cx`,
@@ -105,13 +105,7 @@ impl ObservationHeader {
 impl MessageHeader for ObservationHeader {
     const NAME: &'static str = "Observation";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         Ok(self.section_lengths()?.iter().sum())

@@ -4,7 +4,7 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::message::{MessageHeader, bounded};
+use crate::message::{MessageHeader, bounded, header_accessors};
 use crate::{ContractError, Header};
 
 /// Largest tensor, in f32 values (256 MiB).
@@ -40,13 +40,7 @@ impl TensorHeader {
 impl MessageHeader for TensorHeader {
     const NAME: &'static str = "Tensor";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         let rank = bounded(Self::NAME, "rank", self.rank, 1, 4, "1..=4")?;

@@ -4,7 +4,7 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::message::{MessageHeader, POSE_LEN, VELOCITY_LEN, bounded, limits};
+use crate::message::{MessageHeader, POSE_LEN, VELOCITY_LEN, bounded, header_accessors, limits};
 use crate::{ContractError, Header};
 
 /// User header of a VelocityRequest (112 bytes, alignment 8).
@@ -37,13 +37,7 @@ pub struct VelocityRequest {
 impl MessageHeader for VelocityRequest {
     const NAME: &'static str = "VelocityRequest";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         let n = bounded(Self::NAME, "sample_count", self.sample_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
@@ -94,13 +88,7 @@ pub struct VelocityResponse {
 impl MessageHeader for VelocityResponse {
     const NAME: &'static str = "VelocityResponse";
 
-    fn header(&self) -> &Header {
-        &self.header
-    }
-
-    fn header_mut(&mut self) -> &mut Header {
-        &mut self.header
-    }
+    header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
         let min = if self.status == status::OK { 1 } else { 0 };
