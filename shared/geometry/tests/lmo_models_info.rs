@@ -7,7 +7,7 @@ use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_geometry::symmetry::{BOP_MAX_SYMMETRY_STEP, SymmetrySet};
 use poseflow_geometry::{Pose, so3};
 
-const PATH: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/lmo_models_info.json");
+const PATH: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../objects/lmo/models_info.json");
 
 #[test]
 fn lmo_objects_diameters_and_symmetries() {

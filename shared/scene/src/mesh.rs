@@ -1,0 +1,112 @@
+//! The in-memory object mesh and loading by file type.
+
+use std::path::Path;
+
+use nalgebra::{Point3, Vector3};
+use parry3d::shape::TriMesh;
+
+use crate::MeshError;
+
+/// A triangle mesh in the object frame, metres.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObjectMesh {
+    pub vertices: Vec<Point3<f32>>,
+    /// Vertex indices of each triangle, counter-clockwise seen from outside.
+    pub triangles: Vec<[u32; 3]>,
+    /// Unit normals per vertex, when the file has them.
+    pub normals: Option<Vec<Vector3<f32>>>,
+    /// sRGB colour per vertex, when the file has it.
+    pub colors: Option<Vec<[u8; 3]>>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MeshFormat {
+    Ply,
+    Obj,
+}
+
+impl MeshFormat {
+    pub fn of(path: &Path) -> Option<Self> {
+        match path.extension()?.to_str()?.to_ascii_lowercase().as_str() {
+            "ply" => Some(Self::Ply),
+            "obj" => Some(Self::Obj),
+            _ => None,
+        }
+    }
+}
+
+/// Loads a PLY or OBJ mesh and multiplies coordinates by `scale` (BOP PLY
+/// files are in millimetres: pass 0.001; YCB-V OBJ files are in metres: 1).
+pub fn load_mesh(path: &Path, scale: f32) -> Result<ObjectMesh, MeshError> {
+    let format = MeshFormat::of(path).ok_or_else(|| MeshError::UnknownFormat { path: path.to_path_buf() })?;
+    let bytes = std::fs::read(path).map_err(|source| MeshError::Io { path: path.to_path_buf(), source })?;
+    let mut mesh = match format {
+        MeshFormat::Ply => crate::ply::parse(&bytes, path)?,
+        MeshFormat::Obj => crate::obj::parse(&bytes, path)?,
+    };
+    mesh.validate(path)?;
+    for v in &mut mesh.vertices {
+        *v *= scale;
+    }
+    Ok(mesh)
+}
+
+impl ObjectMesh {
+    /// Rejects meshes no renderer or distance query can use.
+    fn validate(&self, path: &Path) -> Result<(), MeshError> {
+        let malformed = |location: &str, detail: String| MeshError::Malformed {
+            path: path.to_path_buf(),
+            location: location.to_string(),
+            detail,
+        };
+        if self.vertices.is_empty() || self.triangles.is_empty() {
+            return Err(malformed(
+                "mesh",
+                format!("expected vertices and triangles, found {} and {}", self.vertices.len(), self.triangles.len()),
+            ));
+        }
+        if let Some(i) = self.vertices.iter().position(|v| !v.coords.iter().all(|c| c.is_finite())) {
+            return Err(malformed(
+                &format!("vertex {i}"),
+                format!("expected finite coordinates, found {}", self.vertices[i]),
+            ));
+        }
+        let n = self.vertices.len() as u32;
+        if let Some(t) = self.triangles.iter().position(|t| t.iter().any(|&i| i >= n)) {
+            return Err(malformed(
+                &format!("face {t}"),
+                format!("vertex index out of range: {:?} with {n} vertices", self.triangles[t]),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Axis-aligned bounds `(min, max)`.
+    pub fn bounds(&self) -> (Point3<f32>, Point3<f32>) {
+        let mut min = Point3::from(Vector3::repeat(f32::INFINITY));
+        let mut max = Point3::from(Vector3::repeat(f32::NEG_INFINITY));
+        for v in &self.vertices {
+            min = min.inf(v);
+            max = max.sup(v);
+        }
+        (min, max)
+    }
+
+    /// The largest distance between two vertices (BOP's object diameter),
+    /// O(n²) over the vertices: meant for checks, not per frame.
+    pub fn diameter(&self) -> f32 {
+        let mut best = 0.0f32;
+        for (i, a) in self.vertices.iter().enumerate() {
+            for b in &self.vertices[i + 1..] {
+                best = best.max((a - b).norm_squared());
+            }
+        }
+        best.sqrt()
+    }
+
+    /// The parry triangle mesh (with its BVH) for ray casts and distance
+    /// queries.
+    pub fn to_trimesh(&self) -> Result<TriMesh, parry3d::shape::TriMeshBuilderError> {
+        TriMesh::new(self.vertices.clone(), self.triangles.clone())
+    }
+}
