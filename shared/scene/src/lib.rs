@@ -9,6 +9,8 @@ mod error;
 mod mesh;
 mod obj;
 mod ply;
+mod render;
 
 pub use error::MeshError;
 pub use mesh::{MeshFormat, ObjectMesh, load_mesh};
+pub use render::{Camera, Frame, Light, Placed, RenderModel, render};

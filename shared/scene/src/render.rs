@@ -1,0 +1,166 @@
+//! Ray-cast rendering of posed object meshes: depth, instance labels and
+//! shaded colour per pixel.
+//!
+//! Camera frame as in BOP/OpenCV: x right, y down, z forward (metres);
+//! pixel `(u, v)` has its centre at integer coordinates and sees the ray
+//! through `((u − cx)/fx, (v − cy)/fy, 1)`. Depth is the z coordinate of
+//! the first surface hit (not the distance along the ray), 0 where nothing
+//! is hit. Rows are rendered in parallel.
+
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use parry3d::query::{Ray, RayCast};
+use parry3d::shape::{FeatureId, TriMesh};
+use poseflow_geometry::Pose;
+use rayon::prelude::*;
+
+use crate::ObjectMesh;
+
+/// Pinhole intrinsics (pixels) and image size.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Camera {
+    /// The unit ray direction through pixel `(u, v)`.
+    pub fn ray_direction(&self, u: f64, v: f64) -> Vector3<f64> {
+        Vector3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0).normalize()
+    }
+
+    /// The pixel a camera-frame point projects to, if it is in front.
+    pub fn project(&self, p: &Point3<f64>) -> Option<(f64, f64)> {
+        (p.z > 0.0).then(|| (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
+    }
+}
+
+/// An object ready to render: its mesh and the parry mesh (with BVH) built
+/// once.
+#[derive(Debug, Clone)]
+pub struct RenderModel {
+    pub mesh: ObjectMesh,
+    trimesh: TriMesh,
+}
+
+impl RenderModel {
+    pub fn new(mesh: ObjectMesh) -> Result<Self, parry3d::shape::TriMeshBuilderError> {
+        let trimesh = mesh.to_trimesh()?;
+        Ok(Self { mesh, trimesh })
+    }
+
+    /// The colour at a point of triangle `tri` (object frame): vertex colours
+    /// interpolated barycentrically, or flat grey for meshes without colour.
+    fn color_at(&self, tri: usize, p: &Point3<f32>) -> [f32; 3] {
+        let Some(colors) = &self.mesh.colors else {
+            return [0.7, 0.7, 0.7];
+        };
+        let [a, b, c] = self.mesh.triangles[tri].map(|i| i as usize);
+        let (pa, pb, pc) = (self.mesh.vertices[a], self.mesh.vertices[b], self.mesh.vertices[c]);
+        let area = (pb - pa).cross(&(pc - pa));
+        let norm2 = area.norm_squared().max(f32::MIN_POSITIVE);
+        let wa = (pb - p).cross(&(pc - p)).dot(&area) / norm2;
+        let wb = (pc - p).cross(&(pa - p)).dot(&area) / norm2;
+        let wc = 1.0 - wa - wb;
+        let mix = |k: usize| {
+            (wa * f32::from(colors[a][k]) + wb * f32::from(colors[b][k]) + wc * f32::from(colors[c][k])) / 255.0
+        };
+        [mix(0), mix(1), mix(2)]
+    }
+}
+
+/// An object placed in the camera frame (object-to-camera pose).
+#[derive(Debug, Clone, Copy)]
+pub struct Placed<'a> {
+    pub model: &'a RenderModel,
+    pub pose: &'a Pose,
+}
+
+/// A directional light: `direction` points from the scene towards the light
+/// (camera frame); `ambient` is the share of light every surface gets.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Light {
+    pub direction: Vector3<f64>,
+    pub ambient: f64,
+}
+
+impl Default for Light {
+    /// Light from behind the camera, slightly above.
+    fn default() -> Self {
+        Self { direction: Vector3::new(0.0, -0.3, -1.0).normalize(), ambient: 0.3 }
+    }
+}
+
+/// One rendered image, row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    /// Metres (z in the camera frame); 0 = no surface.
+    pub depth: Vec<f32>,
+    /// 0 = background, `k + 1` = the `k`-th object passed to [`render`].
+    pub label: Vec<u16>,
+    pub rgb: Vec<[u8; 3]>,
+}
+
+fn isometry(pose: &Pose) -> Isometry3<f32> {
+    let q = UnitQuaternion::from_rotation_matrix(&pose.rotation.cast::<f32>());
+    Isometry3::from_parts(Translation3::from(pose.translation.cast::<f32>()), q)
+}
+
+/// The nearest hit along one camera ray: `(object, ray parameter, normal in
+/// camera frame, colour)`.
+fn first_hit(
+    placed: &[(Isometry3<f32>, &RenderModel)],
+    direction: &Vector3<f32>,
+) -> Option<(usize, f32, Vector3<f32>, [f32; 3])> {
+    let mut best: Option<(usize, f32, Vector3<f32>, [f32; 3])> = None;
+    for (k, (pose, model)) in placed.iter().enumerate() {
+        let ray = Ray::new(Point3::origin(), *direction);
+        let max = best.map_or(f32::MAX, |b| b.1);
+        let Some(hit) = model.trimesh.cast_ray_and_get_normal(pose, &ray, max, false) else {
+            continue;
+        };
+        if best.is_some_and(|b| hit.time_of_impact >= b.1) {
+            continue;
+        }
+        let n_tri = model.mesh.triangles.len() as u32;
+        let tri = match hit.feature {
+            FeatureId::Face(f) => (f % n_tri) as usize,
+            _ => 0,
+        };
+        let local = pose.inverse_transform_point(&ray.point_at(hit.time_of_impact));
+        best = Some((k, hit.time_of_impact, hit.normal, model.color_at(tri, &local)));
+    }
+    best
+}
+
+/// Renders `objects` (mutually occluding) as seen by `camera`.
+pub fn render(camera: &Camera, objects: &[Placed<'_>], light: &Light) -> Frame {
+    let placed: Vec<(Isometry3<f32>, &RenderModel)> = objects.iter().map(|o| (isometry(o.pose), o.model)).collect();
+    let to_light = light.direction.normalize().cast::<f32>();
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let mut depth = vec![0.0f32; w * h];
+    let mut label = vec![0u16; w * h];
+    let mut rgb = vec![[0u8; 3]; w * h];
+    depth.par_chunks_mut(w).zip(label.par_chunks_mut(w)).zip(rgb.par_chunks_mut(w)).enumerate().for_each(
+        |(v, ((depth_row, label_row), rgb_row))| {
+            for u in 0..w {
+                let direction = camera.ray_direction(u as f64, v as f64).cast::<f32>();
+                let Some((k, toi, normal, color)) = first_hit(&placed, &direction) else {
+                    continue;
+                };
+                depth_row[u] = toi * direction.z;
+                label_row[u] = k as u16 + 1;
+                // Two-sided Lambert: the normal is flipped to face the camera.
+                let n = if normal.dot(&direction) > 0.0 { -normal } else { normal };
+                let shade = light.ambient as f32 + (1.0 - light.ambient as f32) * n.dot(&to_light).max(0.0);
+                rgb_row[u] = color.map(|c| (c * shade * 255.0).round().clamp(0.0, 255.0) as u8);
+            }
+        },
+    );
+    Frame { width: camera.width, height: camera.height, depth, label, rgb }
+}
