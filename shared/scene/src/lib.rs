@@ -7,10 +7,12 @@
 
 mod error;
 mod mesh;
+mod noise;
 mod obj;
 mod ply;
 mod render;
 
 pub use error::MeshError;
 pub use mesh::{MeshFormat, ObjectMesh, load_mesh};
-pub use render::{Camera, Frame, Light, Placed, RenderModel, render};
+pub use noise::DepthNoise;
+pub use render::{Camera, Frame, Light, Placed, RenderModel, render, silhouettes};

@@ -164,3 +164,14 @@ pub fn render(camera: &Camera, objects: &[Placed<'_>], light: &Light) -> Frame {
     );
     Frame { width: camera.width, height: camera.height, depth, label, rgb }
 }
+
+/// Each object's full silhouette, ignoring the others (BOP's `mask/`; the
+/// visible masks, `mask_visib/`, are the labels of [`render`]).
+pub fn silhouettes(camera: &Camera, objects: &[Placed<'_>]) -> Vec<Vec<bool>> {
+    objects
+        .iter()
+        .map(|object| {
+            render(camera, std::slice::from_ref(object), &Light::default()).label.iter().map(|&l| l == 1).collect()
+        })
+        .collect()
+}

@@ -114,3 +114,24 @@ fn rendering_is_deterministic() {
     assert_eq!(a, b);
     assert!(a.label.iter().filter(|&&l| l == 1).count() > 500);
 }
+
+#[test]
+fn full_masks_contain_the_visible_ones() {
+    let model = RenderModel::new(sphere(0.05, 32, 16)).unwrap();
+    let far = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, 0.8));
+    let near = Pose::new(Rotation3::identity(), Vector3::new(0.03, 0.0, 0.5));
+    let objects = [Placed { model: &model, pose: &far }, Placed { model: &model, pose: &near }];
+    let frame = render(&CAMERA, &objects, &Light::default());
+    let full = poseflow_scene::silhouettes(&CAMERA, &objects);
+    for (k, mask) in full.iter().enumerate() {
+        let visible: Vec<bool> = frame.label.iter().map(|&l| usize::from(l) == k + 1).collect();
+        assert!(visible.iter().zip(mask).all(|(v, f)| !v || *f), "object {k}: visible outside its full mask");
+        let fraction = visible.iter().filter(|v| **v).count() as f64 / mask.iter().filter(|f| **f).count() as f64;
+        // The far sphere is partly hidden by the near one; the near one is not.
+        if k == 0 {
+            assert!(fraction < 0.9, "{fraction}");
+        } else {
+            assert_eq!(fraction, 1.0);
+        }
+    }
+}
