@@ -112,6 +112,22 @@ pub(crate) fn open_event(node: &Node, name: &str) -> Result<EventFactory<Ipc>, T
         .map_err(|e| TransportError::iceoryx("open event service", name, e))
 }
 
+/// A listener on the event service `name`.
+pub(crate) fn listener(node: &Node, name: &str) -> Result<Listener<Ipc>, TransportError> {
+    open_event(node, name)?
+        .listener_builder()
+        .create()
+        .map_err(|e| TransportError::iceoryx("create listener on", name, e))
+}
+
+/// A notifier on the event service `name`.
+pub(crate) fn notifier(node: &Node, name: &str) -> Result<Notifier<Ipc>, TransportError> {
+    open_event(node, name)?
+        .notifier_builder()
+        .create()
+        .map_err(|e| TransportError::iceoryx("create notifier on", name, e))
+}
+
 fn ack_name(edge: &str) -> String {
     format!("{edge}/ack")
 }
@@ -169,14 +185,8 @@ impl<H: MessageHeader> Publisher<H> {
             .map_err(|e| TransportError::iceoryx("create publisher on", name, e))?;
         // The ack listener exists before the notifier announces this publisher,
         // so no READY is missed.
-        let acks = open_event(node, &ack_name(name))?
-            .listener_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create listener on", name, e))?;
-        let notifier = open_event(node, name)?
-            .notifier_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
+        let acks = listener(node, &ack_name(name))?;
+        let notifier = notifier(node, name)?;
         Ok(Self { name: name.to_string(), service, publisher, notifier, acks, max_payload_len })
     }
 
@@ -322,14 +332,8 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
             .buffer_size(options.queue)
             .create()
             .map_err(|e| TransportError::iceoryx("create subscriber on", name, e))?;
-        let listener = open_event(node, name)?
-            .listener_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create listener on", name, e))?;
-        let ack = open_event(node, &ack_name(name))?
-            .notifier_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
+        let listener = listener(node, name)?;
+        let ack = notifier(node, &ack_name(name))?;
         let edge = Self { name: name.to_string(), subscriber, listener, ack };
         edge.connect()?;
         Ok(edge)

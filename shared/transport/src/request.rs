@@ -18,7 +18,7 @@ use iceoryx2::response::Response;
 use iceoryx2::service::port_factory::request_response::PortFactory;
 use poseflow_contracts::{ContractError, MessageHeader};
 
-use crate::pubsub::{events, open_event, service_name};
+use crate::pubsub::{events, listener, notifier, service_name};
 use crate::{Ipc, Node, TransportError};
 
 fn response_events(edge: &str) -> String {
@@ -93,14 +93,8 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestClient<Req, Resp> {
             .allocation_strategy(AllocationStrategy::Static)
             .create()
             .map_err(|e| TransportError::iceoryx("create client on", name, e))?;
-        let responses = open_event(node, &response_events(name))?
-            .listener_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create listener on", name, e))?;
-        let requests = open_event(node, name)?
-            .notifier_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
+        let responses = listener(node, &response_events(name))?;
+        let requests = notifier(node, name)?;
         Ok(Self { name: name.to_string(), client, requests, responses, max_request_len })
     }
 
@@ -207,14 +201,8 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestServer<Req, Resp> {
             .allocation_strategy(AllocationStrategy::Static)
             .create()
             .map_err(|e| TransportError::iceoryx("create server on", name, e))?;
-        let requests = open_event(node, name)?
-            .listener_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create listener on", name, e))?;
-        let responses = open_event(node, &response_events(name))?
-            .notifier_builder()
-            .create()
-            .map_err(|e| TransportError::iceoryx("create notifier on", name, e))?;
+        let requests = listener(node, name)?;
+        let responses = notifier(node, &response_events(name))?;
         Ok(Self { name: name.to_string(), server, requests, responses, max_response_len })
     }
 
