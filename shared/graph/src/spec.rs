@@ -51,6 +51,15 @@ pub enum OverflowPolicy {
     Block,
 }
 
+impl From<OverflowPolicy> for poseflow_transport::Overflow {
+    fn from(policy: OverflowPolicy) -> Self {
+        match policy {
+            OverflowPolicy::DropOldest => Self::DropOldest,
+            OverflowPolicy::Block => Self::Block,
+        }
+    }
+}
+
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct EdgeSpec {

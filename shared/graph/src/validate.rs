@@ -379,6 +379,17 @@ impl Checker<'_> {
     }
 }
 
+impl Edge {
+    /// The transport settings of this edge.
+    pub fn options(&self) -> poseflow_transport::EdgeOptions {
+        poseflow_transport::EdgeOptions {
+            queue: self.queue,
+            overflow: self.overflow.into(),
+            max_payload_len: self.max_payload_len,
+        }
+    }
+}
+
 impl Graph {
     /// The wiring handed to `stage` when the graph runs as `instance`.
     pub fn wiring(&self, stage: &Stage, instance: &str) -> Result<StageWiring, GraphError> {

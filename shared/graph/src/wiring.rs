@@ -26,6 +26,17 @@ pub struct EdgeWiring {
     pub readers: usize,
 }
 
+impl EdgeWiring {
+    /// The transport settings of this edge.
+    pub fn options(&self) -> poseflow_transport::EdgeOptions {
+        poseflow_transport::EdgeOptions {
+            queue: self.queue,
+            overflow: self.overflow.into(),
+            max_payload_len: self.max_payload_len,
+        }
+    }
+}
+
 /// Everything a stage process needs to join its graph.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

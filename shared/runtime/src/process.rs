@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
 use poseflow_contracts::{MessageHeader, Stage, StageState};
-use poseflow_graph::{EdgeWiring, OverflowPolicy, StageWiring};
-use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, Publisher, TransportError, create_node};
+use poseflow_graph::StageWiring;
+use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, TransportError, create_node};
 
 use crate::heartbeat::HeartbeatThread;
 use crate::liveness::Liveness;
@@ -20,17 +20,6 @@ use crate::{RuntimeError, init_logging};
 const END_OF_STREAM_TIMEOUT: Duration = Duration::from_secs(30);
 /// How long a stage waits at start-up for the stages reading its output.
 const READERS_TIMEOUT: Duration = Duration::from_secs(10);
-
-fn edge_options(edge: &EdgeWiring) -> EdgeOptions {
-    EdgeOptions {
-        queue: edge.queue,
-        overflow: match edge.overflow {
-            OverflowPolicy::DropOldest => Overflow::DropOldest,
-            OverflowPolicy::Block => Overflow::Block,
-        },
-        max_payload_len: edge.max_payload_len,
-    }
-}
 
 fn waitset_error(err: impl std::fmt::Debug) -> RuntimeError {
     RuntimeError::WaitSet(format!("{err:?}"))
@@ -75,14 +64,14 @@ impl StageProcess {
 
     fn input<H: MessageHeader>(&self) -> Result<EdgeSubscriber<H>, RuntimeError> {
         let edge = &self.wiring.inputs[0];
-        Ok(EdgeSubscriber::create(&self.node, &edge.service, &edge_options(edge))?)
+        Ok(EdgeSubscriber::create(&self.node, &edge.service, &edge.options())?)
     }
 
     /// The output edge, once its readers are connected (or the start-up
     /// timeout passed).
     fn output<H: MessageHeader>(&self) -> Result<Publisher<H>, RuntimeError> {
         let edge = &self.wiring.outputs[0];
-        let publisher = Publisher::create(&self.node, &edge.service, &edge_options(edge))?;
+        let publisher = Publisher::create(&self.node, &edge.service, &edge.options())?;
         let connected = publisher.wait_for_receivers(edge.readers, READERS_TIMEOUT)?;
         if connected < edge.readers {
             tracing::warn!(edge = %edge.edge, connected, expected = edge.readers, "starting before every reader connected");

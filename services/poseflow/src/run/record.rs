@@ -12,9 +12,9 @@ use iceoryx2::prelude::{
     CallbackProgression, FileDescriptorBased, SignalHandlingMode, SynchronousMultiplexing, WaitSetBuilder,
 };
 use poseflow_contracts::{MessageHeader, MessageVisitor, monotonic_ns, visit_message};
-use poseflow_graph::{EdgePattern, Graph, OverflowPolicy};
+use poseflow_graph::{EdgePattern, Graph};
 use poseflow_runtime::recording::{RecordedEdge, RecordedMessage, RecordingInfo, RecordingWriter, header_bytes};
-use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Node, Overflow, create_node, edge_service_name};
+use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Node, create_node, edge_service_name};
 
 /// How often the recorder checks whether it should stop.
 const STOP_POLL: Duration = Duration::from_millis(50);
@@ -131,14 +131,7 @@ impl Recorder {
             .iter()
             .map(|name| {
                 let edge = &graph.edges[name];
-                let options = EdgeOptions {
-                    queue: edge.queue,
-                    overflow: match edge.overflow {
-                        OverflowPolicy::DropOldest => Overflow::DropOldest,
-                        OverflowPolicy::Block => Overflow::Block,
-                    },
-                    max_payload_len: edge.max_payload_len,
-                };
+                let options = edge.options();
                 Ok((name.clone(), edge_service_name(instance, name)?, options))
             })
             .collect::<anyhow::Result<_>>()?;
