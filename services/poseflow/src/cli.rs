@@ -34,8 +34,10 @@ pub enum Command {
     Demo,
     /// Launch a process graph from a graph file (deploy/*.toml).
     Run(crate::run::RunArgs),
-    /// Render synthetic RGB-D scenes and BOP-format datasets from object models.
-    Render,
+    /// Render a BOP-format dataset of random RGB-D tabletop scenes from object models.
+    Render(crate::render::RenderArgs),
+    /// Write one dataset image's RGB, depth and visible masks side by side as a PNG.
+    Preview(crate::preview::PreviewArgs),
     /// Evaluate on a BOP-format dataset: accuracy, ADD(-S), calibration, runtime.
     Eval,
     /// Benchmark transport latency and end-to-end throughput.
@@ -47,7 +49,8 @@ impl Command {
         match self {
             Command::Demo => "demo",
             Command::Run(_) => "run",
-            Command::Render => "render",
+            Command::Render(_) => "render",
+            Command::Preview(_) => "preview",
             Command::Eval => "eval",
             Command::Bench(_) => "bench",
         }
@@ -66,8 +69,9 @@ pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
     let missing = match command {
         Command::Run(args) => return report(crate::run::run(args, log_format)),
         Command::Bench(args) => return report(crate::bench::run(args)),
+        Command::Render(args) => return report(crate::render::run(&args).map(|()| ExitCode::SUCCESS)),
+        Command::Preview(args) => return report(crate::preview::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Demo => "it needs the trained model and the estimation graph",
-        Command::Render => "it needs the ray-cast renderer",
         Command::Eval => "it needs the estimation graph and the BOP benchmark runner",
     };
     tracing::error!(

@@ -3,6 +3,9 @@
 mod bench;
 mod cli;
 mod logging;
+mod preview;
+mod progress;
+mod render;
 mod run;
 
 use std::process::ExitCode;

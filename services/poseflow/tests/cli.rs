@@ -1,5 +1,7 @@
 //! The `poseflow` binary as a user meets it.
 
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn poseflow(args: &[&str]) -> Output {
@@ -10,7 +12,7 @@ fn poseflow(args: &[&str]) -> Output {
         .expect("poseflow binary runs")
 }
 
-const SUBCOMMANDS: [&str; 5] = ["demo", "run", "render", "eval", "bench"];
+const SUBCOMMANDS: [&str; 6] = ["demo", "run", "render", "preview", "eval", "bench"];
 
 #[test]
 fn help_lists_every_subcommand() {
@@ -25,7 +27,7 @@ fn help_lists_every_subcommand() {
 
 #[test]
 fn unavailable_subcommands_say_so_and_exit_2() {
-    for sub in ["demo", "render", "eval", "bench pipeline"] {
+    for sub in ["demo", "eval", "bench pipeline"] {
         let args: Vec<&str> = sub.split(' ').collect();
         let out = poseflow(&args);
         assert_eq!(out.status.code(), Some(2), "{sub}");
@@ -65,5 +67,96 @@ fn bench_ipc_reports_every_transport_and_payload() {
                 (cell["p50_us"].as_f64().unwrap(), cell["p99_us"].as_f64().unwrap(), cell["max_us"].as_f64().unwrap());
             assert!(0.0 < p50 && p50 <= p99 && p99 <= max, "{transport} {bytes}: {cell}");
         }
+    }
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("poseflow-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+const MODELS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../objects/lmo");
+
+fn render(out: &Path, seed: &str) -> serde_json::Value {
+    let out = out.to_str().unwrap();
+    let args = ["render", "--models", MODELS, "--out", out, "--scenes", "2", "--frames-per-scene", "2"];
+    let out = poseflow(&[&args[..], &["--seed", seed, "--width", "160", "--height", "120", "--json"]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).expect("one JSON summary")
+}
+
+/// Every file under `dir` by relative path, with its bytes.
+fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    let mut all = BTreeMap::new();
+    let mut pending = vec![dir.to_path_buf()];
+    while let Some(next) = pending.pop() {
+        for entry in std::fs::read_dir(&next).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                pending.push(path);
+            } else {
+                all.insert(path.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&path).unwrap());
+            }
+        }
+    }
+    all
+}
+
+#[test]
+fn render_is_reproducible_from_the_seed() {
+    let (a, b, c) = (scratch("render-a"), scratch("render-b"), scratch("render-c"));
+    let summary = render(&a, "7");
+    assert_eq!((summary["frames"].as_u64(), summary["scenes"].as_u64()), (Some(4), Some(2)));
+    assert_eq!(summary["objects"], serde_json::json!([1, 10, 11]));
+    assert!(summary["render"]["p50_ms"].as_f64().unwrap() > 0.0, "{summary}");
+    render(&b, "7");
+    render(&c, "8");
+    let (first, again, other) = (files(&a), files(&b), files(&c));
+    // 2 scenes × (3 JSON + 2 × (rgb + depth) + 2 × 3 × 2 masks) + 2 root files + 4 model files.
+    let per_scene = 3 + 2 * 2 + 2 * 3 * 2;
+    assert_eq!(first.len(), 2 * per_scene + 2 + 4, "{:?}", first.keys().collect::<Vec<_>>());
+    assert!(first == again, "same seed, different files");
+    let rgb = Path::new("train/000000/rgb/000000.png");
+    assert_ne!(first[rgb], other[rgb], "another seed gave the same image");
+    assert_ne!(first[Path::new("train/000001/scene_gt.json")], other[Path::new("train/000001/scene_gt.json")]);
+    for dir in [a, b, c] {
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}
+
+#[test]
+fn preview_puts_rgb_depth_and_masks_side_by_side() {
+    let dataset = scratch("preview");
+    render(&dataset, "1");
+    let sheet = dataset.join("sheet.png");
+    let scene = dataset.join("train/000001");
+    let out =
+        poseflow(&["preview", "--scene", scene.to_str().unwrap(), "--image", "1", "--out", sheet.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let image = image::open(&sheet).unwrap();
+    assert_eq!((image.width(), image.height()), (3 * 160, 120));
+    let missing = poseflow(&["preview", "--scene", scene.to_str().unwrap(), "--image", "5", "--out", "/tmp/x.png"]);
+    assert_eq!(missing.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&missing.stderr);
+    assert!(stderr.contains("scene_camera.json: no image 5"), "{stderr}");
+    std::fs::remove_dir_all(dataset).unwrap();
+}
+
+#[test]
+fn render_rejects_bad_arguments_with_what_was_expected() {
+    let out_dir = scratch("render-bad");
+    let out = out_dir.to_str().unwrap();
+    for (args, expected) in [
+        (vec!["--models", "/nonexistent", "--out", out], "/nonexistent/models_info.json"),
+        (vec!["--models", MODELS, "--out", out, "--objects", "1,42"], "object 42 is not listed"),
+        (vec!["--models", MODELS, "--out", out, "--width", "0"], "--width 0: expected 1 to 8192 pixels"),
+        (vec!["--models", MODELS, "--out", out, "--split", "../x"], "expected a plain folder name"),
+        (vec!["--models", MODELS, "--out", out, "--scenes", "0"], "expected at least 1 of each"),
+    ] {
+        let result = poseflow(&[&["render"][..], &args].concat());
+        assert_eq!(result.status.code(), Some(1), "{args:?}");
+        let stderr = String::from_utf8_lossy(&result.stderr);
+        assert!(stderr.contains(expected), "{args:?}: {stderr}");
     }
 }

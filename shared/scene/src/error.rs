@@ -1,10 +1,18 @@
 use std::path::PathBuf;
 
-/// A mesh file that cannot be used, named with where and why.
+/// A mesh, model directory or dataset file that cannot be used, named with
+/// where and why.
 #[derive(Debug, thiserror::Error)]
-pub enum MeshError {
+pub enum SceneError {
     #[error("{path}: cannot read: {source}")]
     Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    #[error("{path}: cannot write: {source}")]
+    Write {
         path: PathBuf,
         #[source]
         source: std::io::Error,
@@ -15,4 +23,16 @@ pub enum MeshError {
 
     #[error("{path}: unknown mesh format (expected a .ply or .obj file)")]
     UnknownFormat { path: PathBuf },
+
+    #[error("{path}: {detail}")]
+    Image { path: PathBuf, detail: String },
+
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl SceneError {
+    pub(crate) fn malformed(path: &std::path::Path, location: impl Into<String>, detail: impl Into<String>) -> Self {
+        Self::Malformed { path: path.to_path_buf(), location: location.into(), detail: detail.into() }
+    }
 }

@@ -1,18 +1,26 @@
-//! Object models for rendering and geometric scoring.
+//! Object models, the ray-cast RGB-D renderer, random tabletop scenes and
+//! the BOP dataset format.
 //!
 //! Meshes are read from BOP PLY files (ASCII or binary, usually millimetres,
 //! with per-vertex normals and colours) and Wavefront OBJ files, scaled to
 //! metres at the boundary, and turned into parry triangle meshes (with their
-//! BVH) once per object. Coordinates are `f32` in the object frame.
+//! BVH) once per object. Coordinates are `f32` in the object frame; poses
+//! and cameras are `f64`, metres, OpenCV camera axes.
 
+pub mod bop;
+pub mod dataset;
 mod error;
+mod library;
 mod mesh;
 mod noise;
 mod obj;
 mod ply;
+pub mod primitives;
 mod render;
+pub mod scene;
 
-pub use error::MeshError;
+pub use error::SceneError;
+pub use library::{LibraryObject, ModelLibrary, model_file_name};
 pub use mesh::{MeshFormat, ObjectMesh, load_mesh};
 pub use noise::DepthNoise;
 pub use render::{Camera, Frame, Light, Placed, RenderModel, render, silhouettes};

@@ -5,7 +5,7 @@ use std::path::Path;
 use nalgebra::{Point3, Vector3};
 use parry3d::shape::TriMesh;
 
-use crate::MeshError;
+use crate::SceneError;
 
 /// A triangle mesh in the object frame, metres.
 #[derive(Debug, Clone, PartialEq)]
@@ -37,9 +37,9 @@ impl MeshFormat {
 
 /// Loads a PLY or OBJ mesh and multiplies coordinates by `scale` (BOP PLY
 /// files are in millimetres: pass 0.001; YCB-V OBJ files are in metres: 1).
-pub fn load_mesh(path: &Path, scale: f32) -> Result<ObjectMesh, MeshError> {
-    let format = MeshFormat::of(path).ok_or_else(|| MeshError::UnknownFormat { path: path.to_path_buf() })?;
-    let bytes = std::fs::read(path).map_err(|source| MeshError::Io { path: path.to_path_buf(), source })?;
+pub fn load_mesh(path: &Path, scale: f32) -> Result<ObjectMesh, SceneError> {
+    let format = MeshFormat::of(path).ok_or_else(|| SceneError::UnknownFormat { path: path.to_path_buf() })?;
+    let bytes = std::fs::read(path).map_err(|source| SceneError::Io { path: path.to_path_buf(), source })?;
     let mut mesh = match format {
         MeshFormat::Ply => crate::ply::parse(&bytes, path)?,
         MeshFormat::Obj => crate::obj::parse(&bytes, path)?,
@@ -53,8 +53,8 @@ pub fn load_mesh(path: &Path, scale: f32) -> Result<ObjectMesh, MeshError> {
 
 impl ObjectMesh {
     /// Rejects meshes no renderer or distance query can use.
-    fn validate(&self, path: &Path) -> Result<(), MeshError> {
-        let malformed = |location: &str, detail: String| MeshError::Malformed {
+    fn validate(&self, path: &Path) -> Result<(), SceneError> {
+        let malformed = |location: &str, detail: String| SceneError::Malformed {
             path: path.to_path_buf(),
             location: location.to_string(),
             detail,

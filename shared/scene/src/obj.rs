@@ -6,17 +6,17 @@ use std::path::Path;
 
 use nalgebra::Point3;
 
-use crate::{MeshError, ObjectMesh};
+use crate::{ObjectMesh, SceneError};
 
-pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<ObjectMesh, MeshError> {
-    let text = std::str::from_utf8(bytes).map_err(|_| MeshError::Malformed {
+pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<ObjectMesh, SceneError> {
+    let text = std::str::from_utf8(bytes).map_err(|_| SceneError::Malformed {
         path: path.to_path_buf(),
         location: "file".into(),
         detail: "not UTF-8 text".into(),
     })?;
     let mut mesh = ObjectMesh { vertices: Vec::new(), triangles: Vec::new(), normals: None, colors: None };
     for (number, line) in text.lines().enumerate() {
-        let malformed = |detail: String| MeshError::Malformed {
+        let malformed = |detail: String| SceneError::Malformed {
             path: path.to_path_buf(),
             location: format!("line {}", number + 1),
             detail,

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use nalgebra::{Point3, Vector3};
 
-use crate::{MeshError, ObjectMesh};
+use crate::{ObjectMesh, SceneError};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Encoding {
@@ -181,9 +181,9 @@ fn header(bytes: &[u8]) -> Result<(Encoding, Vec<Element>, usize, usize), String
     Ok((encoding, elements, body_start, header_lines))
 }
 
-pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<ObjectMesh, MeshError> {
+pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<ObjectMesh, SceneError> {
     let malformed =
-        |location: String, detail: String| MeshError::Malformed { path: path.to_path_buf(), location, detail };
+        |location: String, detail: String| SceneError::Malformed { path: path.to_path_buf(), location, detail };
     let (encoding, elements, body_start, header_lines) = header(bytes).map_err(|d| malformed("header".into(), d))?;
     let mut body = Body { encoding, bytes, pos: body_start, tokens: Vec::new().into_iter(), line: header_lines };
     let mut mesh = ObjectMesh { vertices: Vec::new(), triangles: Vec::new(), normals: None, colors: None };

@@ -1,0 +1,71 @@
+//! A BOP models directory loaded for rendering: `models_info.json` plus one
+//! `obj_NNNNNN.ply` (millimetres) per object.
+
+use std::path::{Path, PathBuf};
+
+use poseflow_geometry::models_info::{ModelInfo, ModelsInfo};
+
+use crate::{RenderModel, SceneError, load_mesh};
+
+/// BOP model files are in millimetres.
+const BOP_MODEL_SCALE: f32 = 1e-3;
+
+/// One object of a [`ModelLibrary`].
+#[derive(Debug, Clone)]
+pub struct LibraryObject {
+    pub obj_id: u32,
+    pub path: PathBuf,
+    pub info: ModelInfo,
+    pub model: RenderModel,
+}
+
+/// The objects a dataset is rendered from, in ascending `obj_id`.
+#[derive(Debug, Clone)]
+pub struct ModelLibrary {
+    pub dir: PathBuf,
+    pub objects: Vec<LibraryObject>,
+}
+
+/// The BOP file name of an object model.
+pub fn model_file_name(obj_id: u32) -> String {
+    format!("obj_{obj_id:06}.ply")
+}
+
+impl ModelLibrary {
+    /// Loads `ids` (every object that has a model file when `ids` is empty)
+    /// from a BOP models directory.
+    pub fn load(dir: &Path, ids: &[u32]) -> Result<Self, SceneError> {
+        let info_path = dir.join("models_info.json");
+        let info = ModelsInfo::from_path(&info_path)
+            .map_err(|err| SceneError::Invalid(format!("{}: {err}", info_path.display())))?;
+        let wanted: Vec<u32> = if ids.is_empty() {
+            info.objects.keys().copied().filter(|&id| dir.join(model_file_name(id)).is_file()).collect()
+        } else {
+            ids.to_vec()
+        };
+        if wanted.is_empty() {
+            return Err(SceneError::Invalid(format!(
+                "{}: no object has a model file (expected obj_NNNNNN.ply next to models_info.json)",
+                dir.display()
+            )));
+        }
+        let mut objects = Vec::with_capacity(wanted.len());
+        for obj_id in wanted {
+            let info = info.get(obj_id).cloned().ok_or_else(|| {
+                SceneError::Invalid(format!(
+                    "{}: object {obj_id} is not listed (listed: {:?})",
+                    info_path.display(),
+                    info.objects.keys().collect::<Vec<_>>()
+                ))
+            })?;
+            let path = dir.join(model_file_name(obj_id));
+            let mesh = load_mesh(&path, BOP_MODEL_SCALE)?;
+            let model = RenderModel::new(mesh)
+                .map_err(|err| SceneError::malformed(&path, "mesh", format!("cannot build a triangle mesh: {err}")))?;
+            objects.push(LibraryObject { obj_id, path, info, model });
+        }
+        objects.sort_by_key(|o| o.obj_id);
+        objects.dedup_by_key(|o| o.obj_id);
+        Ok(Self { dir: dir.to_path_buf(), objects })
+    }
+}
