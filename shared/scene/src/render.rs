@@ -166,12 +166,43 @@ pub fn render(camera: &Camera, objects: &[Placed<'_>], light: &Light) -> Frame {
 }
 
 /// Each object's full silhouette, ignoring the others (BOP's `mask/`; the
-/// visible masks, `mask_visib/`, are the labels of [`render`]).
+/// visible masks, `mask_visib/`, are the labels of [`render`]). Rays are
+/// cast only inside the box that the object's projected vertices span.
 pub fn silhouettes(camera: &Camera, objects: &[Placed<'_>]) -> Vec<Vec<bool>> {
+    let (w, h) = (camera.width as usize, camera.height as usize);
     objects
         .iter()
         .map(|object| {
-            render(camera, std::slice::from_ref(object), &Light::default()).label.iter().map(|&l| l == 1).collect()
+            let mut mask = vec![false; w * h];
+            let Some((u0, v0, u1, v1)) = projected_box(camera, object) else {
+                return mask;
+            };
+            let pose = isometry(object.pose);
+            mask.par_chunks_mut(w).enumerate().skip(v0).take(v1 + 1 - v0).for_each(|(v, row)| {
+                for (u, inside) in row.iter_mut().enumerate().take(u1 + 1).skip(u0) {
+                    let ray = Ray::new(Point3::origin(), camera.ray_direction(u as f64, v as f64).cast::<f32>());
+                    *inside = object.model.trimesh.intersects_ray(&pose, &ray, f32::MAX);
+                }
+            });
+            mask
         })
         .collect()
+}
+
+/// The inclusive pixel box `(u0, v0, u1, v1)` that may see `object`: the
+/// bounds of its projected vertices, clipped to the image; the whole image
+/// when a vertex is behind the camera, `None` when it is outside.
+fn projected_box(camera: &Camera, object: &Placed<'_>) -> Option<(usize, usize, usize, usize)> {
+    let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+    let mut bounds = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+    for vertex in &object.model.mesh.vertices {
+        let Some((u, v)) = camera.project(&object.pose.transform_point(&vertex.cast::<f64>())) else {
+            bounds = (0.0, 0.0, w - 1.0, h - 1.0);
+            break;
+        };
+        bounds = (bounds.0.min(u), bounds.1.min(v), bounds.2.max(u), bounds.3.max(v));
+    }
+    let (u0, v0) = (bounds.0.floor().max(0.0), bounds.1.floor().max(0.0));
+    let (u1, v1) = (bounds.2.ceil().min(w - 1.0), bounds.3.ceil().min(h - 1.0));
+    (u0 <= u1 && v0 <= v1).then_some((u0 as usize, v0 as usize, u1 as usize, v1 as usize))
 }
