@@ -1,0 +1,25 @@
+//! The ingest stage: RGB-D frames and object masks in, Observations out.
+//!
+//! Per object ([`prepare`], then [`Prepared::write_payload`] straight into
+//! the output buffer): the mask's box grown to a padded square and
+//! resampled to S×S, normalised; the P×P token mask of patches the mask
+//! touches; masked depth back-projected with the intrinsics, thinned,
+//! cleaned of outliers, farthest-point sampled to N (resampled with
+//! replacement, and flagged, when fewer), centred on its mean, which the
+//! header keeps so poses can be mapped back to the camera frame.
+//!
+//! Frames come from [`sources`]: a BOP dataset directory or the renderer
+//! as a live synthetic camera.
+
+mod crop;
+mod error;
+mod observe;
+mod params;
+mod points;
+pub mod sources;
+
+pub use crop::{CropBox, Normalisation, write_crop, write_token_mask};
+pub use error::IngestError;
+pub use observe::{ObjectMask, Prepared, RgbdFrame, check_frame, prepare};
+pub use params::IngestParams;
+pub use points::{OutlierFilter, back_project, centre, farthest_point_indices, remove_outliers, sample_fixed, thin};

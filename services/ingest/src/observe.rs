@@ -1,0 +1,173 @@
+//! The heart of the stage: one RGB-D frame and one object mask in, one
+//! observation out.
+
+use nalgebra::Point3;
+use poseflow_contracts::{CameraIntrinsics, Header, ObservationHeader, flags};
+use poseflow_scene::Camera;
+use poseflow_scene::bop::Raster;
+use rand::Rng;
+
+use crate::crop::{CropBox, write_crop, write_token_mask};
+use crate::points::{back_project, centre, remove_outliers, sample_fixed, thin};
+use crate::{IngestError, IngestParams};
+
+/// One RGB-D image with its camera; rasters are row-major and as large as
+/// the camera's image. Depth in metres, 0 = no measurement.
+#[derive(Debug, Clone)]
+pub struct RgbdFrame {
+    /// Monotonic per source.
+    pub frame_id: u64,
+    /// Where the frame came from, for messages (e.g. `scene 3 image 17`).
+    pub label: String,
+    pub camera: Camera,
+    pub rgb: Raster<[u8; 3]>,
+    pub depth: Raster<f32>,
+}
+
+/// One object to observe in a frame.
+#[derive(Debug, Clone)]
+pub struct ObjectMask {
+    pub obj_id: u32,
+    /// Index among the frame's objects (BOP's instance index).
+    pub instance: usize,
+    pub mask: Raster<bool>,
+}
+
+/// An observation before it is written out: everything but the image
+/// pixels, which go straight into the output buffer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prepared {
+    pub obj_id: u32,
+    pub crop: CropBox,
+    /// Centred points (camera axes, metres).
+    pub points: Vec<Point3<f32>>,
+    /// The camera-frame mean subtracted from them.
+    pub centroid: Point3<f32>,
+    /// Distinct observed points among `points` (less than N when resampled).
+    pub valid_point_count: usize,
+}
+
+/// The inclusive pixel box `(u0, v0, u1, v1)` of a mask and its pixel count.
+fn mask_box(mask: &Raster<bool>) -> (Option<(u32, u32, u32, u32)>, usize) {
+    let w = mask.width as usize;
+    let mut bounds: Option<(u32, u32, u32, u32)> = None;
+    let mut count = 0;
+    for (i, _) in mask.pixels.iter().enumerate().filter(|(_, inside)| **inside) {
+        count += 1;
+        let (u, v) = ((i % w) as u32, (i / w) as u32);
+        bounds = Some(bounds.map_or((u, v, u, v), |(u0, v0, u1, v1)| (u0.min(u), v0.min(v), u1.max(u), v1.max(v))));
+    }
+    (bounds, count)
+}
+
+/// Checks that a frame's rasters match its camera.
+pub fn check_frame(frame: &RgbdFrame) -> Result<(), IngestError> {
+    let camera = &frame.camera;
+    let bad = |detail: String| Err(IngestError::Frame { frame: frame.label.clone(), detail });
+    let intrinsics = [camera.fx, camera.fy, camera.cx, camera.cy];
+    if intrinsics.iter().any(|v| !v.is_finite()) || camera.fx <= 0.0 || camera.fy <= 0.0 {
+        return bad(format!("intrinsics fx, fy, cx, cy = {intrinsics:?}: expected finite values with fx, fy > 0"));
+    }
+    for (what, (w, h)) in
+        [("RGB", (frame.rgb.width, frame.rgb.height)), ("depth", (frame.depth.width, frame.depth.height))]
+    {
+        if (w, h) != (camera.width, camera.height) {
+            return bad(format!("{what} image is {w}×{h}, expected the camera's {}×{}", camera.width, camera.height));
+        }
+    }
+    Ok(())
+}
+
+/// Turns one object of a checked frame into an observation: mask box and
+/// crop, back-projected depth, outlier removal, N points, centring.
+pub fn prepare<R: Rng + ?Sized>(
+    frame: &RgbdFrame,
+    object: &ObjectMask,
+    params: &IngestParams,
+    rng: &mut R,
+) -> Result<Prepared, IngestError> {
+    let reject = |detail: String| IngestError::Object {
+        frame: frame.label.clone(),
+        obj_id: object.obj_id,
+        instance: object.instance,
+        detail,
+    };
+    let camera = &frame.camera;
+    if (object.mask.width, object.mask.height) != (camera.width, camera.height) {
+        return Err(reject(format!(
+            "mask is {}×{}, expected the camera's {}×{}",
+            object.mask.width, object.mask.height, camera.width, camera.height
+        )));
+    }
+    let (bounds, pixels) = mask_box(&object.mask);
+    let Some((u0, v0, u1, v1)) = bounds.filter(|_| pixels >= params.min_mask_pixels) else {
+        return Err(reject(format!("mask has {pixels} pixels, expected at least {}", params.min_mask_pixels)));
+    };
+    let observed = back_project(&frame.depth.pixels, &object.mask.pixels, camera, params.max_depth);
+    if observed.len() < params.min_points {
+        return Err(reject(format!(
+            "{} of {pixels} mask pixels have a valid depth (0 < z ≤ {} m), expected at least {}",
+            observed.len(),
+            params.max_depth,
+            params.min_points
+        )));
+    }
+    let kept = remove_outliers(thin(observed, params.max_filter_points), &params.outliers);
+    if kept.len() < params.min_points {
+        return Err(reject(format!(
+            "{} points left after outlier removal, expected at least {}",
+            kept.len(),
+            params.min_points
+        )));
+    }
+    let (mut points, valid_point_count) = sample_fixed(&kept, params.point_count, rng);
+    let centroid = centre(&mut points);
+    Ok(Prepared {
+        obj_id: object.obj_id,
+        crop: CropBox::around(u0, v0, u1, v1, params.padding),
+        points,
+        centroid,
+        valid_point_count,
+    })
+}
+
+impl Prepared {
+    /// The Observation header for this object in frame `frame_id`.
+    pub fn header(&self, frame_id: u64, camera: &Camera, params: &IngestParams) -> ObservationHeader {
+        let mut header = Header::new(frame_id, self.obj_id);
+        if self.valid_point_count < self.points.len() {
+            header.flags |= flags::POINTS_RESAMPLED;
+        }
+        ObservationHeader {
+            header,
+            intrinsics: CameraIntrinsics {
+                fx: camera.fx as f32,
+                fy: camera.fy as f32,
+                cx: camera.cx as f32,
+                cy: camera.cy as f32,
+                width: camera.width,
+                height: camera.height,
+            },
+            centroid: self.centroid.coords.into(),
+            point_scale: 1.0,
+            crop: self.crop.corners(),
+            image_size: params.image_size,
+            patch_grid: params.patch_grid,
+            point_count: self.points.len() as u32,
+            valid_point_count: self.valid_point_count as u32,
+        }
+    }
+
+    /// Writes the payload (image ‖ token mask ‖ points) into `out`, which
+    /// holds exactly `header(..).payload_len()` values.
+    pub fn write_payload(&self, frame: &RgbdFrame, object: &ObjectMask, params: &IngestParams, out: &mut [f32]) {
+        let (s, p) = (params.image_size as usize, params.patch_grid as usize);
+        let (image, rest) = out.split_at_mut(3 * s * s);
+        let (token_mask, points) = rest.split_at_mut(p * p);
+        write_crop(&frame.rgb.pixels, frame.rgb.width, frame.rgb.height, &self.crop, s, &params.normalisation, image);
+        write_token_mask(&object.mask.pixels, object.mask.width, &self.crop, p, token_mask);
+        for (out, point) in points.chunks_exact_mut(3).zip(&self.points) {
+            out.copy_from_slice(point.coords.as_slice());
+        }
+    }
+}

@@ -1,0 +1,95 @@
+//! What the ingest function does, from the stage's parameters (graph file
+//! `params` merged with `config/ingest.toml`).
+
+use serde::{Deserialize, Serialize};
+
+use crate::IngestError;
+use crate::crop::Normalisation;
+use crate::points::OutlierFilter;
+
+/// Parameters of [`crate::prepare`]; every field has a default.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct IngestParams {
+    /// S: the crop is resized to S×S pixels (the image encoder's input).
+    pub image_size: u32,
+    /// P: the encoder sees P×P patches (S must be a multiple of P).
+    pub patch_grid: u32,
+    /// Extra margin on each side of the mask's box, as a fraction of its
+    /// longer side.
+    pub padding: f64,
+    pub normalisation: Normalisation,
+    /// N: points per observation.
+    pub point_count: usize,
+    pub outliers: OutlierFilter,
+    /// Masks with more valid depth pixels are thinned to this many before
+    /// outlier removal and sampling (bounds the cost for near objects).
+    pub max_filter_points: usize,
+    /// Smaller masks are rejected as detections too small to use.
+    pub min_mask_pixels: usize,
+    /// Fewer points with valid depth (after outlier removal) reject the object.
+    pub min_points: usize,
+    /// Depths beyond this (metres) are treated as missing.
+    pub max_depth: f32,
+}
+
+impl Default for IngestParams {
+    /// The paper's encoder input (224 px, 16×16 patches of 14 px) and point
+    /// count (1024).
+    fn default() -> Self {
+        Self {
+            image_size: 224,
+            patch_grid: 16,
+            padding: 0.1,
+            normalisation: Normalisation::default(),
+            point_count: 1024,
+            outliers: OutlierFilter::default(),
+            max_filter_points: 4096,
+            min_mask_pixels: 16,
+            min_points: 16,
+            max_depth: 6.0,
+        }
+    }
+}
+
+impl IngestParams {
+    /// Reads the `observation` table of the stage's parameters.
+    pub fn from_json(value: &serde_json::Value) -> Result<Self, IngestError> {
+        let params: Self = serde_json::from_value(value.clone())
+            .map_err(|err| IngestError::Params { key: "observation".into(), detail: err.to_string() })?;
+        params.validate()?;
+        Ok(params)
+    }
+
+    pub fn validate(&self) -> Result<(), IngestError> {
+        let bad = |key: &str, detail: String| Err(IngestError::Params { key: format!("observation.{key}"), detail });
+        if !(8..=1024).contains(&self.image_size) {
+            return bad("image_size", format!("expected 8 to 1024 pixels, got {}", self.image_size));
+        }
+        if self.patch_grid == 0 || self.image_size % self.patch_grid != 0 {
+            return bad(
+                "patch_grid",
+                format!("expected a divisor of image_size {}, got {}", self.image_size, self.patch_grid),
+            );
+        }
+        if !(self.padding.is_finite() && (0.0..=2.0).contains(&self.padding)) {
+            return bad("padding", format!("expected 0 to 2 (fraction of the box side), got {}", self.padding));
+        }
+        if !(1..=65536).contains(&self.point_count) {
+            return bad("point_count", format!("expected 1 to 65536, got {}", self.point_count));
+        }
+        if self.normalisation.std.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return bad("normalisation.std", format!("expected positive values, got {:?}", self.normalisation.std));
+        }
+        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
+            return bad("max_depth", format!("expected a positive number of metres, got {}", self.max_depth));
+        }
+        if self.max_filter_points < self.point_count {
+            return bad(
+                "max_filter_points",
+                format!("expected at least point_count {}, got {}", self.point_count, self.max_filter_points),
+            );
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,329 @@
+//! The partial point cloud of one object: back-projection of masked depth,
+//! outlier removal, farthest-point sampling to a fixed count, centring.
+//!
+//! Points are camera-frame metres (OpenCV axes), `f32`.
+
+use std::collections::HashMap;
+
+use nalgebra::Point3;
+use poseflow_scene::Camera;
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+/// How stray points (sensor noise at edges, background pixels inside a
+/// loose mask) are removed before sampling.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum OutlierFilter {
+    None,
+    /// Statistical: drop points whose mean distance to their `neighbours`
+    /// nearest neighbours exceeds the mean of that statistic by more than
+    /// `std_ratio` standard deviations.
+    Statistical {
+        neighbours: usize,
+        std_ratio: f32,
+    },
+    /// Radius: drop points with fewer than `min_neighbours` others within
+    /// `radius` metres.
+    Radius {
+        radius: f32,
+        min_neighbours: usize,
+    },
+}
+
+impl Default for OutlierFilter {
+    fn default() -> Self {
+        Self::Statistical { neighbours: 16, std_ratio: 2.0 }
+    }
+}
+
+/// Camera-frame points of the `mask` pixels that have a depth in
+/// `(0, max_depth]` (row-major rasters of the camera's size).
+pub fn back_project(depth: &[f32], mask: &[bool], camera: &Camera, max_depth: f32) -> Vec<Point3<f32>> {
+    let width = camera.width as usize;
+    let (fx, fy, cx, cy) = (camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32);
+    mask.iter()
+        .zip(depth)
+        .enumerate()
+        .filter(|&(_, (&inside, &z))| inside && z > 0.0 && z <= max_depth)
+        .map(|(i, (_, &z))| {
+            let (u, v) = ((i % width) as f32, (i / width) as f32);
+            Point3::new((u - cx) * z / fx, (v - cy) * z / fy, z)
+        })
+        .collect()
+}
+
+/// Every `k`-th point so that at most `limit` remain, keeping order.
+pub fn thin(points: Vec<Point3<f32>>, limit: usize) -> Vec<Point3<f32>> {
+    if points.len() <= limit || limit == 0 {
+        return points;
+    }
+    let step = points.len().div_ceil(limit);
+    points.into_iter().step_by(step).collect()
+}
+
+/// A uniform grid over the points for neighbour queries.
+struct Grid<'a> {
+    points: &'a [Point3<f32>],
+    cell: f32,
+    cells: HashMap<[i32; 3], Vec<u32>>,
+}
+
+impl<'a> Grid<'a> {
+    fn new(points: &'a [Point3<f32>], cell: f32) -> Self {
+        let mut cells: HashMap<[i32; 3], Vec<u32>> = HashMap::new();
+        let grid = Self { points, cell, cells: HashMap::new() };
+        for (i, p) in points.iter().enumerate() {
+            cells.entry(grid.key(p)).or_default().push(i as u32);
+        }
+        Self { cells, ..grid }
+    }
+
+    fn key(&self, p: &Point3<f32>) -> [i32; 3] {
+        [(p.x / self.cell).floor() as i32, (p.y / self.cell).floor() as i32, (p.z / self.cell).floor() as i32]
+    }
+
+    /// Calls `visit` with every point index in the cells at Chebyshev
+    /// distance exactly `ring` from `key`.
+    fn ring(&self, key: [i32; 3], ring: i32, visit: &mut impl FnMut(u32)) {
+        for dx in -ring..=ring {
+            for dy in -ring..=ring {
+                for dz in -ring..=ring {
+                    if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
+                        continue;
+                    }
+                    if let Some(ids) = self.cells.get(&[key[0] + dx, key[1] + dy, key[2] + dz]) {
+                        ids.iter().for_each(|&j| visit(j));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Mean distance from point `i` to its `k` nearest other points (exact:
+    /// rings grow until no unvisited cell can hold a closer point).
+    fn mean_knn_distance(&self, i: usize, k: usize) -> f32 {
+        let p = &self.points[i];
+        let key = self.key(p);
+        let mut nearest: Vec<f32> = Vec::with_capacity(k + 1);
+        let mut ring = 0;
+        loop {
+            self.ring(key, ring, &mut |j| {
+                if j as usize != i {
+                    let d = (self.points[j as usize] - p).norm();
+                    let at = nearest.partition_point(|&x| x < d);
+                    if at < k {
+                        nearest.insert(at, d);
+                        nearest.truncate(k);
+                    }
+                }
+            });
+            // Points in ring r + 1 are at least r · cell away.
+            let reach = ring as f32 * self.cell;
+            if (nearest.len() == k && nearest[k - 1] <= reach) || nearest.len() + 1 >= self.points.len() && ring > 0 {
+                break;
+            }
+            ring += 1;
+        }
+        nearest.iter().sum::<f32>() / nearest.len().max(1) as f32
+    }
+
+    fn count_within(&self, i: usize, radius: f32) -> usize {
+        let p = &self.points[i];
+        let mut count = 0;
+        self.ring(self.key(p), 0, &mut |j| {
+            count += usize::from(j as usize != i && (self.points[j as usize] - p).norm() <= radius)
+        });
+        self.ring(self.key(p), 1, &mut |j| count += usize::from((self.points[j as usize] - p).norm() <= radius));
+        count
+    }
+}
+
+/// The points that pass `filter`, in their original order.
+pub fn remove_outliers(points: Vec<Point3<f32>>, filter: &OutlierFilter) -> Vec<Point3<f32>> {
+    match *filter {
+        OutlierFilter::None => points,
+        OutlierFilter::Statistical { neighbours, std_ratio } => {
+            if points.len() <= neighbours.max(1) {
+                return points;
+            }
+            // Cells about as wide as a typical neighbour gap keep rings small.
+            let grid = Grid::new(&points, typical_spacing(&points) * 2.0);
+            let means: Vec<f32> = (0..points.len()).map(|i| grid.mean_knn_distance(i, neighbours.max(1))).collect();
+            let n = means.len() as f32;
+            let mean = means.iter().sum::<f32>() / n;
+            let std = (means.iter().map(|m| (m - mean).powi(2)).sum::<f32>() / n).sqrt();
+            let limit = mean + std_ratio * std;
+            points.iter().zip(&means).filter(|&(_, m)| *m <= limit).map(|(p, _)| *p).collect()
+        }
+        OutlierFilter::Radius { radius, min_neighbours } => {
+            let grid = Grid::new(&points, radius.max(1e-6));
+            (0..points.len()).filter(|&i| grid.count_within(i, radius) >= min_neighbours).map(|i| points[i]).collect()
+        }
+    }
+}
+
+/// The side of a cube holding one point, if the points filled their
+/// bounding box's largest face: a scale for neighbour grids.
+fn typical_spacing(points: &[Point3<f32>]) -> f32 {
+    let (mut min, mut max) = (points[0], points[0]);
+    for p in points {
+        min = min.inf(p);
+        max = max.sup(p);
+    }
+    let e = max - min;
+    let face = (e.x * e.y).max(e.y * e.z).max(e.x * e.z);
+    (face / points.len() as f32).sqrt().max(1e-5)
+}
+
+/// Indices of `count` points chosen by farthest-point sampling, starting
+/// from the first point: each next point is the one farthest from those
+/// chosen. `count` must not exceed `points.len()`.
+pub fn farthest_point_indices(points: &[Point3<f32>], count: usize) -> Vec<usize> {
+    let mut chosen = Vec::with_capacity(count);
+    if points.is_empty() || count == 0 {
+        return chosen;
+    }
+    let mut distance = vec![f32::INFINITY; points.len()];
+    let mut next = 0;
+    for _ in 0..count {
+        chosen.push(next);
+        let last = points[next];
+        let mut farthest = (0, -1.0f32);
+        for (i, (p, d)) in points.iter().zip(distance.iter_mut()).enumerate() {
+            *d = d.min((p - last).norm_squared());
+            if *d > farthest.1 {
+                farthest = (i, *d);
+            }
+        }
+        next = farthest.0;
+    }
+    chosen
+}
+
+/// `count` points: farthest-point sampled when there are enough, otherwise
+/// all of them plus draws with replacement. Returns the points and how many
+/// distinct input points they hold.
+pub fn sample_fixed<R: Rng + ?Sized>(points: &[Point3<f32>], count: usize, rng: &mut R) -> (Vec<Point3<f32>>, usize) {
+    if points.len() >= count {
+        return (farthest_point_indices(points, count).into_iter().map(|i| points[i]).collect(), count);
+    }
+    let mut out = points.to_vec();
+    out.extend((points.len()..count).map(|_| points[rng.random_range(0..points.len())]));
+    (out, points.len())
+}
+
+/// Subtracts the mean; returns it.
+pub fn centre(points: &mut [Point3<f32>]) -> Point3<f32> {
+    let mean = points.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f32>>() / points.len().max(1) as f32;
+    for p in points.iter_mut() {
+        *p -= mean;
+    }
+    Point3::from(mean)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use poseflow_geometry::sampling::seeded_rng;
+
+    fn camera() -> Camera {
+        Camera { fx: 500.0, fy: 400.0, cx: 4.0, cy: 3.0, width: 8, height: 6 }
+    }
+
+    #[test]
+    fn back_projection_inverts_the_pinhole_model() {
+        let cam = camera();
+        let mut depth = vec![0.0f32; 48];
+        let mut mask = vec![false; 48];
+        // Pixel (u = 6, v = 1) at 0.8 m; a masked pixel without depth; a
+        // pixel with depth outside the mask; one beyond the range.
+        depth[8 + 6] = 0.8;
+        mask[8 + 6] = true;
+        mask[2 * 8 + 2] = true;
+        depth[3 * 8 + 3] = 1.0;
+        depth[5 * 8 + 7] = 9.0;
+        mask[5 * 8 + 7] = true;
+        let points = back_project(&depth, &mask, &cam, 5.0);
+        assert_eq!(points.len(), 1);
+        let p = points[0];
+        assert!((p - Point3::new(2.0 * 0.8 / 500.0, -2.0 * 0.8 / 400.0, 0.8)).norm() < 1e-7, "{p}");
+        let (u, v) = cam.project(&p.cast::<f64>()).unwrap();
+        assert!((u - 6.0).abs() < 1e-5 && (v - 1.0).abs() < 1e-5);
+    }
+
+    /// A 20 × 20 grid on the plane z = 1, 5 mm apart, plus stray points.
+    fn plane_with_strays() -> (Vec<Point3<f32>>, usize) {
+        let mut points: Vec<Point3<f32>> =
+            (0..400).map(|i| Point3::new((i % 20) as f32 * 0.005, (i / 20) as f32 * 0.005, 1.0)).collect();
+        let strays = [Point3::new(0.05, 0.05, 1.2), Point3::new(0.3, 0.0, 1.0), Point3::new(-0.2, 0.1, 0.9)];
+        points.extend(strays);
+        (points, 400)
+    }
+
+    #[test]
+    fn both_filters_drop_strays_and_keep_the_surface() {
+        let (points, surface) = plane_with_strays();
+        for filter in [
+            OutlierFilter::Statistical { neighbours: 8, std_ratio: 2.0 },
+            OutlierFilter::Radius { radius: 0.012, min_neighbours: 4 },
+        ] {
+            let kept = remove_outliers(points.clone(), &filter);
+            assert!(kept.iter().all(|p| p.z == 1.0 && p.x <= 0.1), "{filter:?} kept a stray");
+            assert!(kept.len() >= surface - 5, "{filter:?} kept only {}", kept.len());
+        }
+        assert_eq!(remove_outliers(points.clone(), &OutlierFilter::None), points);
+    }
+
+    #[test]
+    fn knn_distances_are_exact() {
+        let (points, _) = plane_with_strays();
+        let grid = Grid::new(&points, 0.003);
+        for i in [0, 21, 210, 400, 402] {
+            let mut d: Vec<f32> =
+                points.iter().enumerate().filter(|(j, _)| *j != i).map(|(_, q)| (q - points[i]).norm()).collect();
+            d.sort_by(f32::total_cmp);
+            let brute = d[..6].iter().sum::<f32>() / 6.0;
+            assert!((grid.mean_knn_distance(i, 6) - brute).abs() < 1e-6, "point {i}");
+        }
+    }
+
+    #[test]
+    fn farthest_point_sampling_spreads_out() {
+        // Two clusters far apart: the second pick is in the other cluster.
+        let mut points: Vec<Point3<f32>> = (0..50).map(|i| Point3::new(i as f32 * 1e-4, 0.0, 0.0)).collect();
+        points.extend((0..50).map(|i| Point3::new(1.0 + i as f32 * 1e-4, 0.0, 0.0)));
+        let picks = farthest_point_indices(&points, 2);
+        assert_eq!(picks, [0, 99]);
+        // From the centre of a square: then the corners (ties go to the
+        // lowest index), each once.
+        let square = [[0.5, 0.5], [0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]].map(|[x, y]| Point3::new(x, y, 0.0));
+        assert_eq!(farthest_point_indices(&square, 5), [0, 1, 2, 3, 4]);
+    }
+
+    #[test]
+    fn too_few_points_are_resampled_and_reported() {
+        let points = vec![Point3::new(1.0, 0.0, 0.0), Point3::new(0.0, 1.0, 0.0), Point3::new(0.0, 0.0, 1.0)];
+        let (sampled, distinct) = sample_fixed(&points, 10, &mut seeded_rng(1));
+        assert_eq!((sampled.len(), distinct), (10, 3));
+        assert!(sampled.iter().all(|p| points.contains(p)));
+        assert_eq!(&sampled[..3], &points[..]);
+        let (sampled, distinct) = sample_fixed(&points, 2, &mut seeded_rng(1));
+        assert_eq!((sampled.len(), distinct), (2, 2));
+    }
+
+    #[test]
+    fn centring_leaves_zero_mean_and_returns_the_offset() {
+        let mut points = vec![Point3::new(1.0, 2.0, 3.0), Point3::new(3.0, 2.0, 1.0)];
+        let c = centre(&mut points);
+        assert_eq!(c, Point3::new(2.0, 2.0, 2.0));
+        assert_eq!(points[0] + points[1].coords, Point3::origin());
+    }
+
+    #[test]
+    fn thinning_keeps_at_most_the_limit() {
+        let points: Vec<Point3<f32>> = (0..1000).map(|i| Point3::new(i as f32, 0.0, 0.0)).collect();
+        assert_eq!(thin(points.clone(), 300).len(), 250);
+        assert_eq!(thin(points.clone(), 2000).len(), 1000);
+    }
+}

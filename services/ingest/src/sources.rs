@@ -1,0 +1,224 @@
+//! Where frames come from: a BOP dataset directory, or the renderer as a
+//! live synthetic camera. Each yields frames with the object masks to
+//! observe; a frame that cannot be read is an error for that frame only.
+
+use std::path::{Path, PathBuf};
+
+use poseflow_scene::bop::{self, ByImage, CameraEntry, GtEntry, Raster, SceneDir};
+use poseflow_scene::dataset::{RenderSpec, frame as render_frame, scene as render_scene};
+use poseflow_scene::{ModelLibrary, SceneError};
+use serde::Deserialize;
+
+use crate::{IngestError, ObjectMask, RgbdFrame};
+
+/// A frame and the objects to observe in it; objects whose mask could not
+/// be read are in `skipped`.
+#[derive(Debug)]
+pub struct LoadedFrame {
+    pub frame: RgbdFrame,
+    pub objects: Vec<ObjectMask>,
+    pub skipped: Vec<IngestError>,
+}
+
+/// A stream of frames. `None` ends the stream.
+pub trait FrameSource: Send {
+    fn next_frame(&mut self) -> Option<Result<LoadedFrame, IngestError>>;
+}
+
+/// One image of a BOP dataset and the instances to observe in it.
+#[derive(Debug, Clone, PartialEq)]
+struct Target {
+    scene_id: u32,
+    im_id: u32,
+    /// Object ids wanted in this image; empty = every annotated instance.
+    obj_ids: Vec<u32>,
+}
+
+/// An entry of `test_targets_bop19.json`.
+#[derive(Deserialize)]
+struct TargetEntry {
+    scene_id: u32,
+    im_id: u32,
+    obj_id: u32,
+}
+
+/// Frames of a BOP dataset split with ground-truth visible masks
+/// (`mask_visib/`), in scene and image order, restricted to the targets of
+/// `test_targets_bop19.json` when the dataset root has one.
+#[derive(Debug)]
+pub struct BopFrames {
+    split_dir: PathBuf,
+    targets: Vec<Target>,
+    next: usize,
+    /// The scene whose JSON files are loaded.
+    loaded: Option<(u32, ByImage<CameraEntry>, ByImage<Vec<GtEntry>>)>,
+}
+
+fn scene_ids(split_dir: &Path) -> Result<Vec<u32>, IngestError> {
+    let entries =
+        std::fs::read_dir(split_dir).map_err(|source| SceneError::Io { path: split_dir.to_path_buf(), source })?;
+    let mut ids: Vec<u32> = entries
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().is_dir())
+        .filter_map(|e| e.file_name().to_str().and_then(|n| n.parse().ok()))
+        .collect();
+    ids.sort_unstable();
+    Ok(ids)
+}
+
+impl BopFrames {
+    /// `scenes` restricts the scenes (all when empty).
+    pub fn open(root: &Path, split: &str, scenes: &[u32]) -> Result<Self, IngestError> {
+        let split_dir = root.join(split);
+        let wanted = |scene_id: u32| scenes.is_empty() || scenes.contains(&scene_id);
+        let targets_file = root.join("test_targets_bop19.json");
+        let targets = if targets_file.is_file() {
+            let entries: Vec<TargetEntry> = bop::read_json(&targets_file)?;
+            let mut targets: Vec<Target> = Vec::new();
+            for entry in entries.into_iter().filter(|e| wanted(e.scene_id)) {
+                match targets.last_mut() {
+                    Some(t) if (t.scene_id, t.im_id) == (entry.scene_id, entry.im_id) => t.obj_ids.push(entry.obj_id),
+                    _ => targets.push(Target {
+                        scene_id: entry.scene_id,
+                        im_id: entry.im_id,
+                        obj_ids: vec![entry.obj_id],
+                    }),
+                }
+            }
+            targets
+        } else {
+            let mut targets = Vec::new();
+            for scene_id in scene_ids(&split_dir)?.into_iter().filter(|&id| wanted(id)) {
+                let dir = SceneDir::new(&split_dir, scene_id);
+                let cameras: ByImage<CameraEntry> = bop::read_json(&dir.scene_camera())?;
+                targets.extend(cameras.keys().map(|&im_id| Target { scene_id, im_id, obj_ids: Vec::new() }));
+            }
+            targets
+        };
+        if targets.is_empty() {
+            return Err(IngestError::Frame {
+                frame: split_dir.display().to_string(),
+                detail: format!("no images to read (scenes {scenes:?}); expected <scene_id:06>/scene_camera.json"),
+            });
+        }
+        Ok(Self { split_dir, targets, next: 0, loaded: None })
+    }
+
+    /// Number of images the stream will deliver.
+    pub fn len(&self) -> usize {
+        self.targets.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.targets.is_empty()
+    }
+
+    fn load(&mut self, target: &Target, frame_id: u64) -> Result<LoadedFrame, IngestError> {
+        let dir = SceneDir::new(&self.split_dir, target.scene_id);
+        if self.loaded.as_ref().is_none_or(|(id, _, _)| *id != target.scene_id) {
+            self.loaded = None;
+            let cameras = bop::read_json(&dir.scene_camera())?;
+            let gts = bop::read_json(&dir.scene_gt())?;
+            self.loaded = Some((target.scene_id, cameras, gts));
+        }
+        let (_, cameras, gts) = self.loaded.as_ref().expect("loaded above");
+        let label = format!("{} image {}", dir.path.display(), target.im_id);
+        let missing = |file: PathBuf| IngestError::Frame {
+            frame: label.clone(),
+            detail: format!("{} has no entry for image {}", file.display(), target.im_id),
+        };
+        let entry = cameras.get(&target.im_id).ok_or_else(|| missing(dir.scene_camera()))?;
+        let gt = gts.get(&target.im_id).ok_or_else(|| missing(dir.scene_gt()))?;
+        let rgb = bop::read_rgb_png(&dir.rgb(target.im_id))?;
+        let camera = entry.camera(rgb.width, rgb.height, &dir.scene_camera(), target.im_id)?;
+        let depth = bop::read_depth_png(&dir.depth(target.im_id), entry.depth_scale)?;
+        let (mut objects, mut skipped) = (Vec::new(), Vec::new());
+        for (instance, gt) in gt.iter().enumerate() {
+            if !target.obj_ids.is_empty() && !target.obj_ids.contains(&gt.obj_id) {
+                continue;
+            }
+            match bop::read_mask_png(&dir.mask_visib(target.im_id, instance)) {
+                Ok(mask) => objects.push(ObjectMask { obj_id: gt.obj_id, instance, mask }),
+                Err(err) => skipped.push(IngestError::Object {
+                    frame: label.clone(),
+                    obj_id: gt.obj_id,
+                    instance,
+                    detail: err.to_string(),
+                }),
+            }
+        }
+        Ok(LoadedFrame { frame: RgbdFrame { frame_id, label, camera, rgb, depth }, objects, skipped })
+    }
+}
+
+impl FrameSource for BopFrames {
+    fn next_frame(&mut self) -> Option<Result<LoadedFrame, IngestError>> {
+        let target = self.targets.get(self.next)?.clone();
+        // Every image gets the next id, even one that fails to load, so the
+        // gap shows downstream as a dropped frame.
+        let frame_id = self.next as u64;
+        self.next += 1;
+        Some(self.load(&target, frame_id))
+    }
+}
+
+/// The renderer as a camera: scenes of `spec` rendered on demand, with the
+/// visible masks as object masks.
+#[derive(Debug)]
+pub struct SyntheticFrames {
+    library: ModelLibrary,
+    spec: RenderSpec,
+    next: u64,
+    scene: Option<(u32, poseflow_scene::scene::Scene)>,
+}
+
+impl SyntheticFrames {
+    pub fn new(library: ModelLibrary, spec: RenderSpec) -> Self {
+        Self { library, spec, next: 0, scene: None }
+    }
+}
+
+impl FrameSource for SyntheticFrames {
+    fn next_frame(&mut self) -> Option<Result<LoadedFrame, IngestError>> {
+        let total = u64::from(self.spec.scenes) * u64::from(self.spec.frames_per_scene);
+        if self.next >= total {
+            return None;
+        }
+        let frame_id = self.next;
+        self.next += 1;
+        let per_scene = u64::from(self.spec.frames_per_scene);
+        let scene_id = self.spec.first_scene + (frame_id / per_scene) as u32;
+        let im_id = (frame_id % per_scene) as u32;
+        if self.scene.as_ref().is_none_or(|(id, _)| *id != scene_id) {
+            self.scene = Some((scene_id, render_scene(&self.library, &self.spec, scene_id)));
+        }
+        let (_, scene) = self.scene.as_ref().expect("composed above");
+        let rendered = render_frame(&self.library, &self.spec, scene, scene_id, im_id);
+        let camera = self.spec.camera;
+        let objects = scene
+            .objects
+            .iter()
+            .enumerate()
+            .map(|(k, object)| ObjectMask {
+                obj_id: object.obj_id,
+                instance: k,
+                mask: Raster {
+                    width: camera.width,
+                    height: camera.height,
+                    pixels: rendered.view.frame.label.iter().map(|&l| usize::from(l) == k + 1).collect(),
+                },
+            })
+            .collect();
+        Some(Ok(LoadedFrame {
+            frame: RgbdFrame {
+                frame_id,
+                label: format!("synthetic scene {scene_id} image {im_id}"),
+                camera,
+                rgb: Raster { width: camera.width, height: camera.height, pixels: rendered.view.frame.rgb },
+                depth: Raster { width: camera.width, height: camera.height, pixels: rendered.depth },
+            },
+            objects,
+            skipped: Vec::new(),
+        }))
+    }
+}
