@@ -378,3 +378,69 @@ fn a_recorded_edge_replays_into_a_sink() {
         assert_eq!((seen.received, seen.intact, seen.relayed, seen.gaps), (300, 300, 300, 0), "{speed}: {seen:?}");
     }
 }
+
+/// The ingest stage reads the bad-input corpus as its own process: broken
+/// frames and objects are counted as errors, the good ones arrive intact
+/// over shared memory, and the stream runs to its end.
+#[test]
+fn the_ingest_stage_survives_the_bad_input_corpus() {
+    use poseflow_contracts::ObservationHeader;
+    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("ingest");
+    let corpus = concat!(env!("CARGO_MANIFEST_DIR"), "/corpus/ingest");
+    let graph = scratch.dir.join("ingest.toml");
+    std::fs::write(
+        &graph,
+        format!(
+            r#"
+[graph]
+name = "ingest-corpus"
+heartbeat_ms = 100
+
+[edges.observations]
+message = "Observation"
+queue = 4
+overflow = "block"
+max_payload_len = 10000
+
+[stages.ingest]
+exe = "ingest"
+outputs = ["observations"]
+params = {{ source = "bop", dataset = "{corpus}", split = "test", observation = {{ image_size = 56, patch_grid = 4, point_count = 64 }} }}
+"#
+        ),
+    )
+    .unwrap();
+    let recording = scratch.dir.join("observations.rec");
+    let args = ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap()];
+    let output = run_graph(&args, &graph).output().unwrap();
+    let result = summary(&output);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{result}\n{stderr}");
+    let ingest = &result["stages"]["ingest"];
+    assert_eq!(ingest["outcome"], "finished", "{result}");
+    // Image 0's three objects; 5 unreadable frames (1, 2, 3, 7 and scene 1)
+    // and 3 objects each of images 4, 5 and 6 rejected.
+    assert_eq!(result["recorded"]["observations"], 3, "{result}\n{stderr}");
+    assert_eq!(ingest["errors"], 5 + 3 * 3, "{result}\n{stderr}");
+    for expected in ["rgb/000001.png", "expected a 16-bit single-channel depth PNG", "mask has 3 pixels", "cam_K"] {
+        assert!(stderr.contains(expected), "no `{expected}` in:\n{stderr}");
+    }
+    let mut reader = RecordingReader::open(&recording).unwrap();
+    let mut objects = Vec::new();
+    while let Some(message) = reader.next_message().unwrap() {
+        let header: ObservationHeader = header_from_bytes(&message.header).unwrap();
+        let view = header.view(&message.payload).expect("payload matches its header");
+        assert_eq!((header.header.frame_id, header.point_count, header.image_size), (0, 64, 56));
+        let mean_x = view.points.chunks_exact(3).map(|p| p[0]).sum::<f32>() / 64.0;
+        assert!(mean_x.abs() < 1e-5, "points centred: {mean_x}");
+        assert!(view.token_mask.contains(&1.0));
+        objects.push(header.header.object_id);
+    }
+    assert_eq!(objects, [1, 10, 11]);
+    drop(scratch);
+    assert_nothing_leaked(&before);
+}

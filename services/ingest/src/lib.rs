@@ -17,6 +17,7 @@ mod observe;
 mod params;
 mod points;
 pub mod sources;
+pub mod stage;
 
 pub use crop::{CropBox, Normalisation, write_crop, write_token_mask};
 pub use error::IngestError;

@@ -66,7 +66,7 @@ impl IngestParams {
         if !(8..=1024).contains(&self.image_size) {
             return bad("image_size", format!("expected 8 to 1024 pixels, got {}", self.image_size));
         }
-        if self.patch_grid == 0 || self.image_size % self.patch_grid != 0 {
+        if self.patch_grid == 0 || !self.image_size.is_multiple_of(self.patch_grid) {
             return bad(
                 "patch_grid",
                 format!("expected a divisor of image_size {}, got {}", self.image_size, self.patch_grid),
@@ -91,5 +91,20 @@ impl IngestParams {
             );
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_keys_and_bad_values_are_named() {
+        let err = IngestParams::from_json(&serde_json::json!({ "image_sise": 224 })).unwrap_err().to_string();
+        assert!(err.contains("param `observation`") && err.contains("image_sise"), "{err}");
+        let err = IngestParams::from_json(&serde_json::json!({ "patch_grid": 15 })).unwrap_err().to_string();
+        assert!(err.contains("observation.patch_grid") && err.contains("divisor of image_size 224"), "{err}");
+        let ok = IngestParams::from_json(&serde_json::json!({ "image_size": 112, "patch_grid": 8 })).unwrap();
+        assert_eq!((ok.image_size, ok.point_count), (112, 1024));
     }
 }

@@ -109,23 +109,24 @@ impl<'a> Grid<'a> {
         let mut ring = 0;
         loop {
             self.ring(key, ring, &mut |j| {
-                if j as usize != i {
-                    let d = (self.points[j as usize] - p).norm();
-                    let at = nearest.partition_point(|&x| x < d);
-                    if at < k {
-                        nearest.insert(at, d);
-                        nearest.truncate(k);
-                    }
+                // Squared distances, sorted ascending; most candidates fail
+                // the first comparison once k are known.
+                let d2 = (self.points[j as usize] - p).norm_squared();
+                if j as usize != i && (nearest.len() < k || d2 < nearest[k - 1]) {
+                    let at = nearest.partition_point(|&x| x < d2);
+                    nearest.insert(at, d2);
+                    nearest.truncate(k);
                 }
             });
             // Points in ring r + 1 are at least r · cell away.
             let reach = ring as f32 * self.cell;
-            if (nearest.len() == k && nearest[k - 1] <= reach) || nearest.len() + 1 >= self.points.len() && ring > 0 {
+            let all_seen = nearest.len() + 1 >= self.points.len() && ring > 0;
+            if (nearest.len() == k && nearest[k - 1] <= reach * reach) || all_seen {
                 break;
             }
             ring += 1;
         }
-        nearest.iter().sum::<f32>() / nearest.len().max(1) as f32
+        nearest.iter().map(|d2| d2.sqrt()).sum::<f32>() / nearest.len().max(1) as f32
     }
 
     fn count_within(&self, i: usize, radius: f32) -> usize {
@@ -147,8 +148,9 @@ pub fn remove_outliers(points: Vec<Point3<f32>>, filter: &OutlierFilter) -> Vec<
             if points.len() <= neighbours.max(1) {
                 return points;
             }
-            // Cells about as wide as a typical neighbour gap keep rings small.
-            let grid = Grid::new(&points, typical_spacing(&points) * 2.0);
+            // On a surface about k points lie within √k neighbour gaps: cells
+            // that wide find the k nearest within one ring.
+            let grid = Grid::new(&points, typical_spacing(&points) * (neighbours.max(1) as f32).sqrt());
             let means: Vec<f32> = (0..points.len()).map(|i| grid.mean_knn_distance(i, neighbours.max(1))).collect();
             let n = means.len() as f32;
             let mean = means.iter().sum::<f32>() / n;

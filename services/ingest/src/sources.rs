@@ -50,8 +50,9 @@ pub struct BopFrames {
     split_dir: PathBuf,
     targets: Vec<Target>,
     next: usize,
-    /// The scene whose JSON files are loaded.
-    loaded: Option<(u32, ByImage<CameraEntry>, ByImage<Vec<GtEntry>>)>,
+    /// The scene whose JSON files are loaded. Camera entries stay JSON until
+    /// used, so one broken entry spoils one image, not the scene.
+    loaded: Option<(u32, ByImage<serde_json::Value>, ByImage<Vec<GtEntry>>)>,
 }
 
 fn scene_ids(split_dir: &Path) -> Result<Vec<u32>, IngestError> {
@@ -90,7 +91,7 @@ impl BopFrames {
             let mut targets = Vec::new();
             for scene_id in scene_ids(&split_dir)?.into_iter().filter(|&id| wanted(id)) {
                 let dir = SceneDir::new(&split_dir, scene_id);
-                let cameras: ByImage<CameraEntry> = bop::read_json(&dir.scene_camera())?;
+                let cameras: ByImage<serde_json::Value> = bop::read_json(&dir.scene_camera())?;
                 targets.extend(cameras.keys().map(|&im_id| Target { scene_id, im_id, obj_ids: Vec::new() }));
             }
             targets
@@ -128,6 +129,10 @@ impl BopFrames {
             detail: format!("{} has no entry for image {}", file.display(), target.im_id),
         };
         let entry = cameras.get(&target.im_id).ok_or_else(|| missing(dir.scene_camera()))?;
+        let entry: CameraEntry = serde_json::from_value(entry.clone()).map_err(|err| IngestError::Frame {
+            frame: label.clone(),
+            detail: format!("{}: image {}: {err}", dir.scene_camera().display(), target.im_id),
+        })?;
         let gt = gts.get(&target.im_id).ok_or_else(|| missing(dir.scene_gt()))?;
         let rgb = bop::read_rgb_png(&dir.rgb(target.im_id))?;
         let camera = entry.camera(rgb.width, rgb.height, &dir.scene_camera(), target.im_id)?;

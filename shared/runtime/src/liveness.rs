@@ -56,7 +56,11 @@ impl Liveness {
     }
 
     pub fn count_error(&self) {
-        self.errors.fetch_add(1, Relaxed);
+        self.count_errors(1);
+    }
+
+    pub fn count_errors(&self, n: u64) {
+        self.errors.fetch_add(n, Relaxed);
     }
 
     pub fn count_sent(&self) {

@@ -238,6 +238,7 @@ impl LocalGraph {
                     live.work_started();
                     let step = source.next(&mut emitter);
                     live.work_finished(started.elapsed());
+                    live.count_errors(source.take_rejected());
                     match step {
                         Ok(SourceStep::Continue) => {}
                         Ok(SourceStep::Finished) => break,

@@ -266,6 +266,7 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
             liveness.work_started();
             let result = source.next(&mut emitter);
             liveness.work_finished(started.elapsed());
+            liveness.count_errors(source.take_rejected());
             result.unwrap_or_else(|err| {
                 liveness.count_error();
                 tracing::warn!(%err, "source failed; frame skipped");

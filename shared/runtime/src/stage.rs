@@ -62,6 +62,13 @@ pub trait Source {
 
     /// Emits the next message(s).
     fn next(&mut self, output: &mut dyn Emitter<Self::Out>) -> Result<SourceStep, Self::Error>;
+
+    /// Inputs rejected since the last call without failing the step (a bad
+    /// object in an otherwise good frame); the runtime adds them to the
+    /// stage's error count in its heartbeats.
+    fn take_rejected(&mut self) -> u64 {
+        0
+    }
 }
 
 /// A stage with no output: a robot interface, a recorder, a checker.

@@ -1,5 +1,6 @@
 //! `poseflow bench`: latency and throughput measurements.
 
+mod ingest;
 mod ipc;
 
 use std::process::ExitCode;
@@ -18,6 +19,9 @@ pub enum BenchCommand {
     /// in-process channel and a Unix socket carrying bincode, for 4 KiB to
     /// 4 MiB payloads.
     Ipc(ipc::IpcArgs),
+    /// Observations per second on one core: crop, token mask and point
+    /// cloud of every object of a BOP dataset's frames (held in memory).
+    Ingest(ingest::IngestArgs),
     /// End-to-end frames per second and per-stage latency of the estimation
     /// and tracking graphs.
     Pipeline,
@@ -32,6 +36,7 @@ const NOT_AVAILABLE: u8 = 2;
 pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
     match args.what {
         BenchCommand::Ipc(args) => ipc::run(&args).map(|()| ExitCode::SUCCESS),
+        BenchCommand::Ingest(args) => ingest::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::IpcReceive(args) => ipc::receive(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::Pipeline => {
             tracing::error!(
