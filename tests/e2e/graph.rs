@@ -400,32 +400,49 @@ fn the_ingest_stage_survives_the_bad_input_corpus() {
 name = "ingest-corpus"
 heartbeat_ms = 100
 
+[edges.frames]
+message = "Frame"
+queue = 2
+overflow = "block"
+max_payload_len = 100000
+
 [edges.observations]
 message = "Observation"
 queue = 4
 overflow = "block"
 max_payload_len = 10000
 
+[stages.frames]
+exe = "frame-source"
+outputs = ["frames"]
+params = {{ source = "bop", dataset = "{corpus}", split = "test" }}
+
 [stages.ingest]
 exe = "ingest"
+inputs = ["frames"]
 outputs = ["observations"]
-params = {{ source = "bop", dataset = "{corpus}", split = "test", observation = {{ image_size = 56, patch_grid = 4, point_count = 64 }} }}
+params = {{ image_size = 56, patch_grid = 4, point_count = 64 }}
 "#
         ),
     )
     .unwrap();
     let recording = scratch.dir.join("observations.rec");
-    let args = ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap()];
+    let args =
+        ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "observations"];
     let output = run_graph(&args, &graph).output().unwrap();
     let result = summary(&output);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{result}\n{stderr}");
-    let ingest = &result["stages"]["ingest"];
-    assert_eq!(ingest["outcome"], "finished", "{result}");
-    // Image 0's three objects; 5 unreadable frames (1, 2, 3, 7 and scene 1)
-    // and 3 objects each of images 4, 5 and 6 rejected.
+    let (frames, ingest) = (&result["stages"]["frames"], &result["stages"]["ingest"]);
+    assert_eq!((&frames["outcome"], &ingest["outcome"]), (&"finished".into(), &"finished".into()), "{result}");
+    // The frame source cannot read images 1, 2, 3, 4 (depth size), 7 and
+    // scene 1, nor one mask of image 5; ingest rejects the other two objects
+    // of image 5 and the three of image 6 (no depth). Image 0's three
+    // objects arrive.
+    assert_eq!(frames["errors"], 7, "{result}\n{stderr}");
+    assert_eq!((&frames["frames_out"], &ingest["frames_in"]), (&3.into(), &3.into()), "{result}");
+    assert_eq!(ingest["errors"], 5, "{result}\n{stderr}");
     assert_eq!(result["recorded"]["observations"], 3, "{result}\n{stderr}");
-    assert_eq!(ingest["errors"], 5 + 3 * 3, "{result}\n{stderr}");
     for expected in ["rgb/000001.png", "expected a 16-bit single-channel depth PNG", "mask has 3 pixels", "cam_K"] {
         assert!(stderr.contains(expected), "no `{expected}` in:\n{stderr}");
     }

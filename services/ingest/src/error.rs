@@ -5,6 +5,9 @@ pub enum IngestError {
     #[error("param `{key}`: {detail}")]
     Params { key: String, detail: String },
 
+    #[error("params: {0}")]
+    ParamsFormat(String),
+
     #[error(transparent)]
     File(#[from] poseflow_scene::SceneError),
 

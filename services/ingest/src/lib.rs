@@ -13,6 +13,7 @@
 
 mod crop;
 mod error;
+mod frame_message;
 mod observe;
 mod params;
 mod points;
@@ -21,6 +22,7 @@ pub mod stage;
 
 pub use crop::{CropBox, Normalisation, write_crop, write_token_mask};
 pub use error::IngestError;
+pub use frame_message::{FrameLayout, read_frame};
 pub use observe::{ObjectMask, Prepared, RgbdFrame, check_frame, prepare};
 pub use params::IngestParams;
 pub use points::{OutlierFilter, back_project, centre, farthest_point_indices, remove_outliers, sample_fixed, thin};

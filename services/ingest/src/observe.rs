@@ -48,7 +48,7 @@ pub struct Prepared {
 }
 
 /// The inclusive pixel box `(u0, v0, u1, v1)` of a mask and its pixel count.
-fn mask_box(mask: &Raster<bool>) -> (Option<(u32, u32, u32, u32)>, usize) {
+pub(crate) fn mask_box(mask: &Raster<bool>) -> (Option<(u32, u32, u32, u32)>, usize) {
     let w = mask.width as usize;
     let mut bounds: Option<(u32, u32, u32, u32)> = None;
     let mut count = 0;

@@ -53,16 +53,16 @@ impl Default for IngestParams {
 }
 
 impl IngestParams {
-    /// Reads the `observation` table of the stage's parameters.
+    /// Reads the ingest stage's parameters.
     pub fn from_json(value: &serde_json::Value) -> Result<Self, IngestError> {
-        let params: Self = serde_json::from_value(value.clone())
-            .map_err(|err| IngestError::Params { key: "observation".into(), detail: err.to_string() })?;
+        let params: Self =
+            serde_json::from_value(value.clone()).map_err(|err| IngestError::ParamsFormat(err.to_string()))?;
         params.validate()?;
         Ok(params)
     }
 
     pub fn validate(&self) -> Result<(), IngestError> {
-        let bad = |key: &str, detail: String| Err(IngestError::Params { key: format!("observation.{key}"), detail });
+        let bad = |key: &str, detail: String| Err(IngestError::Params { key: key.into(), detail });
         if !(8..=1024).contains(&self.image_size) {
             return bad("image_size", format!("expected 8 to 1024 pixels, got {}", self.image_size));
         }
@@ -101,9 +101,9 @@ mod tests {
     #[test]
     fn unknown_keys_and_bad_values_are_named() {
         let err = IngestParams::from_json(&serde_json::json!({ "image_sise": 224 })).unwrap_err().to_string();
-        assert!(err.contains("param `observation`") && err.contains("image_sise"), "{err}");
+        assert!(err.starts_with("params: unknown field `image_sise`"), "{err}");
         let err = IngestParams::from_json(&serde_json::json!({ "patch_grid": 15 })).unwrap_err().to_string();
-        assert!(err.contains("observation.patch_grid") && err.contains("divisor of image_size 224"), "{err}");
+        assert!(err.contains("param `patch_grid`") && err.contains("divisor of image_size 224"), "{err}");
         let ok = IngestParams::from_json(&serde_json::json!({ "image_size": 112, "patch_grid": 8 })).unwrap();
         assert_eq!((ok.image_size, ok.point_count), (112, 1024));
     }

@@ -18,10 +18,13 @@ pub struct LoadedFrame {
     pub frame: RgbdFrame,
     pub objects: Vec<ObjectMask>,
     pub skipped: Vec<IngestError>,
+    /// Where the frame came from in its dataset.
+    pub scene_id: u32,
+    pub image_id: u32,
 }
 
 /// A stream of frames. `None` ends the stream.
-pub trait FrameSource: Send {
+pub trait FrameSource: Send + std::fmt::Debug {
     fn next_frame(&mut self) -> Option<Result<LoadedFrame, IngestError>>;
 }
 
@@ -152,7 +155,13 @@ impl BopFrames {
                 }),
             }
         }
-        Ok(LoadedFrame { frame: RgbdFrame { frame_id, label, camera, rgb, depth }, objects, skipped })
+        Ok(LoadedFrame {
+            frame: RgbdFrame { frame_id, label, camera, rgb, depth },
+            objects,
+            skipped,
+            scene_id: target.scene_id,
+            image_id: target.im_id,
+        })
     }
 }
 
@@ -224,6 +233,8 @@ impl FrameSource for SyntheticFrames {
             },
             objects,
             skipped: Vec::new(),
+            scene_id,
+            image_id: im_id,
         }))
     }
 }

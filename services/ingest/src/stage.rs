@@ -1,29 +1,31 @@
-//! The ingest stage as a graph source: frames from a configured source,
-//! one Observation per object, written straight into the output buffer.
+//! The two stage processes of this crate.
 //!
-//! Parameters (graph file `params`, merged over its `config` file, e.g.
-//! `config/ingest.toml`):
+//! `frame-source` ([`FrameSourceStage`]) publishes Frame messages from a
+//! BOP dataset or the renderer. Parameters (graph `params` over its
+//! `config`, e.g. `config/frame-source.toml`):
 //!
 //! | key | meaning |
 //! |---|---|
 //! | `source` | `"bop"` (a dataset directory) or `"synthetic"` (the renderer) |
 //! | `dataset`, `split`, `scenes` | bop: dataset root, split folder (default `test`), scene ids (default all) |
 //! | `models`, `objects`, `scenes`, `frames_per_scene`, `seed`, `occlusion`, `width`, `height` | synthetic: as `poseflow render` |
-//! | `observation` | crop, token and point parameters ([`IngestParams`]) |
 //! | `rate_hz` | frames per second (read by the runtime; default as fast as the output accepts) |
+//!
+//! `ingest` ([`IngestStage`]) turns each detection of a Frame into an
+//! Observation; its parameters are [`IngestParams`] (`config/ingest.toml`).
 
 use std::path::PathBuf;
 
-use poseflow_contracts::{MessageHeader, ObservationHeader, Stage};
+use poseflow_contracts::{FrameHeader, MessageHeader, ObservationHeader, Stage};
 use poseflow_geometry::sampling::{SeededRng, seeded_rng};
-use poseflow_runtime::{Emitter, Source, SourceStep};
+use poseflow_runtime::{Emitter, Input, Source, SourceStep, Transform};
 use poseflow_scene::dataset::{RenderSpec, lmo_camera};
 use poseflow_scene::scene::{Occlusion, ViewRange};
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Deserialize;
 
 use crate::sources::{BopFrames, FrameSource, SyntheticFrames};
-use crate::{IngestError, IngestParams, check_frame, prepare};
+use crate::{FrameLayout, IngestError, IngestParams, check_frame, prepare, read_frame};
 
 #[derive(Debug, Deserialize)]
 #[serde(tag = "source", rename_all = "snake_case", deny_unknown_fields)]
@@ -34,8 +36,6 @@ enum SourceParams {
         split: String,
         #[serde(default)]
         scenes: Vec<u32>,
-        #[serde(default)]
-        observation: serde_json::Value,
     },
     Synthetic {
         models: PathBuf,
@@ -53,8 +53,6 @@ enum SourceParams {
         width: u32,
         #[serde(default = "default_height")]
         height: u32,
-        #[serde(default)]
-        observation: serde_json::Value,
     },
 }
 
@@ -83,120 +81,128 @@ fn default_height() -> u32 {
     480
 }
 
-/// The stage: a frame source and the observation parameters.
-pub struct IngestSource {
-    frames: Box<dyn FrameSource>,
-    params: IngestParams,
-    /// Draws for resampling small point sets; reseeded per frame so a frame
-    /// gives the same observation however the stream was started.
-    rng_seed: u64,
-    rejected: u64,
-    observations: u64,
-}
-
-impl std::fmt::Debug for IngestSource {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("IngestSource").field("params", &self.params).field("rejected", &self.rejected).finish()
-    }
-}
-
 fn params_error(err: impl std::fmt::Display) -> IngestError {
     IngestError::Params { key: "source".into(), detail: err.to_string() }
 }
 
-impl IngestSource {
-    pub fn new(frames: Box<dyn FrameSource>, params: IngestParams) -> Self {
-        Self { frames, params, rng_seed: 0, rejected: 0, observations: 0 }
+/// Builds a frame source from the `frame-source` parameters (module docs).
+pub fn frame_source(value: &serde_json::Value) -> Result<Box<dyn FrameSource>, IngestError> {
+    let mut value = value.clone();
+    // The runtime paces sources by `rate_hz`; the rest is ours.
+    if let Some(table) = value.as_object_mut() {
+        table.remove("rate_hz");
     }
-
-    /// Builds the stage from its parameters (see the module docs).
-    pub fn from_params(value: &serde_json::Value) -> Result<Self, IngestError> {
-        let mut value = value.clone();
-        // The runtime paces sources by `rate_hz`; the rest is ours.
-        if let Some(table) = value.as_object_mut() {
-            table.remove("rate_hz");
-        }
-        let source: SourceParams = serde_json::from_value(value).map_err(params_error)?;
-        let (frames, observation): (Box<dyn FrameSource>, _) = match source {
-            SourceParams::Bop { dataset, split, scenes, observation, .. } => {
-                (Box::new(BopFrames::open(&dataset, &split, &scenes)?), observation)
-            }
-            SourceParams::Synthetic {
-                models,
-                objects,
+    Ok(match serde_json::from_value(value).map_err(params_error)? {
+        SourceParams::Bop { dataset, split, scenes } => Box::new(BopFrames::open(&dataset, &split, &scenes)?),
+        SourceParams::Synthetic { models, objects, scenes, frames_per_scene, seed, occlusion, width, height } => {
+            let library = ModelLibrary::load(&models, &objects)?;
+            let spec = RenderSpec {
+                split: String::new(),
+                first_scene: 0,
                 scenes,
                 frames_per_scene,
                 seed,
-                occlusion,
-                width,
-                height,
-                observation,
-                ..
-            } => {
-                let library = ModelLibrary::load(&models, &objects)?;
-                let spec = RenderSpec {
-                    split: String::new(),
-                    first_scene: 0,
-                    scenes,
-                    frames_per_scene,
-                    seed,
-                    occlusion: match occlusion {
-                        OcclusionParam::Low => Occlusion::Low,
-                        OcclusionParam::Medium => Occlusion::Medium,
-                        OcclusionParam::High => Occlusion::High,
-                    },
-                    camera: lmo_camera(width, height),
-                    views: ViewRange::default(),
-                    depth_noise: Some(DepthNoise::default()),
-                    rgb_noise: 2.0,
-                };
-                (Box::new(SyntheticFrames::new(library, spec)), observation)
-            }
-        };
-        let params =
-            if observation.is_null() { IngestParams::default() } else { IngestParams::from_json(&observation)? };
-        params.validate()?;
-        Ok(Self::new(frames, params))
-    }
+                occlusion: match occlusion {
+                    OcclusionParam::Low => Occlusion::Low,
+                    OcclusionParam::Medium => Occlusion::Medium,
+                    OcclusionParam::High => Occlusion::High,
+                },
+                camera: lmo_camera(width, height),
+                views: ViewRange::default(),
+                depth_noise: Some(DepthNoise::default()),
+                rgb_noise: 2.0,
+            };
+            Box::new(SyntheticFrames::new(library, spec))
+        }
+    })
+}
 
-    fn rng(&self, frame_id: u64) -> SeededRng {
-        seeded_rng(self.rng_seed ^ frame_id.wrapping_mul(0x9E37_79B9_7F4A_7C15))
+/// Publishes every frame of a [`FrameSource`] as a Frame message.
+#[derive(Debug)]
+pub struct FrameSourceStage {
+    frames: Box<dyn FrameSource>,
+    rejected: u64,
+}
+
+impl FrameSourceStage {
+    pub fn new(frames: Box<dyn FrameSource>) -> Self {
+        Self { frames, rejected: 0 }
     }
 }
 
-impl Source for IngestSource {
-    type Out = ObservationHeader;
+impl Source for FrameSourceStage {
+    type Out = FrameHeader;
     type Error = IngestError;
-    const SLOT: Option<Stage> = Some(Stage::Ingest);
+    const SLOT: Option<Stage> = Some(Stage::Source);
 
-    fn next(&mut self, output: &mut dyn Emitter<ObservationHeader>) -> Result<SourceStep, IngestError> {
+    fn next(&mut self, output: &mut dyn Emitter<FrameHeader>) -> Result<SourceStep, IngestError> {
         let Some(loaded) = self.frames.next_frame() else {
-            tracing::info!(observations = self.observations, rejected = self.rejected, "frame source finished");
             return Ok(SourceStep::Finished);
         };
+        // A frame that cannot be read is one error (its objects are unknown).
         let loaded = loaded?;
-        let frame = &loaded.frame;
-        let _span = tracing::info_span!("frame", id = frame.frame_id).entered();
+        check_frame(&loaded.frame)?;
+        let _span = tracing::info_span!("frame", id = loaded.frame.frame_id).entered();
         for err in &loaded.skipped {
             tracing::warn!(%err, "object skipped");
         }
         self.rejected += loaded.skipped.len() as u64;
-        // A frame that cannot be read at all is one error (its objects are
-        // unknown); otherwise every object not observed counts once.
-        if let Err(err) = check_frame(frame) {
-            tracing::warn!(%err, objects = loaded.objects.len(), "frame skipped");
-            self.rejected += loaded.objects.len() as u64;
-            return Ok(SourceStep::Continue);
+        let layout = FrameLayout::of(&loaded);
+        output.emit(layout.header, layout.payload_len(), &mut |out| layout.write(&loaded, out))?;
+        Ok(SourceStep::Continue)
+    }
+
+    fn take_rejected(&mut self) -> u64 {
+        std::mem::take(&mut self.rejected)
+    }
+}
+
+/// Frames in, one Observation per detection out.
+#[derive(Debug)]
+pub struct IngestStage {
+    params: IngestParams,
+    rejected: u64,
+}
+
+impl IngestStage {
+    pub fn new(params: IngestParams) -> Self {
+        Self { params, rejected: 0 }
+    }
+
+    /// Draws for resampling small point sets, seeded by the frame so a frame
+    /// gives the same observation however the stream was started.
+    fn rng(frame_id: u64) -> SeededRng {
+        seeded_rng(frame_id.wrapping_mul(0x9E37_79B9_7F4A_7C15))
+    }
+}
+
+impl Transform for IngestStage {
+    type In = FrameHeader;
+    type Out = ObservationHeader;
+    type Error = IngestError;
+    const SLOT: Option<Stage> = Some(Stage::Ingest);
+
+    fn process(
+        &mut self,
+        input: Input<'_, FrameHeader>,
+        output: &mut dyn Emitter<ObservationHeader>,
+    ) -> Result<(), IngestError> {
+        let (frame, objects) = read_frame(input.header, input.payload)?;
+        let _span = tracing::info_span!("frame", id = frame.frame_id).entered();
+        // A frame whose intrinsics are unusable rejects all of its objects.
+        if let Err(err) = check_frame(&frame) {
+            self.rejected += objects.len() as u64;
+            return Err(err);
         }
-        let mut rng = self.rng(frame.frame_id);
-        for object in &loaded.objects {
-            match prepare(frame, object, &self.params, &mut rng) {
+        let mut rng = Self::rng(frame.frame_id);
+        for object in &objects {
+            match prepare(&frame, object, &self.params, &mut rng) {
                 Ok(prepared) => {
                     let mut header = prepared.header(frame.frame_id, &frame.camera, &self.params);
-                    header.header.stamps.stamp(Stage::Source);
+                    header.header.stamps = input.header.header.stamps;
+                    header.header.flags |= input.header.header.flags;
                     let len = header.payload_len().map_err(params_error)?;
-                    output.emit(header, len, &mut |out| prepared.write_payload(frame, object, &self.params, out))?;
-                    self.observations += 1;
+                    output.emit(header, len, &mut |out| prepared.write_payload(&frame, object, &self.params, out))?;
                 }
                 Err(err) => {
                     tracing::warn!(%err, "object skipped");
@@ -204,7 +210,7 @@ impl Source for IngestSource {
                 }
             }
         }
-        Ok(SourceStep::Continue)
+        Ok(())
     }
 
     fn take_rejected(&mut self) -> u64 {
@@ -217,12 +223,13 @@ mod tests {
     use super::*;
 
     #[test]
-    fn bad_stage_parameters_are_named() {
-        let err = IngestSource::from_params(&serde_json::json!({ "source": "camera" })).unwrap_err().to_string();
+    fn bad_source_parameters_are_named() {
+        let err = frame_source(&serde_json::json!({ "source": "camera" })).unwrap_err().to_string();
         assert!(err.contains("param `source`") && err.contains("camera") && err.contains("bop"), "{err}");
-        let err = IngestSource::from_params(&serde_json::json!({ "source": "bop", "dataset": "/nonexistent" }))
-            .unwrap_err()
-            .to_string();
+        let err =
+            frame_source(&serde_json::json!({ "source": "bop", "dataset": "/nonexistent" })).unwrap_err().to_string();
         assert!(err.contains("/nonexistent/test"), "{err}");
+        let err = frame_source(&serde_json::json!({ "source": "bop", "datset": "x" })).unwrap_err().to_string();
+        assert!(err.contains("datset"), "{err}");
     }
 }

@@ -31,6 +31,7 @@
 //!
 //! | message | header | payload (`f32`) | from → to |
 //! |---|---|---|---|
+//! | Frame | [`FrameHeader`] | rgb 3·W·H ‖ depth W·H ‖ detections M·8 ‖ masks L | camera → detector → ingest |
 //! | Observation | [`ObservationHeader`] | image 3·S·S ‖ token mask P·P ‖ points N·3 | ingest → inference |
 //! | Condition | [`ConditionHandle`] | none | inference → sampler |
 //! | VelocityRequest | [`VelocityRequest`] | poses N·12 | sampler → inference |
@@ -45,6 +46,7 @@
 mod condition;
 mod error;
 mod estimate;
+mod frame;
 mod grasps;
 mod header;
 mod heartbeat;
@@ -61,6 +63,7 @@ mod tests;
 pub use condition::ConditionHandle;
 pub use error::ContractError;
 pub use estimate::{EstimateHeader, EstimateView, HypothesesHeader, SelectionMethod, WEIGHTED_POSE_LEN};
+pub use frame::{DETECTION_LEN, Detection, FrameHeader, FrameView};
 pub use grasps::{GRASP_LEN, GraspsHeader};
 pub use header::{Header, STAGE_SLOTS, Stage, StageStamps, flags, monotonic_ns};
 pub use heartbeat::{Heartbeat, StageState};
@@ -87,6 +90,8 @@ mod layout {
     assert_layout!(StageStamps, size 64, align 8);
     assert_layout!(Header, size 80, align 8, frame_id @ 0, object_id @ 8, flags @ 12, stamps @ 16);
     assert_layout!(CameraIntrinsics, size 24, align 4, fx @ 0, fy @ 4, cx @ 8, cy @ 12, width @ 16, height @ 20);
+    assert_layout!(FrameHeader, size 120, align 8,
+        header @ 0, intrinsics @ 80, scene_id @ 104, image_id @ 108, detection_count @ 112, mask_len @ 116);
     assert_layout!(ObservationHeader, size 152, align 8,
         header @ 0, intrinsics @ 80, centroid @ 104, point_scale @ 116, crop @ 120,
         image_size @ 136, patch_grid @ 140, point_count @ 144, valid_point_count @ 148);

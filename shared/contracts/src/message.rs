@@ -18,6 +18,8 @@ pub mod limits {
     pub const MAX_MODES: u32 = 64;
     pub const MAX_GRASPS: u32 = 4096;
     pub const MAX_CANDIDATES: u32 = 4096;
+    pub const MAX_FRAME_SIDE: u32 = 8192;
+    pub const MAX_DETECTIONS: u32 = 256;
 }
 
 /// A message's user header (the fixed-size part); the tensors travel beside

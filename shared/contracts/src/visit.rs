@@ -2,8 +2,8 @@
 //! recordings name message types as strings).
 
 use crate::{
-    ConditionHandle, EstimateHeader, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader, ObservationHeader,
-    TensorHeader,
+    ConditionHandle, EstimateHeader, FrameHeader, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader,
+    ObservationHeader, TensorHeader,
 };
 
 /// Code that works for any publish-subscribe contract header.
@@ -16,6 +16,7 @@ pub trait MessageVisitor {
 /// for an unknown name.
 pub fn visit_message<V: MessageVisitor>(message: &str, visitor: V) -> Option<V::Output> {
     Some(match message {
+        FrameHeader::NAME => visitor.visit::<FrameHeader>(),
         ObservationHeader::NAME => visitor.visit::<ObservationHeader>(),
         ConditionHandle::NAME => visitor.visit::<ConditionHandle>(),
         HypothesesHeader::NAME => visitor.visit::<HypothesesHeader>(),

@@ -20,7 +20,7 @@ pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV};
 
 /// Message types an edge may carry, as named in graph files; each is the
 /// `NAME` of a contract header.
-pub const PUBLISH_SUBSCRIBE_MESSAGES: [&str; 7] =
-    ["Observation", "Condition", "Hypotheses", "Estimate", "Grasps", "NextView", "Tensor"];
+pub const PUBLISH_SUBSCRIBE_MESSAGES: [&str; 8] =
+    ["Frame", "Observation", "Condition", "Hypotheses", "Estimate", "Grasps", "NextView", "Tensor"];
 /// Request-response edges carry VelocityRequest / VelocityResponse.
 pub const REQUEST_RESPONSE_MESSAGES: [&str; 1] = ["Velocity"];

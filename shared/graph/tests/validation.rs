@@ -4,8 +4,8 @@
 use std::path::{Path, PathBuf};
 
 use poseflow_contracts::{
-    ConditionHandle, EstimateHeader, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader, ObservationHeader,
-    TensorHeader,
+    ConditionHandle, EstimateHeader, FrameHeader, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader,
+    ObservationHeader, TensorHeader,
 };
 use poseflow_graph::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, StageWiring, parse};
 
@@ -167,6 +167,7 @@ fn parameter_files_are_read_relative_to_the_graph() {
 #[test]
 fn message_names_match_the_contracts() {
     let names = [
+        FrameHeader::NAME,
         ObservationHeader::NAME,
         ConditionHandle::NAME,
         HypothesesHeader::NAME,

@@ -281,6 +281,7 @@ impl LocalGraph {
                         live.count_error();
                         tracing::warn!(%err, "process failed; frame skipped");
                     }
+                    live.count_errors(stage.take_rejected());
                     live.work_finished(started.elapsed());
                 }
             })

@@ -212,6 +212,7 @@ pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, 
                 liveness.count_error();
                 tracing::warn!(%err, "process failed; frame skipped");
             }
+            liveness.count_errors(stage.take_rejected());
         })?;
         if let LoopEnd::EndOfStream = end {
             process.liveness.set_state(StageState::Draining);

@@ -42,6 +42,12 @@ pub trait Transform {
 
     /// Handles one input; may emit zero or more outputs.
     fn process(&mut self, input: Input<'_, Self::In>, output: &mut dyn Emitter<Self::Out>) -> Result<(), Self::Error>;
+
+    /// As [`Source::take_rejected`]: parts of inputs rejected since the
+    /// last call without failing the whole input.
+    fn take_rejected(&mut self) -> u64 {
+        0
+    }
 }
 
 /// What a source did on one call.

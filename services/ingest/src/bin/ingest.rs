@@ -1,10 +1,14 @@
-//! The ingest stage process: `exe = "ingest"` in a graph file.
+//! The ingest stage process: `exe = "ingest"` in a graph file; Frame in,
+//! Observation out.
 
 use std::process::ExitCode;
 
-use poseflow_ingest::stage::IngestSource;
+use poseflow_ingest::IngestParams;
+use poseflow_ingest::stage::IngestStage;
 
 fn main() -> ExitCode {
     poseflow_runtime::init_logging();
-    poseflow_runtime::run_source(|wiring| IngestSource::from_params(&wiring.params).map_err(|e| e.to_string()))
+    poseflow_runtime::run_transform(|wiring| {
+        IngestParams::from_json(&wiring.params).map(IngestStage::new).map_err(|e| e.to_string())
+    })
 }
