@@ -45,17 +45,36 @@ struct TargetEntry {
     obj_id: u32,
 }
 
-/// Frames of a BOP dataset split with ground-truth visible masks
-/// (`mask_visib/`), in scene and image order, restricted to the targets of
-/// `test_targets_bop19.json` when the dataset root has one.
+/// Where the object masks of a BOP frame come from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Masks {
+    /// The dataset's visible masks (`mask_visib/`) of the instances in
+    /// `scene_gt.json`.
+    GroundTruth,
+    /// One PNG per detected object, `<dir>/<scene_id:06>/<im_id:06>_obj<obj_id:06>.png`
+    /// (non-zero = object), e.g. written by a detector run offline; no
+    /// ground truth needed.
+    Files(PathBuf),
+}
+
+/// The mask file of object `obj_id` in image `im_id` of a [`Masks::Files`] directory.
+pub fn mask_file(dir: &Path, scene_id: u32, im_id: u32, obj_id: u32) -> PathBuf {
+    dir.join(format!("{scene_id:06}/{im_id:06}_obj{obj_id:06}.png"))
+}
+
+/// Frames of a BOP dataset split with their object masks, in scene and
+/// image order, restricted to the targets of `test_targets_bop19.json` when
+/// the dataset root has one.
 #[derive(Debug)]
 pub struct BopFrames {
     split_dir: PathBuf,
+    masks: Masks,
     targets: Vec<Target>,
     next: usize,
-    /// The scene whose JSON files are loaded. Camera entries stay JSON until
-    /// used, so one broken entry spoils one image, not the scene.
-    loaded: Option<(u32, ByImage<serde_json::Value>, ByImage<Vec<GtEntry>>)>,
+    /// The scene whose JSON files are loaded (ground truth only with
+    /// [`Masks::GroundTruth`]). Camera entries stay JSON until used, so one
+    /// broken entry spoils one image, not the scene.
+    loaded: Option<(u32, ByImage<serde_json::Value>, Option<ByImage<Vec<GtEntry>>>)>,
 }
 
 fn scene_ids(split_dir: &Path) -> Result<Vec<u32>, IngestError> {
@@ -72,7 +91,7 @@ fn scene_ids(split_dir: &Path) -> Result<Vec<u32>, IngestError> {
 
 impl BopFrames {
     /// `scenes` restricts the scenes (all when empty).
-    pub fn open(root: &Path, split: &str, scenes: &[u32]) -> Result<Self, IngestError> {
+    pub fn open(root: &Path, split: &str, scenes: &[u32], masks: Masks) -> Result<Self, IngestError> {
         let split_dir = root.join(split);
         let wanted = |scene_id: u32| scenes.is_empty() || scenes.contains(&scene_id);
         let targets_file = root.join("test_targets_bop19.json");
@@ -105,7 +124,7 @@ impl BopFrames {
                 detail: format!("no images to read (scenes {scenes:?}); expected <scene_id:06>/scene_camera.json"),
             });
         }
-        Ok(Self { split_dir, targets, next: 0, loaded: None })
+        Ok(Self { split_dir, masks, targets, next: 0, loaded: None })
     }
 
     /// Number of images the stream will deliver.
@@ -122,7 +141,10 @@ impl BopFrames {
         if self.loaded.as_ref().is_none_or(|(id, _, _)| *id != target.scene_id) {
             self.loaded = None;
             let cameras = bop::read_json(&dir.scene_camera())?;
-            let gts = bop::read_json(&dir.scene_gt())?;
+            let gts = match self.masks {
+                Masks::GroundTruth => Some(bop::read_json(&dir.scene_gt())?),
+                Masks::Files(_) => None,
+            };
             self.loaded = Some((target.scene_id, cameras, gts));
         }
         let (_, cameras, gts) = self.loaded.as_ref().expect("loaded above");
@@ -136,20 +158,35 @@ impl BopFrames {
             frame: label.clone(),
             detail: format!("{}: image {}: {err}", dir.scene_camera().display(), target.im_id),
         })?;
-        let gt = gts.get(&target.im_id).ok_or_else(|| missing(dir.scene_gt()))?;
         let rgb = bop::read_rgb_png(&dir.rgb(target.im_id))?;
         let camera = entry.camera(rgb.width, rgb.height, &dir.scene_camera(), target.im_id)?;
         let depth = bop::read_depth_png(&dir.depth(target.im_id), entry.depth_scale)?;
-        let (mut objects, mut skipped) = (Vec::new(), Vec::new());
-        for (instance, gt) in gt.iter().enumerate() {
-            if !target.obj_ids.is_empty() && !target.obj_ids.contains(&gt.obj_id) {
-                continue;
+        let wanted = |obj_id: u32| target.obj_ids.is_empty() || target.obj_ids.contains(&obj_id);
+        // (object id, instance, mask file) of every mask to read.
+        let files: Vec<(u32, usize, PathBuf)> = match &self.masks {
+            Masks::GroundTruth => {
+                let gts = gts.as_ref().expect("ground truth is loaded with ground-truth masks");
+                let gt = gts.get(&target.im_id).ok_or_else(|| missing(dir.scene_gt()))?;
+                gt.iter()
+                    .enumerate()
+                    .filter(|(_, gt)| wanted(gt.obj_id))
+                    .map(|(instance, gt)| (gt.obj_id, instance, dir.mask_visib(target.im_id, instance)))
+                    .collect()
             }
-            match bop::read_mask_png(&dir.mask_visib(target.im_id, instance)) {
-                Ok(mask) => objects.push(ObjectMask { obj_id: gt.obj_id, instance, mask }),
+            Masks::Files(mask_dir) => mask_files(mask_dir, target.scene_id, target.im_id)?
+                .into_iter()
+                .filter(|(obj_id, _)| wanted(*obj_id))
+                .enumerate()
+                .map(|(instance, (obj_id, path))| (obj_id, instance, path))
+                .collect(),
+        };
+        let (mut objects, mut skipped) = (Vec::new(), Vec::new());
+        for (obj_id, instance, path) in files {
+            match bop::read_mask_png(&path) {
+                Ok(mask) => objects.push(ObjectMask { obj_id, instance, mask }),
                 Err(err) => skipped.push(IngestError::Object {
                     frame: label.clone(),
-                    obj_id: gt.obj_id,
+                    obj_id,
                     instance,
                     detail: err.to_string(),
                 }),
@@ -163,6 +200,23 @@ impl BopFrames {
             image_id: target.im_id,
         })
     }
+}
+
+/// The `(obj_id, path)` of each mask file of one image, by object id.
+fn mask_files(dir: &Path, scene_id: u32, im_id: u32) -> Result<Vec<(u32, PathBuf)>, IngestError> {
+    let scene_dir = dir.join(format!("{scene_id:06}"));
+    let entries = std::fs::read_dir(&scene_dir).map_err(|source| SceneError::Io { path: scene_dir.clone(), source })?;
+    let prefix = format!("{im_id:06}_obj");
+    let mut files: Vec<(u32, PathBuf)> = entries
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().into_string().ok()?;
+            let obj_id = name.strip_prefix(&prefix)?.strip_suffix(".png")?.parse().ok()?;
+            Some((obj_id, e.path()))
+        })
+        .collect();
+    files.sort();
+    Ok(files)
 }
 
 impl FrameSource for BopFrames {

@@ -7,7 +7,7 @@
 //! | key | meaning |
 //! |---|---|
 //! | `source` | `"bop"` (a dataset directory) or `"synthetic"` (the renderer) |
-//! | `dataset`, `split`, `scenes` | bop: dataset root, split folder (default `test`), scene ids (default all) |
+//! | `dataset`, `split`, `scenes`, `mask_dir` | bop: dataset root, split folder (default `test`), scene ids (default all), masks from files instead of the ground truth ([`Masks::Files`]) |
 //! | `models`, `objects`, `scenes`, `frames_per_scene`, `seed`, `occlusion`, `width`, `height` | synthetic: as `poseflow render` |
 //! | `rate_hz` | frames per second (read by the runtime; default as fast as the output accepts) |
 //!
@@ -24,7 +24,7 @@ use poseflow_scene::scene::{Occlusion, ViewRange};
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Deserialize;
 
-use crate::sources::{BopFrames, FrameSource, SyntheticFrames};
+use crate::sources::{BopFrames, FrameSource, Masks, SyntheticFrames};
 use crate::{FrameLayout, IngestError, IngestParams, check_frame, prepare, read_frame};
 
 #[derive(Debug, Deserialize)]
@@ -36,6 +36,9 @@ enum SourceParams {
         split: String,
         #[serde(default)]
         scenes: Vec<u32>,
+        /// Masks from files (`<dir>/<scene:06>/<im:06>_obj<obj:06>.png`)
+        /// instead of the ground truth.
+        mask_dir: Option<PathBuf>,
     },
     Synthetic {
         models: PathBuf,
@@ -93,7 +96,10 @@ pub fn frame_source(value: &serde_json::Value) -> Result<Box<dyn FrameSource>, I
         table.remove("rate_hz");
     }
     Ok(match serde_json::from_value(value).map_err(params_error)? {
-        SourceParams::Bop { dataset, split, scenes } => Box::new(BopFrames::open(&dataset, &split, &scenes)?),
+        SourceParams::Bop { dataset, split, scenes, mask_dir } => {
+            let masks = mask_dir.map_or(Masks::GroundTruth, Masks::Files);
+            Box::new(BopFrames::open(&dataset, &split, &scenes, masks)?)
+        }
         SourceParams::Synthetic { models, objects, scenes, frames_per_scene, seed, occlusion, width, height } => {
             let library = ModelLibrary::load(&models, &objects)?;
             let spec = RenderSpec {

@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 
 use poseflow_geometry::sampling::seeded_rng;
-use poseflow_ingest::sources::{BopFrames, FrameSource};
+use poseflow_ingest::sources::{BopFrames, FrameSource, Masks};
 use poseflow_ingest::{IngestParams, check_frame, prepare};
 
 fn corpus() -> PathBuf {
@@ -15,7 +15,7 @@ fn corpus() -> PathBuf {
 
 /// What became of each frame: the observations made, or the errors.
 fn outcomes() -> Vec<(usize, Vec<String>)> {
-    let mut frames = BopFrames::open(&corpus(), "test", &[]).unwrap();
+    let mut frames = BopFrames::open(&corpus(), "test", &[], Masks::GroundTruth).unwrap();
     let params = IngestParams { image_size: 56, patch_grid: 4, point_count: 64, ..IngestParams::default() };
     let mut outcomes = Vec::new();
     while let Some(loaded) = frames.next_frame() {

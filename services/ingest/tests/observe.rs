@@ -7,7 +7,7 @@ use nalgebra::Point3;
 use parry3d::query::PointQuery;
 use poseflow_contracts::MessageHeader;
 use poseflow_geometry::sampling::seeded_rng;
-use poseflow_ingest::sources::{BopFrames, FrameSource};
+use poseflow_ingest::sources::{BopFrames, FrameSource, Masks, mask_file};
 use poseflow_ingest::{IngestParams, check_frame, prepare};
 use poseflow_scene::ModelLibrary;
 use poseflow_scene::bop::{self, ByImage, GtEntry, GtInfoEntry, SceneDir};
@@ -43,7 +43,7 @@ fn points_lie_on_the_model_and_tokens_cover_the_projection() {
     write_dataset(&library, &spec, &root, |_| {}).unwrap();
     let params = IngestParams { image_size: 112, patch_grid: 8, ..IngestParams::default() };
     let trimeshes: Vec<_> = library.objects.iter().map(|o| (o.obj_id, o.model.mesh.to_trimesh().unwrap())).collect();
-    let mut frames = BopFrames::open(&root, "test", &[]).unwrap();
+    let mut frames = BopFrames::open(&root, "test", &[], Masks::GroundTruth).unwrap();
     assert_eq!(frames.len(), 6);
     let (mut observed, mut covered_objects) = (0, 0);
     let mut rng = seeded_rng(1);
@@ -114,5 +114,51 @@ fn points_lie_on_the_model_and_tokens_cover_the_projection() {
         }
     }
     assert!(observed >= 10 && covered_objects >= 3, "{observed} observations, {covered_objects} checked for cover");
+    std::fs::remove_dir_all(&root).unwrap();
+}
+
+/// Masks from files (as a detector run offline writes them) give the same
+/// objects as the ground truth, without reading `scene_gt.json`.
+#[test]
+fn mask_files_replace_the_ground_truth() {
+    let library = ModelLibrary::load(&objects_dir(), &[]).unwrap();
+    let spec = RenderSpec {
+        split: "val".into(),
+        first_scene: 0,
+        scenes: 1,
+        frames_per_scene: 2,
+        seed: 2,
+        occlusion: Occlusion::Low,
+        camera: lmo_camera(160, 120),
+        views: ViewRange::default(),
+        depth_noise: None,
+        rgb_noise: 0.0,
+    };
+    let root = scratch("mask-files");
+    write_dataset(&library, &spec, &root, |_| {}).unwrap();
+    let scene = SceneDir::new(&root.join("val"), 0);
+    let gts: ByImage<Vec<GtEntry>> = bop::read_json(&scene.scene_gt()).unwrap();
+    let masks = root.join("detections");
+    std::fs::create_dir_all(masks.join("000000")).unwrap();
+    // Image 1 only, and only objects 11 and 1 (in that order of writing).
+    for (k, gt) in gts[&1].iter().enumerate().filter(|(_, gt)| gt.obj_id != 10) {
+        std::fs::copy(scene.mask_visib(1, k), mask_file(&masks, 0, 1, gt.obj_id)).unwrap();
+    }
+    std::fs::remove_file(scene.scene_gt()).unwrap();
+    let mut frames = BopFrames::open(&root, "val", &[], Masks::Files(masks.clone())).unwrap();
+    let first = frames.next_frame().unwrap().unwrap();
+    assert!(first.objects.is_empty() && first.skipped.is_empty(), "image 0 has no mask files");
+    let second = frames.next_frame().unwrap().unwrap();
+    let found: Vec<(u32, usize)> = second.objects.iter().map(|o| (o.obj_id, o.instance)).collect();
+    assert_eq!(found, [(1, 0), (11, 1)]);
+    let expected = bop::read_mask_png(&scene.mask_visib(1, 0)).unwrap();
+    assert_eq!(second.objects[0].mask, expected);
+    let err = BopFrames::open(&root, "val", &[], Masks::Files(root.join("nowhere")))
+        .unwrap()
+        .next_frame()
+        .unwrap()
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("nowhere/000000"), "{err}");
     std::fs::remove_dir_all(&root).unwrap();
 }

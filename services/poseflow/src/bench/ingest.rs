@@ -8,7 +8,7 @@ use anyhow::Context;
 use clap::Args;
 use poseflow_contracts::MessageHeader;
 use poseflow_geometry::sampling::seeded_rng;
-use poseflow_ingest::sources::{BopFrames, FrameSource};
+use poseflow_ingest::sources::{BopFrames, FrameSource, Masks};
 use poseflow_ingest::{IngestParams, prepare};
 use serde::Serialize;
 
@@ -60,7 +60,7 @@ pub fn run(args: &IngestArgs) -> anyhow::Result<()> {
     };
     params.validate()?;
     let started = Instant::now();
-    let mut source = BopFrames::open(&args.dataset, &args.split, &[])
+    let mut source = BopFrames::open(&args.dataset, &args.split, &[], Masks::GroundTruth)
         .with_context(|| format!("--dataset {}", args.dataset.display()))?;
     let mut frames = Vec::new();
     while let Some(loaded) = source.next_frame() {
