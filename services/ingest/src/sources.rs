@@ -71,10 +71,18 @@ pub struct BopFrames {
     masks: Masks,
     targets: Vec<Target>,
     next: usize,
-    /// The scene whose JSON files are loaded (ground truth only with
-    /// [`Masks::GroundTruth`]). Camera entries stay JSON until used, so one
-    /// broken entry spoils one image, not the scene.
-    loaded: Option<(u32, ByImage<serde_json::Value>, Option<ByImage<Vec<GtEntry>>>)>,
+    loaded: Option<LoadedScene>,
+}
+
+/// The JSON files of the scene being read.
+#[derive(Debug)]
+struct LoadedScene {
+    scene_id: u32,
+    /// Camera entries stay JSON until used, so one broken entry spoils one
+    /// image, not the scene.
+    cameras: ByImage<serde_json::Value>,
+    /// Only read with [`Masks::GroundTruth`].
+    gts: Option<ByImage<Vec<GtEntry>>>,
 }
 
 fn scene_ids(split_dir: &Path) -> Result<Vec<u32>, IngestError> {
@@ -138,16 +146,16 @@ impl BopFrames {
 
     fn load(&mut self, target: &Target, frame_id: u64) -> Result<LoadedFrame, IngestError> {
         let dir = SceneDir::new(&self.split_dir, target.scene_id);
-        if self.loaded.as_ref().is_none_or(|(id, _, _)| *id != target.scene_id) {
+        if self.loaded.as_ref().is_none_or(|scene| scene.scene_id != target.scene_id) {
             self.loaded = None;
             let cameras = bop::read_json(&dir.scene_camera())?;
             let gts = match self.masks {
                 Masks::GroundTruth => Some(bop::read_json(&dir.scene_gt())?),
                 Masks::Files(_) => None,
             };
-            self.loaded = Some((target.scene_id, cameras, gts));
+            self.loaded = Some(LoadedScene { scene_id: target.scene_id, cameras, gts });
         }
-        let (_, cameras, gts) = self.loaded.as_ref().expect("loaded above");
+        let LoadedScene { cameras, gts, .. } = self.loaded.as_ref().expect("loaded above");
         let label = format!("{} image {}", dir.path.display(), target.im_id);
         let missing = |file: PathBuf| IngestError::Frame {
             frame: label.clone(),
