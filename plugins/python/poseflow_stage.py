@@ -65,6 +65,46 @@ class HypothesesHeader(ctypes.Structure):
         return 12 * self.sample_count
 
 
+class CameraIntrinsics(ctypes.Structure):
+    _fields_ = [
+        ("fx", ctypes.c_float),
+        ("fy", ctypes.c_float),
+        ("cx", ctypes.c_float),
+        ("cy", ctypes.c_float),
+        ("width", ctypes.c_uint32),
+        ("height", ctypes.c_uint32),
+    ]
+
+
+# f32 values of one detection record of a Frame:
+# obj_id, instance, score, x, y, width, height, mask_offset.
+DETECTION_LEN = 8
+
+
+class FrameHeader(ctypes.Structure):
+    """An RGB-D frame with detections (shared/contracts/src/frame.rs).
+
+    Payload: rgb 3·W·H (RGB interleaved, 0-255) ‖ depth W·H (metres) ‖
+    detections M·8 ‖ masks (each detection's box, row-major, 1 = object)."""
+
+    _fields_ = [
+        ("header", Header),
+        ("intrinsics", CameraIntrinsics),
+        ("scene_id", ctypes.c_uint32),
+        ("image_id", ctypes.c_uint32),
+        ("detection_count", ctypes.c_uint32),
+        ("mask_len", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/Frame/v1"
+
+    def payload_len(self):
+        pixels = self.intrinsics.width * self.intrinsics.height
+        return 4 * pixels + DETECTION_LEN * self.detection_count + self.mask_len
+
+
 class Heartbeat(ctypes.Structure):
     _fields_ = [
         ("header", Header),
@@ -89,6 +129,7 @@ class Heartbeat(ctypes.Structure):
 
 
 assert ctypes.sizeof(Header) == 80 and ctypes.sizeof(HypothesesHeader) == 88 and ctypes.sizeof(Heartbeat) == 136
+assert ctypes.sizeof(FrameHeader) == 120
 
 
 def monotonic_ns():
@@ -246,7 +287,8 @@ class Counters:
 
 def run_transform(process, header_type=HypothesesHeader, slot=SLOT_SAMPLER):
     """Runs `process(header, floats) -> (header, values) or None` as a one-input,
-    one-output stage until end-of-stream or SIGINT/SIGTERM."""
+    one-output stage until end-of-stream or SIGINT/SIGTERM. `slot` is the
+    timestamp slot the stage writes on its outputs (None: none)."""
     wire = wiring()
     assert len(wire["inputs"]) == 1 and len(wire["outputs"]) == 1, "a transform has one input and one output"
     node = iox2.NodeBuilder.new().name(iox2.NodeName.new(wire["stage"])).create(iox2.ServiceType.Ipc)
@@ -280,7 +322,8 @@ def run_transform(process, header_type=HypothesesHeader, slot=SLOT_SAMPLER):
                     out = process(header, floats)
                     if out is not None:
                         out_header, values = out
-                        out_header.header.stamps.ns[slot] = monotonic_ns()
+                        if slot is not None:
+                            out_header.header.stamps.ns[slot] = monotonic_ns()
                         sink.publish(out_header, values)
                         counters.frames_out += 1
                     counters.latencies_us.append(int((time.perf_counter() - started) * 1e6) + 1)

@@ -379,23 +379,18 @@ fn a_recorded_edge_replays_into_a_sink() {
     }
 }
 
-/// The ingest stage reads the bad-input corpus as its own process: broken
-/// frames and objects are counted as errors, the good ones arrive intact
-/// over shared memory, and the stream runs to its end.
-#[test]
-fn the_ingest_stage_survives_the_bad_input_corpus() {
-    use poseflow_contracts::ObservationHeader;
-    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
-
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
-    let scratch = Scratch::new("ingest");
+/// The `frames` stage reading the bad-input corpus.
+fn corpus_frames() -> String {
     let corpus = concat!(env!("CARGO_MANIFEST_DIR"), "/corpus/ingest");
-    let graph = scratch.dir.join("ingest.toml");
-    std::fs::write(
-        &graph,
-        format!(
-            r#"
+    format!("exe = \"frame-source\"\nparams = {{ source = \"bop\", dataset = \"{corpus}\", split = \"test\" }}")
+}
+
+/// A graph `frames` → [detector →] ingest, with `frames` the body of the
+/// frames stage (exe and params) and `detector` a Python detector plug-in
+/// and its params.
+fn ingest_graph(scratch: &Scratch, name: &str, frames: &str, detector: Option<(&str, &str)>) -> PathBuf {
+    let mut text = format!(
+        r#"
 [graph]
 name = "ingest-corpus"
 heartbeat_ms = 100
@@ -413,19 +408,94 @@ overflow = "block"
 max_payload_len = 10000
 
 [stages.frames]
-exe = "frame-source"
 outputs = ["frames"]
-params = {{ source = "bop", dataset = "{corpus}", split = "test" }}
+{frames}
 
 [stages.ingest]
 exe = "ingest"
-inputs = ["frames"]
+inputs = ["{ingest_input}"]
 outputs = ["observations"]
 params = {{ image_size = 56, patch_grid = 4, point_count = 64 }}
-"#
-        ),
-    )
-    .unwrap();
+"#,
+        ingest_input = if detector.is_some() { "detected" } else { "frames" }
+    );
+    if let Some((plugin, params)) = detector {
+        text += &format!(
+            r#"
+[edges.detected]
+message = "Frame"
+queue = 2
+overflow = "block"
+max_payload_len = 100000
+
+[stages.detector]
+exe = "{python}"
+args = ["{plugin}"]
+inputs = ["frames"]
+outputs = ["detected"]
+params = {params}
+"#,
+            python = plugin_python().display()
+        );
+    }
+    let graph = scratch.dir.join(name);
+    std::fs::write(&graph, text).unwrap();
+    graph
+}
+
+/// Observation object ids of a recording, checking every message.
+fn recorded_observations(recording: &Path) -> Vec<(u64, u32)> {
+    use poseflow_contracts::ObservationHeader;
+    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+
+    let mut reader = RecordingReader::open(recording).unwrap();
+    let mut objects = Vec::new();
+    while let Some(message) = reader.next_message().unwrap() {
+        let header: ObservationHeader = header_from_bytes(&message.header).unwrap();
+        let view = header.view(&message.payload).expect("payload matches its header");
+        let mean_x = view.points.chunks_exact(3).map(|p| p[0]).sum::<f32>() / header.point_count as f32;
+        assert!(mean_x.abs() < 1e-5, "points centred: {mean_x}");
+        assert!(view.token_mask.contains(&1.0));
+        objects.push((header.header.frame_id, header.header.object_id));
+    }
+    objects
+}
+
+/// A detector written in Python sits between the frame source and ingest
+/// and decides which objects are observed.
+#[test]
+fn a_python_detector_plugs_in_between_frames_and_ingest() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("detector");
+    let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/detector_template.py");
+    let graph = ingest_graph(&scratch, "detector.toml", &corpus_frames(), Some((plugin, "{ min_area = 150 }")));
+    let recording = scratch.dir.join("observations.rec");
+    let args =
+        ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "observations"];
+    let output = run_graph(&args, &graph).output().unwrap();
+    let result = summary(&output);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{result}\n{stderr}");
+    assert_eq!(result["stages"]["detector"]["outcome"], "finished", "{result}");
+    // Image 0 has objects of 153, 442 and 130 visible pixels: the detector
+    // keeps the first two. It drops image 5's empty and 3-pixel masks, so
+    // ingest only rejects image 6's two remaining objects (no depth).
+    assert_eq!(recorded_observations(&recording), [(0, 1), (0, 10)], "{result}\n{stderr}");
+    assert_eq!(result["stages"]["ingest"]["errors"], 2, "{result}\n{stderr}");
+    drop(scratch);
+    assert_nothing_leaked(&before);
+}
+
+/// The ingest stage reads the bad-input corpus as its own process: broken
+/// frames and objects are counted as errors, the good ones arrive intact
+/// over shared memory, and the stream runs to its end.
+#[test]
+fn the_ingest_stage_survives_the_bad_input_corpus() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("ingest");
+    let graph = ingest_graph(&scratch, "ingest.toml", &corpus_frames(), None);
     let recording = scratch.dir.join("observations.rec");
     let args =
         ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "observations"];
@@ -446,18 +516,22 @@ params = {{ image_size = 56, patch_grid = 4, point_count = 64 }}
     for expected in ["rgb/000001.png", "expected a 16-bit single-channel depth PNG", "mask has 3 pixels", "cam_K"] {
         assert!(stderr.contains(expected), "no `{expected}` in:\n{stderr}");
     }
-    let mut reader = RecordingReader::open(&recording).unwrap();
-    let mut objects = Vec::new();
-    while let Some(message) = reader.next_message().unwrap() {
-        let header: ObservationHeader = header_from_bytes(&message.header).unwrap();
-        let view = header.view(&message.payload).expect("payload matches its header");
-        assert_eq!((header.header.frame_id, header.point_count, header.image_size), (0, 64, 56));
-        let mean_x = view.points.chunks_exact(3).map(|p| p[0]).sum::<f32>() / 64.0;
-        assert!(mean_x.abs() < 1e-5, "points centred: {mean_x}");
-        assert!(view.token_mask.contains(&1.0));
-        objects.push(header.header.object_id);
-    }
-    assert_eq!(objects, [1, 10, 11]);
+    assert_eq!(recorded_observations(&recording), [(0, 1), (0, 10), (0, 11)]);
+
+    // The recorded frames replay into ingest without the frame source and
+    // give the same observations.
+    let frames_recording = scratch.dir.join("frames.rec");
+    let args =
+        ["--json", "--status-ms", "0", "--record", frames_recording.to_str().unwrap(), "--record-edges", "frames"];
+    assert!(run_graph(&args, &graph).output().unwrap().status.success());
+    let replay =
+        format!("exe = \"replay-source\"\nparams = {{ file = \"{}\", speed = \"max\" }}", frames_recording.display());
+    let replay_graph = ingest_graph(&scratch, "replay.toml", &replay, None);
+    let args =
+        ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "observations"];
+    let output = run_graph(&args, &replay_graph).output().unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    assert_eq!(recorded_observations(&recording), [(0, 1), (0, 10), (0, 11)]);
     drop(scratch);
     assert_nothing_leaked(&before);
 }
