@@ -3,8 +3,6 @@
 //!
 //! Points are camera-frame metres (OpenCV axes), `f32`.
 
-use std::collections::HashMap;
-
 use nalgebra::Point3;
 use poseflow_scene::Camera;
 use rand::Rng;
@@ -62,38 +60,89 @@ pub fn thin(points: Vec<Point3<f32>>, limit: usize) -> Vec<Point3<f32>> {
     points.into_iter().step_by(step).collect()
 }
 
-/// A uniform grid over the points for neighbour queries.
+/// Cells per point a neighbour grid may have at most (coarser cells beyond):
+/// stray points far from the object would otherwise make a huge, empty grid.
+const MAX_CELLS_PER_POINT: usize = 4;
+
+/// A dense uniform grid over the points' bounding box for neighbour
+/// queries: point indices sorted by cell (counting sort), so a cell's
+/// points are one slice.
 struct Grid<'a> {
     points: &'a [Point3<f32>],
     cell: f32,
-    cells: HashMap<[i32; 3], Vec<u32>>,
+    origin: Point3<f32>,
+    dims: [usize; 3],
+    /// `order[starts[c]..starts[c + 1]]` are the points of cell `c`.
+    starts: Vec<u32>,
+    order: Vec<u32>,
 }
 
 impl<'a> Grid<'a> {
     fn new(points: &'a [Point3<f32>], cell: f32) -> Self {
-        let mut cells: HashMap<[i32; 3], Vec<u32>> = HashMap::new();
-        let grid = Self { points, cell, cells: HashMap::new() };
-        for (i, p) in points.iter().enumerate() {
-            cells.entry(grid.key(p)).or_default().push(i as u32);
+        let (mut min, mut max) = (points[0], points[0]);
+        for p in points {
+            min = min.inf(p);
+            max = max.sup(p);
         }
-        Self { cells, ..grid }
+        let extent = max - min;
+        let dims_for = |cell: f32| extent.map(|e| (e / cell).floor() as usize + 1);
+        let mut cell = cell.max(1e-6);
+        let mut dims = dims_for(cell);
+        let max_cells = (MAX_CELLS_PER_POINT * points.len()).max(64);
+        while dims.iter().product::<usize>() > max_cells {
+            cell *= 2.0;
+            dims = dims_for(cell);
+        }
+        let dims = [dims.x, dims.y, dims.z];
+        let mut grid = Self { points, cell, origin: min, dims, starts: Vec::new(), order: Vec::new() };
+        let cells: Vec<u32> = points.iter().map(|p| grid.index(grid.key(p)) as u32).collect();
+        let mut starts = vec![0u32; dims.iter().product::<usize>() + 1];
+        for &c in &cells {
+            starts[c as usize + 1] += 1;
+        }
+        for c in 1..starts.len() {
+            starts[c] += starts[c - 1];
+        }
+        let mut next = starts.clone();
+        let mut order = vec![0u32; points.len()];
+        for (i, &c) in cells.iter().enumerate() {
+            order[next[c as usize] as usize] = i as u32;
+            next[c as usize] += 1;
+        }
+        grid.starts = starts;
+        grid.order = order;
+        grid
     }
 
-    fn key(&self, p: &Point3<f32>) -> [i32; 3] {
-        [(p.x / self.cell).floor() as i32, (p.y / self.cell).floor() as i32, (p.z / self.cell).floor() as i32]
+    fn key(&self, p: &Point3<f32>) -> [usize; 3] {
+        let d = (p - self.origin) / self.cell;
+        [0, 1, 2].map(|k| (d[k].max(0.0) as usize).min(self.dims[k] - 1))
+    }
+
+    fn index(&self, [x, y, z]: [usize; 3]) -> usize {
+        (z * self.dims[1] + y) * self.dims[0] + x
     }
 
     /// Calls `visit` with every point index in the cells at Chebyshev
     /// distance exactly `ring` from `key`.
-    fn ring(&self, key: [i32; 3], ring: i32, visit: &mut impl FnMut(u32)) {
-        for dx in -ring..=ring {
+    fn ring(&self, key: [usize; 3], ring: isize, visit: &mut impl FnMut(u32)) {
+        // The neighbouring coordinate along `axis`, if inside the grid.
+        let step = |axis: usize, d: isize| {
+            let v = key[axis] as isize + d;
+            (v >= 0 && (v as usize) < self.dims[axis]).then_some(v as usize)
+        };
+        for dz in -ring..=ring {
+            let Some(z) = step(2, dz) else { continue };
             for dy in -ring..=ring {
-                for dz in -ring..=ring {
+                let Some(y) = step(1, dy) else { continue };
+                for dx in -ring..=ring {
                     if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
                         continue;
                     }
-                    if let Some(ids) = self.cells.get(&[key[0] + dx, key[1] + dy, key[2] + dz]) {
-                        ids.iter().for_each(|&j| visit(j));
+                    let Some(x) = step(0, dx) else { continue };
+                    let c = self.index([x, y, z]);
+                    for &j in &self.order[self.starts[c] as usize..self.starts[c + 1] as usize] {
+                        visit(j);
                     }
                 }
             }
@@ -106,6 +155,7 @@ impl<'a> Grid<'a> {
         let p = &self.points[i];
         let key = self.key(p);
         let mut nearest: Vec<f32> = Vec::with_capacity(k + 1);
+        let max_ring = self.dims.iter().max().copied().unwrap_or(1) as isize;
         let mut ring = 0;
         loop {
             self.ring(key, ring, &mut |j| {
@@ -120,8 +170,7 @@ impl<'a> Grid<'a> {
             });
             // Points in ring r + 1 are at least r · cell away.
             let reach = ring as f32 * self.cell;
-            let all_seen = nearest.len() + 1 >= self.points.len() && ring > 0;
-            if (nearest.len() == k && nearest[k - 1] <= reach * reach) || all_seen {
+            if (nearest.len() == k && nearest[k - 1] <= reach * reach) || ring >= max_ring {
                 break;
             }
             ring += 1;
@@ -132,10 +181,11 @@ impl<'a> Grid<'a> {
     fn count_within(&self, i: usize, radius: f32) -> usize {
         let p = &self.points[i];
         let mut count = 0;
-        self.ring(self.key(p), 0, &mut |j| {
-            count += usize::from(j as usize != i && (self.points[j as usize] - p).norm() <= radius)
-        });
-        self.ring(self.key(p), 1, &mut |j| count += usize::from((self.points[j as usize] - p).norm() <= radius));
+        for ring in 0..=1 {
+            self.ring(self.key(p), ring, &mut |j| {
+                count += usize::from(j as usize != i && (self.points[j as usize] - p).norm() <= radius)
+            });
+        }
         count
     }
 }
@@ -186,16 +236,25 @@ pub fn farthest_point_indices(points: &[Point3<f32>], count: usize) -> Vec<usize
     if points.is_empty() || count == 0 {
         return chosen;
     }
+    // Coordinates as separate arrays so the distance update vectorises.
+    let (xs, ys, zs): (Vec<f32>, Vec<f32>, Vec<f32>) = (
+        points.iter().map(|p| p.x).collect(),
+        points.iter().map(|p| p.y).collect(),
+        points.iter().map(|p| p.z).collect(),
+    );
     let mut distance = vec![f32::INFINITY; points.len()];
     let mut next = 0;
     for _ in 0..count {
         chosen.push(next);
-        let last = points[next];
+        let (lx, ly, lz) = (xs[next], ys[next], zs[next]);
+        for (((d, x), y), z) in distance.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            let (dx, dy, dz) = (x - lx, y - ly, z - lz);
+            *d = d.min(dx * dx + dy * dy + dz * dz);
+        }
         let mut farthest = (0, -1.0f32);
-        for (i, (p, d)) in points.iter().zip(distance.iter_mut()).enumerate() {
-            *d = d.min((p - last).norm_squared());
-            if *d > farthest.1 {
-                farthest = (i, *d);
+        for (i, &d) in distance.iter().enumerate() {
+            if d > farthest.1 {
+                farthest = (i, d);
             }
         }
         next = farthest.0;
