@@ -443,6 +443,17 @@ params = {params}
     graph
 }
 
+/// Runs `graph` recording its edge `edge` into `recording`; returns the
+/// summary and the launcher's stderr after checking that it succeeded.
+fn run_recording(graph: &Path, edge: &str, recording: &Path) -> (serde_json::Value, String) {
+    let args = ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", edge];
+    let output = run_graph(&args, graph).output().unwrap();
+    let result = summary(&output);
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    assert!(output.status.success(), "{result}\n{stderr}");
+    (result, stderr)
+}
+
 /// Observation object ids of a recording, checking every message.
 fn recorded_observations(recording: &Path) -> Vec<(u64, u32)> {
     use poseflow_contracts::ObservationHeader;
@@ -471,12 +482,7 @@ fn a_python_detector_plugs_in_between_frames_and_ingest() {
     let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/detector_template.py");
     let graph = ingest_graph(&scratch, "detector.toml", &corpus_frames(), Some((plugin, "{ min_area = 150 }")));
     let recording = scratch.dir.join("observations.rec");
-    let args =
-        ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "observations"];
-    let output = run_graph(&args, &graph).output().unwrap();
-    let result = summary(&output);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{result}\n{stderr}");
+    let (result, stderr) = run_recording(&graph, "observations", &recording);
     assert_eq!(result["stages"]["detector"]["outcome"], "finished", "{result}");
     // Image 0 has objects of 153, 442 and 130 visible pixels: the detector
     // keeps the first two. It drops image 5's empty and 3-pixel masks, so
@@ -497,12 +503,7 @@ fn the_ingest_stage_survives_the_bad_input_corpus() {
     let scratch = Scratch::new("ingest");
     let graph = ingest_graph(&scratch, "ingest.toml", &corpus_frames(), None);
     let recording = scratch.dir.join("observations.rec");
-    let args =
-        ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "observations"];
-    let output = run_graph(&args, &graph).output().unwrap();
-    let result = summary(&output);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{result}\n{stderr}");
+    let (result, stderr) = run_recording(&graph, "observations", &recording);
     let (frames, ingest) = (&result["stages"]["frames"], &result["stages"]["ingest"]);
     assert_eq!((&frames["outcome"], &ingest["outcome"]), (&"finished".into(), &"finished".into()), "{result}");
     // The frame source cannot read images 1, 2, 3, 4 (depth size), 7 and
@@ -521,16 +522,11 @@ fn the_ingest_stage_survives_the_bad_input_corpus() {
     // The recorded frames replay into ingest without the frame source and
     // give the same observations.
     let frames_recording = scratch.dir.join("frames.rec");
-    let args =
-        ["--json", "--status-ms", "0", "--record", frames_recording.to_str().unwrap(), "--record-edges", "frames"];
-    assert!(run_graph(&args, &graph).output().unwrap().status.success());
+    run_recording(&graph, "frames", &frames_recording);
     let replay =
         format!("exe = \"replay-source\"\nparams = {{ file = \"{}\", speed = \"max\" }}", frames_recording.display());
     let replay_graph = ingest_graph(&scratch, "replay.toml", &replay, None);
-    let args =
-        ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "observations"];
-    let output = run_graph(&args, &replay_graph).output().unwrap();
-    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    run_recording(&replay_graph, "observations", &recording);
     assert_eq!(recorded_observations(&recording), [(0, 1), (0, 10), (0, 11)]);
     drop(scratch);
     assert_nothing_leaked(&before);

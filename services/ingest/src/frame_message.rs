@@ -2,11 +2,10 @@
 //! ingest (or a detector) reads. Masks travel as their bounding box and the
 //! mask inside it.
 
-use poseflow_contracts::{CameraIntrinsics, DETECTION_LEN, FrameHeader, Header, MessageHeader};
-use poseflow_scene::Camera;
+use poseflow_contracts::{DETECTION_LEN, FrameHeader, Header, MessageHeader};
 use poseflow_scene::bop::Raster;
 
-use crate::observe::mask_box;
+use crate::observe::{camera, intrinsics, mask_box};
 use crate::sources::LoadedFrame;
 use crate::{IngestError, ObjectMask, RgbdFrame};
 
@@ -31,14 +30,7 @@ impl FrameLayout {
         header.stamps.stamp(poseflow_contracts::Stage::Source);
         let header = FrameHeader {
             header,
-            intrinsics: CameraIntrinsics {
-                fx: camera.fx as f32,
-                fy: camera.fy as f32,
-                cx: camera.cx as f32,
-                cy: camera.cy as f32,
-                width: camera.width,
-                height: camera.height,
-            },
+            intrinsics: intrinsics(camera),
             scene_id: loaded.scene_id,
             image_id: loaded.image_id,
             detection_count: boxes.len() as u32,
@@ -88,15 +80,7 @@ pub fn read_frame(header: &FrameHeader, payload: &[f32]) -> Result<(RgbdFrame, V
     let label = format!("frame {} (scene {} image {})", header.header.frame_id, header.scene_id, header.image_id);
     let view =
         header.view(payload).map_err(|err| IngestError::Frame { frame: label.clone(), detail: err.to_string() })?;
-    let i = &header.intrinsics;
-    let camera = Camera {
-        fx: f64::from(i.fx),
-        fy: f64::from(i.fy),
-        cx: f64::from(i.cx),
-        cy: f64::from(i.cy),
-        width: i.width,
-        height: i.height,
-    };
+    let camera = camera(&header.intrinsics);
     let rgb = view.rgb.chunks_exact(3).map(|c| [0, 1, 2].map(|k| c[k].round().clamp(0.0, 255.0) as u8)).collect();
     let depth = view.depth.iter().map(|&z| if z.is_finite() && z > 0.0 { z } else { 0.0 }).collect();
     let width = camera.width as usize;
@@ -127,6 +111,7 @@ pub fn read_frame(header: &FrameHeader, payload: &[f32]) -> Result<(RgbdFrame, V
 #[cfg(test)]
 mod tests {
     use super::*;
+    use poseflow_scene::Camera;
 
     #[test]
     fn frames_survive_the_message_round_trip() {
@@ -163,5 +148,16 @@ mod tests {
         assert_eq!(objects.len(), 2);
         assert_eq!((objects[0].obj_id, objects[0].instance, &objects[0].mask.pixels), (5, 0, &mask));
         assert!(objects[1].mask.pixels.iter().all(|&inside| !inside));
+
+        // A camera driver sending NaN intrinsics: the frame reads, and the
+        // check names the values.
+        let mut broken = layout.header;
+        broken.intrinsics.fx = f32::NAN;
+        let (frame, _) = read_frame(&broken, &payload).unwrap();
+        let err = crate::check_frame(&frame).unwrap_err().to_string();
+        assert!(
+            err.contains("frame 7 (scene 3 image 11)") && err.contains("NaN") && err.contains("fx, fy > 0"),
+            "{err}"
+        );
     }
 }

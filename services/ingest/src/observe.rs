@@ -60,6 +60,31 @@ pub(crate) fn mask_box(mask: &Raster<bool>) -> (Option<(u32, u32, u32, u32)>, us
     (bounds, count)
 }
 
+/// The camera as message intrinsics (`f32`).
+pub(crate) fn intrinsics(camera: &Camera) -> CameraIntrinsics {
+    CameraIntrinsics {
+        fx: camera.fx as f32,
+        fy: camera.fy as f32,
+        cx: camera.cx as f32,
+        cy: camera.cy as f32,
+        width: camera.width,
+        height: camera.height,
+    }
+}
+
+/// The camera of message intrinsics.
+pub(crate) fn camera(intrinsics: &CameraIntrinsics) -> Camera {
+    let i = intrinsics;
+    Camera {
+        fx: f64::from(i.fx),
+        fy: f64::from(i.fy),
+        cx: f64::from(i.cx),
+        cy: f64::from(i.cy),
+        width: i.width,
+        height: i.height,
+    }
+}
+
 /// Checks that a frame's rasters match its camera.
 pub fn check_frame(frame: &RgbdFrame) -> Result<(), IngestError> {
     let camera = &frame.camera;
@@ -140,14 +165,7 @@ impl Prepared {
         }
         ObservationHeader {
             header,
-            intrinsics: CameraIntrinsics {
-                fx: camera.fx as f32,
-                fy: camera.fy as f32,
-                cx: camera.cx as f32,
-                cy: camera.cy as f32,
-                width: camera.width,
-                height: camera.height,
-            },
+            intrinsics: intrinsics(camera),
             centroid: self.centroid.coords.into(),
             point_scale: 1.0,
             crop: self.crop.corners(),
