@@ -17,6 +17,7 @@ mod frame_message;
 mod observe;
 mod params;
 mod points;
+pub mod shard;
 pub mod sources;
 pub mod stage;
 

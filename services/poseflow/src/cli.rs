@@ -38,6 +38,8 @@ pub enum Command {
     Render(crate::render::RenderArgs),
     /// Write one dataset image's RGB, depth and visible masks side by side as a PNG.
     Preview(crate::preview::PreviewArgs),
+    /// Write a BOP dataset's observations and ground truth as a training shard.
+    Observe(crate::observe::ObserveArgs),
     /// Evaluate on a BOP-format dataset: accuracy, ADD(-S), calibration, runtime.
     Eval,
     /// Benchmark transport latency and end-to-end throughput.
@@ -51,6 +53,7 @@ impl Command {
             Command::Run(_) => "run",
             Command::Render(_) => "render",
             Command::Preview(_) => "preview",
+            Command::Observe(_) => "observe",
             Command::Eval => "eval",
             Command::Bench(_) => "bench",
         }
@@ -71,6 +74,7 @@ pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
         Command::Bench(args) => return report(crate::bench::run(args)),
         Command::Render(args) => return report(crate::render::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Preview(args) => return report(crate::preview::run(&args).map(|()| ExitCode::SUCCESS)),
+        Command::Observe(args) => return report(crate::observe::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Demo => "it needs the trained model and the estimation graph",
         Command::Eval => "it needs the estimation graph and the BOP benchmark runner",
     };

@@ -3,6 +3,7 @@
 mod bench;
 mod cli;
 mod logging;
+mod observe;
 mod preview;
 mod progress;
 mod render;

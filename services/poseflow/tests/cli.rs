@@ -12,7 +12,7 @@ fn poseflow(args: &[&str]) -> Output {
         .expect("poseflow binary runs")
 }
 
-const SUBCOMMANDS: [&str; 6] = ["demo", "run", "render", "preview", "eval", "bench"];
+const SUBCOMMANDS: [&str; 7] = ["demo", "run", "render", "preview", "observe", "eval", "bench"];
 
 #[test]
 fn help_lists_every_subcommand() {
@@ -159,4 +159,49 @@ fn render_rejects_bad_arguments_with_what_was_expected() {
         let stderr = String::from_utf8_lossy(&result.stderr);
         assert!(stderr.contains(expected), "{args:?}: {stderr}");
     }
+}
+
+#[test]
+fn observe_writes_a_training_shard_with_the_ground_truth() {
+    let dataset = scratch("observe");
+    render(&dataset, "3");
+    let shard = dataset.join("train.obs");
+    let args =
+        ["observe", "--dataset", dataset.to_str().unwrap(), "--split", "train", "--out", shard.to_str().unwrap()];
+    let out = poseflow(&[&args[..], &["--image-size", "32", "--patch-grid", "4", "--points", "64", "--json"]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let counts: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(counts["frames"], 4, "{counts}");
+    let records = counts["records"].as_u64().unwrap() as usize;
+    assert!(records >= 1 && records + counts["rejected"].as_u64().unwrap() as usize == 4 * 3, "{counts}");
+
+    let bytes = std::fs::read(&shard).unwrap();
+    let mut lines = bytes.splitn(3, |&b| b == b'\n');
+    assert_eq!(lines.next().unwrap(), b"POSEFLOW-OBS v1");
+    let info: serde_json::Value = serde_json::from_slice(lines.next().unwrap()).unwrap();
+    let body = lines.next().unwrap();
+    let record_bytes = info["record_bytes"].as_u64().unwrap() as usize;
+    assert_eq!(record_bytes, 16 + 4 * 23 + 8 + 16 + 3 * 32 * 32 + 4 * 3 * 64);
+    assert_eq!(body.len(), records * record_bytes);
+    // The first record's ids and pose are the dataset's ground truth.
+    let u32_at = |i: usize| u32::from_le_bytes(body[4 * i..4 * i + 4].try_into().unwrap());
+    let f32_at = |i: usize| f32::from_le_bytes(body[4 * i..4 * i + 4].try_into().unwrap());
+    let (obj_id, scene_id, im_id, instance) = (u32_at(0), u32_at(1), u32_at(2), u32_at(3) as usize);
+    let gt: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dataset.join(format!("train/{scene_id:06}/scene_gt.json"))).unwrap(),
+    )
+    .unwrap();
+    let entry = &gt[im_id.to_string()][instance];
+    assert_eq!(entry["obj_id"], obj_id);
+    for k in 0..9 {
+        assert!((f64::from(f32_at(4 + k)) - entry["cam_R_m2c"][k].as_f64().unwrap()).abs() < 1e-6);
+    }
+    for k in 0..3 {
+        assert!((f64::from(f32_at(13 + k)) * 1000.0 - entry["cam_t_m2c"][k].as_f64().unwrap()).abs() < 1e-3);
+    }
+    // Points (the last 64·3 floats) are centred.
+    let points = &body[record_bytes - 4 * 3 * 64..record_bytes];
+    let xs: Vec<f32> = points.chunks_exact(12).map(|p| f32::from_le_bytes(p[..4].try_into().unwrap())).collect();
+    assert!((xs.iter().sum::<f32>() / 64.0).abs() < 1e-5);
+    std::fs::remove_dir_all(dataset).unwrap();
 }
