@@ -1,0 +1,1 @@
+"""Training code of the PoseFlow network (see training/README.md)."""

@@ -1,0 +1,91 @@
+"""Training shards written by `poseflow observe` (layout:
+services/ingest/src/shard.rs): the ingest stage's own observations with
+their ground truth, memory-mapped."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+MAGIC = b"POSEFLOW-OBS v1"
+
+
+class Shard:
+    def __init__(self, path):
+        self.path = Path(path)
+        with open(self.path, "rb") as f:
+            magic = f.readline().rstrip(b"\n")
+            if magic != MAGIC:
+                raise ValueError(f"{self.path}: not a PoseFlow observation shard (first line {magic[:40]!r})")
+            self.info = json.loads(f.readline())
+            offset = f.tell()
+        s, p, n = self.info["image_size"], self.info["patch_grid"], self.info["point_count"]
+        self.dtype = np.dtype(
+            [
+                ("ids", "<u4", 4),
+                ("rotation", "<f4", 9),
+                ("translation", "<f4", 3),
+                ("centroid", "<f4", 3),
+                ("crop", "<f4", 4),
+                ("intrinsics", "<f4", 4),
+                ("valid_points", "<u4"),
+                ("visib_fract", "<f4"),
+                ("token_mask", "u1", p * p),
+                ("image", "u1", 3 * s * s),
+                ("points", "<f4", 3 * n),
+            ]
+        )
+        if self.dtype.itemsize != self.info["record_bytes"]:
+            raise ValueError(f"{self.path}: records of {self.info['record_bytes']} bytes, expected {self.dtype.itemsize}")
+        size = self.path.stat().st_size - offset
+        if size % self.dtype.itemsize:
+            raise ValueError(f"{self.path}: {size} bytes of records is not a whole number of records")
+        self.records = np.memmap(self.path, dtype=self.dtype, mode="r", offset=offset, shape=(size // self.dtype.itemsize,))
+
+    def __len__(self):
+        return len(self.records)
+
+
+class Observations:
+    """Several shards as one indexable set, filtered by visibility and
+    object, yielding torch batches."""
+
+    def __init__(self, paths, object_ids, min_visib_fract=0.1):
+        self.shards = [Shard(p) for p in paths]
+        first = self.shards[0].info
+        for shard in self.shards[1:]:
+            for key in ("image_size", "patch_grid", "point_count"):
+                if shard.info[key] != first[key]:
+                    raise ValueError(f"{shard.path}: {key} {shard.info[key]} differs from {first[key]}")
+        self.info = first
+        self.object_index = {obj: i for i, obj in enumerate(object_ids)}
+        self.index = []
+        for k, shard in enumerate(self.shards):
+            ids = shard.records["ids"][:, 0]
+            keep = (shard.records["visib_fract"] >= min_visib_fract) & np.isin(ids, list(self.object_index))
+            self.index.extend((k, int(i)) for i in np.nonzero(keep)[0])
+        norm = first["normalisation"]
+        self.mean = torch.tensor(norm["mean"]).reshape(1, 3, 1, 1)
+        self.std = torch.tensor(norm["std"]).reshape(1, 3, 1, 1)
+
+    def __len__(self):
+        return len(self.index)
+
+    def batch(self, indices):
+        """A dict of tensors for the given positions in this set."""
+        rows = [self.shards[k].records[i] for k, i in (self.index[j] for j in indices)]
+        s, n = self.info["image_size"], self.info["point_count"]
+        image = torch.from_numpy(np.stack([r["image"] for r in rows]).astype(np.float32)).reshape(-1, 3, s, s)
+        ids = np.stack([r["ids"] for r in rows])
+        centroid = torch.from_numpy(np.stack([r["centroid"] for r in rows]))
+        return {
+            "image": (image / 255.0 - self.mean) / self.std,
+            "token_mask": torch.from_numpy(np.stack([r["token_mask"] for r in rows]).astype(np.float32)),
+            "points": torch.from_numpy(np.stack([r["points"] for r in rows])).reshape(-1, n, 3),
+            "object_index": torch.tensor([self.object_index[int(o)] for o in ids[:, 0]]),
+            "obj_id": torch.from_numpy(ids[:, 0].astype(np.int64)),
+            "rotation": torch.from_numpy(np.stack([r["rotation"] for r in rows])).reshape(-1, 3, 3),
+            # The pose's translation relative to the observed points' mean.
+            "translation": torch.from_numpy(np.stack([r["translation"] for r in rows])) - centroid,
+        }

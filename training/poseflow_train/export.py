@@ -1,0 +1,127 @@
+"""Exports a trained checkpoint to the ONNX contract the Rust inference
+stage serves (services/inference), with parity vectors.
+
+    python -m poseflow_train.export --checkpoint runs/lmo/checkpoint.pt --out ../models/lmo
+
+writes `encoder.onnx`, `velocity.onnx` and `parity.bin` + `parity.json`
+(fixed inputs and the PyTorch outputs, checked against ONNX Runtime here and
+from Rust in CI).
+
+encoder.onnx:  image [B,3,S,S] f32 (normalised), token_mask [B,P*P] f32,
+               points [B,N,3] f32 (centred, metres), object_index [B] i64
+               -> condition [B,T,D] f32, condition_mask [B,T] f32
+velocity.onnx: condition [1,T,D], condition_mask [1,T], rotation [M,3,3],
+               translation [M,3] (metres, relative to the points' mean),
+               t [M] -> v_rot [M,3] (body frame), v_pos [M,3] (m per unit t)
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime
+import torch
+
+from . import se3
+from .model import Encoder, ModelConfig, VelocityNet
+
+CONTRACT = "poseflow-onnx/1"
+
+
+def metadata(cfg, extra):
+    values = {
+        "contract": CONTRACT,
+        "image_size": cfg.image_size,
+        "patch_grid": cfg.patch_grid,
+        "point_count": cfg.point_count,
+        "width": cfg.width,
+        "normalisation_mean": [0.485, 0.456, 0.406],
+        "normalisation_std": [0.229, 0.224, 0.225],
+        "translation_scale": cfg.translation_scale,
+        "translation_noise_std": cfg.translation_noise_std,
+        "object_ids": cfg.object_ids,
+        **extra,
+    }
+    return {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()}
+
+
+def export(module, args, names, outputs, dynamic, path, meta):
+    torch.onnx.export(
+        module, args, str(path), input_names=names, output_names=outputs, dynamic_axes=dynamic,
+        opset_version=17, dynamo=False,
+    )
+    model = onnx.load(str(path))
+    for key, value in meta.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(model, str(path))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkpoint", required=True)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--training-data", default="", help="a line for the metadata: what the model was trained on")
+    args = parser.parse_args()
+    saved = torch.load(args.checkpoint, weights_only=False)
+    cfg = ModelConfig(**saved["model_config"])
+    encoder, velocity = Encoder(cfg).eval(), VelocityNet(cfg).eval()
+    encoder.load_state_dict(saved["encoder"])
+    velocity.load_state_dict(saved["velocity"])
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = metadata(cfg, {"training_data": args.training_data, "training_steps": saved["state"]["step"],
+                          "training_minutes": round(saved["state"]["train_s"] / 60, 1)})
+
+    g = torch.Generator().manual_seed(0)
+    s, p, n = cfg.image_size, cfg.patch_grid, cfg.point_count
+    image = torch.randn(2, 3, s, s, generator=g)
+    token_mask = (torch.rand(2, p * p, generator=g) < 0.5).float()
+    points = torch.randn(2, n, 3, generator=g) * 0.03
+    object_index = torch.tensor([0, len(cfg.object_ids) - 1])
+    export(encoder, (image, token_mask, points, object_index), ["image", "token_mask", "points", "object_index"],
+           ["condition", "condition_mask"], {k: {0: "batch"} for k in ["image", "token_mask", "points", "object_index", "condition", "condition_mask"]},
+           out / "encoder.onnx", meta)
+    with torch.no_grad():
+        condition, mask = encoder(image, token_mask, points, object_index)
+    m = 5
+    rotation = se3.uniform_rotation((m,), generator=g)
+    translation = torch.randn(m, 3, generator=g) * cfg.translation_noise_std
+    t = torch.tensor([0.0, 0.2, 0.4, 0.6, 0.8])
+    vel_inputs = (condition[:1], mask[:1], rotation, translation, t)
+    export(velocity, vel_inputs, ["condition", "condition_mask", "rotation", "translation", "t"], ["v_rot", "v_pos"],
+           {"rotation": {0: "samples"}, "translation": {0: "samples"}, "t": {0: "samples"}, "v_rot": {0: "samples"}, "v_pos": {0: "samples"}},
+           out / "velocity.onnx", meta)
+    with torch.no_grad():
+        v_rot, v_pos = velocity(*vel_inputs)
+
+    # Parity: ONNX Runtime against PyTorch, and the vectors for the Rust test.
+    tensors = {
+        "image": image[:1], "token_mask": token_mask[:1], "points": points[:1], "object_index": object_index[:1],
+        "condition": condition[:1], "condition_mask": mask[:1], "rotation": rotation, "translation": translation,
+        "t": t, "v_rot": v_rot, "v_pos": v_pos,
+    }
+    enc_session = onnxruntime.InferenceSession(str(out / "encoder.onnx"))
+    got = enc_session.run(None, {k: tensors[k].numpy() for k in ["image", "token_mask", "points", "object_index"]})
+    assert np.abs(got[0] - tensors["condition"].numpy()).max() < 1e-4, "encoder parity"
+    vel_session = onnxruntime.InferenceSession(str(out / "velocity.onnx"))
+    got = vel_session.run(None, {k: tensors[k].numpy() for k in ["condition", "condition_mask", "rotation", "translation", "t"]})
+    assert np.abs(got[0] - v_rot.numpy()).max() < 1e-4 and np.abs(got[1] - v_pos.numpy()).max() < 1e-4, "velocity parity"
+    index, blob, offset = {}, bytearray(), 0
+    for name, value in tensors.items():
+        array = value.numpy()
+        kind = "i64" if array.dtype == np.int64 else "f32"
+        data = array.astype("<i8" if kind == "i64" else "<f4").tobytes()
+        index[name] = {"shape": list(array.shape), "dtype": kind, "offset": offset}
+        blob += data
+        offset += len(data)
+    (out / "parity.bin").write_bytes(bytes(blob))
+    (out / "parity.json").write_text(json.dumps(index, indent=1) + "\n")
+    sizes = {f.name: f.stat().st_size for f in out.glob("*.onnx")}
+    print(json.dumps({"out": str(out), "sizes": sizes, "parity": "ok"}))
+
+
+if __name__ == "__main__":
+    main()

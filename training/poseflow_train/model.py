@@ -1,0 +1,264 @@
+"""The PoseFlow network (paper, "Method"): image patch tokens and
+PointNet++ point tokens projected to one width, DiT* blocks over a rotation
+and a translation pose token with adaLN conditioning on Fourier features of
+t (and the object), masked cross-attention to the condition tokens, heads
+for the two velocities.
+
+The heads predict the clean pose (a 6D rotation R1_hat and p1_hat) and the
+velocities are derived from it on the paper's path,
+w = log(R_t^T R1_hat) / (1 - t), v = (p1_hat - p_t) / (1 - t): on a CPU
+budget this learns rotation far faster than regressing velocities directly
+(../shared/DESIGN.md, "Training on a CPU"); the exported velocity contract is
+the same either way.
+
+Units: points and translations in metres (centred on the observed points'
+mean); internally translations are divided by `translation_scale`.
+"""
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import torch
+from torch import nn
+
+from . import se3
+
+
+@dataclass
+class ModelConfig:
+    image_size: int = 112
+    patch_grid: int = 8
+    point_count: int = 1024
+    width: int = 128
+    heads: int = 4
+    image_depth: int = 4
+    dit_depth: int = 4
+    sa1_centres: int = 128
+    sa2_centres: int = 32
+    neighbours: int = 16
+    fourier_features: int = 16
+    # Metres per internal translation unit.
+    translation_scale: float = 0.05
+    # The flow's initial translations: N(0, std^2) per axis, metres.
+    translation_noise_std: float = 0.05
+    # Smallest 1 - t used when deriving velocities (the sampler never goes
+    # past t = (K - 1) / K).
+    min_remaining: float = 0.05
+    object_ids: list = field(default_factory=lambda: [1])
+    # "scratch": a small ViT trained with the rest (the CPU default).
+    image_encoder: str = "scratch"
+
+    def to_dict(self):
+        return asdict(self)
+
+
+class Attention(nn.Module):
+    """Multi-head attention written out (exports to plain ONNX ops).
+
+    `x` [Bc * G, N, D] attends to `context` [Bc, T, D]: the G queries of a
+    group share one context (the samples of one observation share its
+    condition), whose keys and values are computed once. `mask` [Bc, T]:
+    1 = attend, 0 = ignore."""
+
+    def __init__(self, width, heads):
+        super().__init__()
+        self.heads = heads
+        self.scale = 1.0 / math.sqrt(width // heads)
+        self.q = nn.Linear(width, width)
+        self.kv = nn.Linear(width, 2 * width)
+        self.out = nn.Linear(width, width)
+
+    def forward(self, x, context, mask=None):
+        bx, n, d = x.shape
+        bc, tk = context.shape[0], context.shape[1]
+        h, dh = self.heads, d // self.heads
+        q = self.q(x).reshape(bc, -1, n, h, dh).permute(0, 1, 3, 2, 4)
+        kv = self.kv(context).reshape(bc, tk, 2, h, dh).permute(2, 0, 3, 1, 4)
+        k, v = kv[0][:, None], kv[1][:, None]
+        scores = (q @ k.transpose(-1, -2)) * self.scale
+        if mask is not None:
+            scores = scores + (1.0 - mask[:, None, None, None, :]) * -1e4
+        out = (scores.softmax(-1) @ v).permute(0, 1, 3, 2, 4).reshape(bx, n, d)
+        return self.out(out)
+
+
+def mlp(width, hidden):
+    return nn.Sequential(nn.Linear(width, hidden), nn.GELU(), nn.Linear(hidden, width))
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block (self-attention + MLP)."""
+
+    def __init__(self, width, heads):
+        super().__init__()
+        self.norm1, self.norm2 = nn.LayerNorm(width), nn.LayerNorm(width)
+        self.attn = Attention(width, heads)
+        self.mlp = mlp(width, 4 * width)
+
+    def forward(self, x):
+        y = self.norm1(x)
+        x = x + self.attn(y, y)
+        return x + self.mlp(self.norm2(x))
+
+
+class ImageEncoder(nn.Module):
+    """A small ViT from scratch: P x P patch tokens of an S x S crop."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        patch = cfg.image_size // cfg.patch_grid
+        self.embed = nn.Conv2d(3, cfg.width, patch, stride=patch)
+        self.position = nn.Parameter(torch.randn(1, cfg.patch_grid**2, cfg.width) * 0.02)
+        self.blocks = nn.ModuleList([Block(cfg.width, cfg.heads) for _ in range(cfg.image_depth)])
+        self.norm = nn.LayerNorm(cfg.width)
+
+    def forward(self, image):
+        x = self.embed(image).flatten(2).transpose(1, 2) + self.position
+        for block in self.blocks:
+            x = block(x)
+        return self.norm(x)
+
+
+def gather(values, index):
+    """values [B, N, C], index [B, M, K] -> [B, M, K, C]."""
+    b, m, k = index.shape
+    flat = index.reshape(b, m * k, 1).expand(-1, -1, values.shape[-1])
+    return torch.gather(values, 1, flat).reshape(b, m, k, values.shape[-1])
+
+
+def knn(queries, points, k):
+    """Indices [B, M, k] of the k nearest `points` to each query."""
+    d2 = (queries[:, :, None, :] - points[:, None, :, :]).pow(2).sum(-1)
+    return d2.topk(k, dim=-1, largest=False).indices
+
+
+class SetAbstraction(nn.Module):
+    """PointNet++ set abstraction: centres (the first M points: the ingest
+    stage's farthest-point order makes every prefix a farthest-point
+    sample), k-nearest grouping, a shared MLP on [relative xyz, features],
+    max pooling."""
+
+    def __init__(self, centres, neighbours, in_features, out_features):
+        super().__init__()
+        self.centres, self.neighbours = centres, neighbours
+        self.mlp = nn.Sequential(
+            nn.Linear(3 + in_features, out_features // 2),
+            nn.GELU(),
+            nn.Linear(out_features // 2, out_features),
+            nn.GELU(),
+            nn.Linear(out_features, out_features),
+        )
+
+    def forward(self, xyz, features):
+        centres = xyz[:, : self.centres]
+        index = knn(centres, xyz, self.neighbours)
+        relative = gather(xyz, index) - centres[:, :, None, :]
+        grouped = relative if features is None else torch.cat([relative, gather(features, index)], -1)
+        return centres, self.mlp(grouped).amax(2)
+
+
+class PointEncoder(nn.Module):
+    def __init__(self, cfg):
+        super().__init__()
+        self.scale = cfg.translation_scale
+        self.sa1 = SetAbstraction(cfg.sa1_centres, cfg.neighbours, 0, cfg.width // 2)
+        self.sa2 = SetAbstraction(cfg.sa2_centres, cfg.neighbours, cfg.width // 2, cfg.width)
+        self.position = nn.Sequential(nn.Linear(3, cfg.width), nn.GELU(), nn.Linear(cfg.width, cfg.width))
+
+    def forward(self, points):
+        xyz = points / self.scale
+        centres, features = self.sa1(xyz, None)
+        centres, features = self.sa2(centres, features)
+        return features + self.position(centres)
+
+
+class Encoder(nn.Module):
+    """Observation -> condition tokens [B, T, D] and their mask [B, T]:
+    P*P image tokens (masked by the token mask), point tokens, one object
+    token."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.image = ImageEncoder(cfg)
+        self.points = PointEncoder(cfg)
+        self.image_proj, self.point_proj = nn.Linear(cfg.width, cfg.width), nn.Linear(cfg.width, cfg.width)
+        self.kind = nn.Parameter(torch.randn(3, cfg.width) * 0.02)
+        self.objects = nn.Embedding(len(cfg.object_ids), cfg.width)
+
+    def forward(self, image, token_mask, points, object_index):
+        image_tokens = self.image_proj(self.image(image)) + self.kind[0]
+        point_tokens = self.point_proj(self.points(points)) + self.kind[1]
+        object_token = (self.objects(object_index) + self.kind[2])[:, None, :]
+        condition = torch.cat([image_tokens, point_tokens, object_token], 1)
+        ones = torch.ones(points.shape[0], point_tokens.shape[1] + 1, dtype=token_mask.dtype, device=token_mask.device)
+        return condition, torch.cat([token_mask, ones], 1)
+
+
+def fourier(t, count):
+    """[M] -> [M, 2 count] sin/cos features of t at log-spaced frequencies."""
+    freqs = torch.exp(torch.linspace(0.0, math.log(1000.0), count, device=t.device, dtype=t.dtype))
+    angles = t[:, None] * freqs[None, :] * 2 * math.pi / 10.0
+    return torch.cat([angles.sin(), angles.cos()], -1)
+
+
+class DiTBlock(nn.Module):
+    """DiT* block: adaLN-modulated self-attention over the pose tokens,
+    masked cross-attention to the condition, MLP; zero-initialised gates."""
+
+    def __init__(self, width, heads):
+        super().__init__()
+        self.norms = nn.ModuleList([nn.LayerNorm(width, elementwise_affine=False) for _ in range(3)])
+        self.self_attn, self.cross_attn = Attention(width, heads), Attention(width, heads)
+        self.mlp = mlp(width, 4 * width)
+        self.modulation = nn.Linear(width, 9 * width)
+        nn.init.zeros_(self.modulation.weight)
+        nn.init.zeros_(self.modulation.bias)
+
+    def forward(self, x, c, condition, condition_mask):
+        shift = self.modulation(nn.functional.silu(c))[:, None, :].chunk(9, -1)
+
+        def modulated(i, y):
+            return self.norms[i](y) * (1 + shift[3 * i + 1]) + shift[3 * i]
+
+        y = modulated(0, x)
+        x = x + shift[2] * self.self_attn(y, y)
+        x = x + shift[5] * self.cross_attn(modulated(1, x), condition, condition_mask)
+        return x + shift[8] * self.mlp(modulated(2, x))
+
+
+class VelocityNet(nn.Module):
+    """(condition, poses at time t) -> (v_rot body-frame rad/s, v_pos m/s)."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.cfg = cfg
+        w = cfg.width
+        self.rotation_in, self.translation_in = nn.Linear(9, w), nn.Linear(3, w)
+        self.kind = nn.Parameter(torch.randn(2, w) * 0.02)
+        self.time = nn.Sequential(nn.Linear(2 * cfg.fourier_features, w), nn.SiLU(), nn.Linear(w, w))
+        self.blocks = nn.ModuleList([DiTBlock(w, cfg.heads) for _ in range(cfg.dit_depth)])
+        self.final_norm = nn.LayerNorm(w, elementwise_affine=False)
+        self.final_modulation = nn.Linear(w, 2 * w)
+        self.rotation_head, self.translation_head = nn.Linear(w, 6), nn.Linear(w, 3)
+
+    def clean_pose(self, condition, condition_mask, rotation, translation, t):
+        """The predicted clean pose (R1_hat, p1_hat in metres)."""
+        scale = self.cfg.translation_scale
+        x = torch.stack(
+            [self.rotation_in(rotation.reshape(-1, 9)) + self.kind[0], self.translation_in(translation / scale) + self.kind[1]],
+            1,
+        )
+        c = self.time(fourier(t, self.cfg.fourier_features))
+        for block in self.blocks:
+            x = block(x, c, condition, condition_mask)
+        shift, scl = self.final_modulation(nn.functional.silu(c))[:, None, :].chunk(2, -1)
+        x = self.final_norm(x) * (1 + scl) + shift
+        # Residual on the current pose: the heads predict corrections.
+        r1 = rotation @ se3.rotation_from_6d(self.rotation_head(x[:, 0]))
+        p1 = translation + self.translation_head(x[:, 1]) * scale
+        return r1, p1
+
+    def forward(self, condition, condition_mask, rotation, translation, t):
+        r1, p1 = self.clean_pose(condition, condition_mask, rotation, translation, t)
+        remaining = (1.0 - t).clamp_min(self.cfg.min_remaining)[:, None]
+        return se3.so3_log(rotation.transpose(-1, -2) @ r1) / remaining, (p1 - translation) / remaining
