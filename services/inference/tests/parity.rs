@@ -1,0 +1,86 @@
+//! The exported fixture model (`models/test-tiny`) through ONNX Runtime
+//! gives the outputs PyTorch gave on the stored inputs, within 1e-4; broken
+//! model directories are rejected with the file and what was expected.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use poseflow_inference::{Condition, PoseFlowModel};
+
+fn model_dir() -> PathBuf {
+    PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/test-tiny"))
+}
+
+#[derive(serde::Deserialize)]
+struct Entry {
+    shape: Vec<usize>,
+    dtype: String,
+    offset: usize,
+}
+
+/// The stored tensors as f32 (i64 ones converted).
+fn parity() -> BTreeMap<String, Vec<f32>> {
+    let index: BTreeMap<String, Entry> =
+        serde_json::from_str(&std::fs::read_to_string(model_dir().join("parity.json")).unwrap()).unwrap();
+    let blob = std::fs::read(model_dir().join("parity.bin")).unwrap();
+    index
+        .into_iter()
+        .map(|(name, e)| {
+            let count: usize = e.shape.iter().product();
+            let values = match e.dtype.as_str() {
+                "f32" => blob[e.offset..e.offset + 4 * count]
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+                    .collect(),
+                "i64" => blob[e.offset..e.offset + 8 * count]
+                    .chunks_exact(8)
+                    .map(|b| i64::from_le_bytes(b.try_into().unwrap()) as f32)
+                    .collect(),
+                other => panic!("dtype {other}"),
+            };
+            (name, values)
+        })
+        .collect()
+}
+
+fn max_difference(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
+#[test]
+fn onnx_runtime_matches_pytorch_on_the_stored_vectors() {
+    let mut model = PoseFlowModel::load(&model_dir(), 1).unwrap();
+    assert_eq!((model.info.image_size, model.info.patch_grid, model.info.point_count), (112, 8, 1024));
+    assert_eq!(model.info.object_ids, [1, 5, 6, 8, 9, 10, 11, 12]);
+    let v = parity();
+    let condition = model.encode(&v["image"], &v["token_mask"], &v["points"], v["object_index"][0] as usize).unwrap();
+    assert!(max_difference(&condition.tokens, &v["condition"]) < 1e-4);
+    assert_eq!(condition.mask, v["condition_mask"]);
+    // The velocity net on the stored condition (not the recomputed one), so
+    // each network is checked on its own inputs.
+    let stored = Condition { tokens: v["condition"].clone(), mask: v["condition_mask"].clone() };
+    let out = model.velocity(&stored, &v["rotation"], &v["translation"], &v["t"]).unwrap();
+    assert!(max_difference(&out.rotation, &v["v_rot"]) < 1e-4, "{:?}", out.rotation);
+    assert!(max_difference(&out.translation, &v["v_pos"]) < 1e-4);
+    // Dynamic batch: 50 samples at once, each as it is alone.
+    let rotations: Vec<f32> = v["rotation"].iter().copied().cycle().take(50 * 9).collect();
+    let translations: Vec<f32> = v["translation"].iter().copied().cycle().take(50 * 3).collect();
+    let t: Vec<f32> = v["t"].iter().copied().cycle().take(50).collect();
+    let batch = model.velocity(&stored, &rotations, &translations, &t).unwrap();
+    assert!(max_difference(&batch.rotation[45 * 3..], &v["v_rot"]) < 1e-4);
+}
+
+#[test]
+fn broken_model_directories_are_named() {
+    let err = PoseFlowModel::load(&PathBuf::from("/nonexistent-model"), 1).unwrap_err().to_string();
+    assert!(err.contains("/nonexistent-model/encoder.onnx") && err.contains("no such file"), "{err}");
+    // The velocity net where the encoder should be: wrong inputs.
+    let dir = std::env::temp_dir().join(format!("poseflow-inference-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(model_dir().join("velocity.onnx"), dir.join("encoder.onnx")).unwrap();
+    std::fs::copy(model_dir().join("velocity.onnx"), dir.join("velocity.onnx")).unwrap();
+    let err = PoseFlowModel::load(&dir, 1).unwrap_err().to_string();
+    assert!(err.contains("encoder.onnx"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
