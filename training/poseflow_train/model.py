@@ -240,6 +240,13 @@ class VelocityNet(nn.Module):
         self.final_norm = nn.LayerNorm(w, elementwise_affine=False)
         self.final_modulation = nn.Linear(w, 2 * w)
         self.rotation_head, self.translation_head = nn.Linear(w, 6), nn.Linear(w, 3)
+        # Start from "no correction": R1_hat = R_t (6D identity), p1_hat = p_t,
+        # so the first steps do not chase random rotations.
+        for head in (self.rotation_head, self.translation_head):
+            nn.init.zeros_(head.weight)
+            nn.init.zeros_(head.bias)
+        with torch.no_grad():
+            self.rotation_head.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
 
     def clean_pose(self, condition, condition_mask, rotation, translation, t):
         """The predicted clean pose (R1_hat, p1_hat in metres)."""
