@@ -205,3 +205,18 @@ fn observe_writes_a_training_shard_with_the_ground_truth() {
     assert!((xs.iter().sum::<f32>() / 64.0).abs() < 1e-5);
     std::fs::remove_dir_all(dataset).unwrap();
 }
+
+#[test]
+fn bench_model_times_both_networks() {
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/test-tiny");
+    let out = poseflow(&["bench", "model", "--model", model, "--runs", "3", "--samples", "8", "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for network in ["encoder", "velocity"] {
+        let p50 = report[network]["p50_ms"].as_f64().unwrap();
+        assert!(p50 > 0.0 && p50 <= report[network]["p99_ms"].as_f64().unwrap(), "{report}");
+    }
+    let missing = poseflow(&["bench", "model", "--model", "/nonexistent"]);
+    assert_eq!(missing.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("/nonexistent/encoder.onnx"));
+}

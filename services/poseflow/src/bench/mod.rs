@@ -2,6 +2,7 @@
 
 mod ingest;
 mod ipc;
+mod model;
 
 use std::process::ExitCode;
 
@@ -22,6 +23,9 @@ pub enum BenchCommand {
     /// Observations per second on one core: crop, token mask and point
     /// cloud of every object of a BOP dataset's frames (held in memory).
     Ingest(ingest::IngestArgs),
+    /// Latency of a model's encoder (per observation) and velocity network
+    /// (per batch of samples) through ONNX Runtime.
+    Model(model::ModelArgs),
     /// End-to-end frames per second and per-stage latency of the estimation
     /// and tracking graphs.
     Pipeline,
@@ -37,6 +41,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
     match args.what {
         BenchCommand::Ipc(args) => ipc::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::Ingest(args) => ingest::run(&args).map(|()| ExitCode::SUCCESS),
+        BenchCommand::Model(args) => model::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::IpcReceive(args) => ipc::receive(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::Pipeline => {
             tracing::error!(
