@@ -8,6 +8,7 @@ mod preview;
 mod progress;
 mod render;
 mod run;
+mod timing;
 
 use std::process::ExitCode;
 

@@ -1,7 +1,7 @@
 //! `poseflow render`: a BOP-format dataset of random tabletop scenes.
 
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
@@ -11,6 +11,7 @@ use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
 
 use crate::progress::Progress;
+use crate::timing::Timing;
 
 /// Largest image side accepted: beyond it a typo, not a camera.
 const MAX_IMAGE_SIDE: u32 = 8192;
@@ -79,23 +80,6 @@ impl From<OcclusionArg> for Occlusion {
             OcclusionArg::Medium => Occlusion::Medium,
             OcclusionArg::High => Occlusion::High,
         }
-    }
-}
-
-#[derive(Debug, Serialize)]
-struct Timing {
-    mean_ms: f64,
-    p50_ms: f64,
-    max_ms: f64,
-}
-
-impl Timing {
-    fn of(mut durations: Vec<Duration>) -> Self {
-        durations.sort();
-        let ms = |d: Duration| d.as_secs_f64() * 1e3;
-        let mean = durations.iter().map(|&d| ms(d)).sum::<f64>() / durations.len().max(1) as f64;
-        let at = |q: f64| durations.get(((durations.len() as f64 - 1.0) * q).round() as usize).map_or(0.0, |&d| ms(d));
-        Self { mean_ms: mean, p50_ms: at(0.5), max_ms: at(1.0) }
     }
 }
 

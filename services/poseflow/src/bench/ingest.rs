@@ -12,6 +12,8 @@ use poseflow_ingest::sources::{BopFrames, FrameSource, Masks};
 use poseflow_ingest::{IngestParams, prepare};
 use serde::Serialize;
 
+use crate::timing::Timing;
+
 #[derive(Debug, Args)]
 pub struct IngestArgs {
     /// BOP dataset root (e.g. written by `poseflow render`).
@@ -44,10 +46,9 @@ struct Report {
     rejected: usize,
     /// PNG decoding and checks per frame (not part of the observation rate).
     load_ms_per_frame: f64,
-    observe_ms_mean: f64,
-    observe_ms_p50: f64,
-    observe_ms_p99: f64,
     observations_per_s_per_core: f64,
+    /// Per observation.
+    observe: Timing,
 }
 
 pub fn run(args: &IngestArgs) -> anyhow::Result<()> {
@@ -86,19 +87,15 @@ pub fn run(args: &IngestArgs) -> anyhow::Result<()> {
             }
         }
     }
-    times.sort();
-    let ms = |d: Duration| d.as_secs_f64() * 1e3;
-    let at = |q: f64| times.get(((times.len() as f64 - 1.0) * q).round() as usize).map_or(0.0, |&d| ms(d));
-    let mean = times.iter().map(|&d| ms(d)).sum::<f64>() / times.len().max(1) as f64;
+    let observations = times.len();
+    let timing = Timing::of(times);
     let report = Report {
         frames: frames.len(),
-        observations: times.len(),
+        observations,
         rejected,
-        load_ms_per_frame: ms(load),
-        observe_ms_mean: mean,
-        observe_ms_p50: at(0.5),
-        observe_ms_p99: at(0.99),
-        observations_per_s_per_core: 1e3 / mean,
+        load_ms_per_frame: load.as_secs_f64() * 1e3,
+        observations_per_s_per_core: 1e3 / timing.mean_ms,
+        observe: timing,
     };
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
@@ -109,9 +106,9 @@ pub fn run(args: &IngestArgs) -> anyhow::Result<()> {
             report.observations,
             report.frames,
             report.rejected,
-            report.observe_ms_mean,
-            report.observe_ms_p50,
-            report.observe_ms_p99,
+            report.observe.mean_ms,
+            report.observe.p50_ms,
+            report.observe.p99_ms,
             report.observations_per_s_per_core,
             report.load_ms_per_frame
         );

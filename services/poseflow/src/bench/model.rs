@@ -8,6 +8,8 @@ use clap::Args;
 use poseflow_inference::PoseFlowModel;
 use serde::Serialize;
 
+use crate::timing::Timing;
+
 #[derive(Debug, Args)]
 pub struct ModelArgs {
     /// Model directory (encoder.onnx, velocity.onnx).
@@ -28,32 +30,12 @@ pub struct ModelArgs {
 }
 
 #[derive(Debug, Serialize)]
-struct Latency {
-    p50_ms: f64,
-    p99_ms: f64,
-    mean_ms: f64,
-}
-
-impl Latency {
-    fn of(mut times: Vec<Duration>) -> Self {
-        times.sort();
-        let ms = |d: Duration| d.as_secs_f64() * 1e3;
-        let at = |q: f64| times.get(((times.len() as f64 - 1.0) * q).round() as usize).map_or(0.0, |&d| ms(d));
-        Self {
-            p50_ms: at(0.5),
-            p99_ms: at(0.99),
-            mean_ms: times.iter().map(|&d| ms(d)).sum::<f64>() / times.len().max(1) as f64,
-        }
-    }
-}
-
-#[derive(Debug, Serialize)]
 struct Report {
     model: PathBuf,
     threads: usize,
     samples: usize,
-    encoder: Latency,
-    velocity: Latency,
+    encoder: Timing,
+    velocity: Timing,
 }
 
 fn timed(runs: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<Vec<Duration>> {
@@ -93,8 +75,8 @@ pub fn run(args: &ModelArgs) -> anyhow::Result<()> {
         model: args.model.clone(),
         threads: args.threads,
         samples: m,
-        encoder: Latency::of(encoder),
-        velocity: Latency::of(velocity),
+        encoder: Timing::of(encoder),
+        velocity: Timing::of(velocity),
     };
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
