@@ -207,7 +207,11 @@ impl Transform for IngestStage {
                     let mut header = prepared.header(frame.frame_id, &frame.camera, &self.params);
                     header.header.stamps = input.header.header.stamps;
                     header.header.flags |= input.header.header.flags;
-                    let len = header.payload_len().map_err(params_error)?;
+                    // Validated parameters always give a valid header; a
+                    // failure here names the frame rather than a parameter.
+                    let len = header
+                        .payload_len()
+                        .map_err(|err| IngestError::Frame { frame: frame.label.clone(), detail: err.to_string() })?;
                     output.emit(header, len, &mut |out| prepared.write_payload(&frame, object, &self.params, out))?;
                 }
                 Err(err) => {
