@@ -531,3 +531,121 @@ fn the_ingest_stage_survives_the_bad_input_corpus() {
     drop(scratch);
     assert_nothing_leaked(&before);
 }
+
+/// frames → ingest → inference ⇄ velocity-probe: the inference stage, as its
+/// own process, encodes each observation once and answers velocity requests
+/// over iceoryx2 request-response with exactly what the same stage computes
+/// in-process, and answers an unknown condition with its status code.
+#[test]
+fn the_inference_stage_answers_velocity_requests_over_shared_memory() {
+    use poseflow_contracts::{MessageHeader, ObservationHeader, VelocityRequest, status};
+    use poseflow_inference::PoseFlowModel;
+    use poseflow_inference::stage::InferenceStage;
+    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("inference");
+    let model = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models/test-tiny"));
+    let report = scratch.dir.join("velocities.jsonl");
+    let graph = scratch.dir.join("inference.toml");
+    std::fs::write(
+        &graph,
+        format!(
+            r#"
+[graph]
+name = "inference-e2e"
+heartbeat_ms = 100
+
+[edges.frames]
+message = "Frame"
+queue = 2
+overflow = "block"
+max_payload_len = 100000
+
+[edges.observations]
+message = "Observation"
+queue = 4
+overflow = "block"
+max_payload_len = 41000
+
+[edges.conditions]
+message = "Condition"
+queue = 4
+overflow = "block"
+
+[edges.velocities]
+message = "Velocity"
+pattern = "request-response"
+max_payload_len = 600
+
+[stages.frames]
+outputs = ["frames"]
+{frames}
+
+[stages.ingest]
+exe = "ingest"
+inputs = ["frames"]
+outputs = ["observations"]
+params = {{ image_size = 112, patch_grid = 8, point_count = 1024 }}
+
+[stages.inference]
+exe = "inference"
+inputs = ["observations"]
+outputs = ["conditions"]
+serves = ["velocities"]
+params = {{ model = "{model}", threads = 1 }}
+
+[stages.probe]
+exe = "velocity-probe"
+inputs = ["conditions"]
+calls = ["velocities"]
+params = {{ report = "{report}" }}
+"#,
+            frames = corpus_frames(),
+            model = model.display(),
+            report = report.display(),
+        ),
+    )
+    .unwrap();
+    let recording = scratch.dir.join("observations.rec");
+    let (result, stderr) = run_recording(&graph, "observations", &recording);
+    // The inference stage counts the requests it could not serve.
+    for (stage, errors) in [("inference", 3), ("probe", 0)] {
+        assert_eq!(result["stages"][stage]["outcome"], "finished", "{result}\n{stderr}");
+        assert_eq!(result["stages"][stage]["errors"], errors, "{result}\n{stderr}");
+    }
+    let lines: Vec<serde_json::Value> =
+        std::fs::read_to_string(&report).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    // Image 0's three objects, each asked once with its condition and once
+    // with an unknown one.
+    assert_eq!(lines.len(), 6, "{lines:?}");
+
+    let mut stage = InferenceStage::with_model(PoseFlowModel::load(&model, 1).unwrap(), 8);
+    let mut reader = RecordingReader::open(&recording).unwrap();
+    let mut answered = 0;
+    while let Some(message) = reader.next_message().unwrap() {
+        let header: ObservationHeader = header_from_bytes(&message.header).unwrap();
+        header.check_payload(&message.payload).unwrap();
+        let handle = stage.encode(&header, &message.payload).unwrap();
+        let (frame, object) = (header.header.frame_id, header.header.object_id);
+        let known = &lines[2 * answered];
+        let unknown = &lines[2 * answered + 1];
+        assert_eq!((known["frame"].as_u64(), known["object"].as_u64()), (Some(frame), Some(u64::from(object))));
+        assert_eq!(known["status"], status::OK, "{known}");
+        assert_eq!(unknown["status"], status::UNKNOWN_CONDITION, "{unknown}");
+        assert_eq!(unknown["velocities"].as_array().map(Vec::len), Some(0));
+        let poses = poseflow_e2e::probe_poses(frame, object, 50);
+        let request = VelocityRequest { header: header.header, sample_count: 50, t: 0.2, ..Default::default() };
+        let request = VelocityRequest { condition_id: handle.condition_id, ..request };
+        let mut expected = vec![0.0f32; 50 * 6];
+        stage.velocities(&request, &poses, &mut expected).unwrap();
+        let served: Vec<f32> =
+            known["velocities"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+        assert_eq!(served, expected, "frame {frame} object {object}");
+        answered += 1;
+    }
+    assert_eq!(answered, 3);
+    drop(scratch);
+    assert_nothing_leaked(&before);
+}

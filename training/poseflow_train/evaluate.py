@@ -11,17 +11,32 @@ import torch
 from . import se3
 
 
+# Continuous symmetries are discretised in steps of 1 degree (the rotation
+# error is then at most 0.5 degrees above the exact minimum).
+CONTINUOUS_STEPS = 360
+
+
 def symmetries(dataset):
-    """{obj_id: [(R [3,3], t [3] metres)]} with the identity first."""
+    """{obj_id: [(R [3,3], t [3] metres)]} with the identity first: the
+    discrete symmetries, each combined with the discretised continuous ones
+    (as the BOP toolkit does)."""
     path = Path(dataset) / "models" / "models_info.json"
     info = json.loads(path.read_text()) if path.exists() else {}
     out = {}
     for key, entry in info.items():
-        transforms = [(torch.eye(3), torch.zeros(3))]
+        discrete = [(torch.eye(3), torch.zeros(3))]
         for m in entry.get("symmetries_discrete", []):
             m = torch.tensor(m, dtype=torch.float32).reshape(4, 4)
-            transforms.append((m[:3, :3], m[:3, 3] / 1000.0))
-        out[int(key)] = transforms
+            discrete.append((m[:3, :3], m[:3, 3] / 1000.0))
+        continuous = [(torch.eye(3), torch.zeros(3))]
+        for sym in entry.get("symmetries_continuous", []):
+            axis = torch.tensor(sym["axis"], dtype=torch.float32)
+            axis = axis / axis.norm()
+            offset = torch.tensor(sym["offset"], dtype=torch.float32) / 1000.0
+            for k in range(1, CONTINUOUS_STEPS):
+                r = se3.so3_exp(axis * (2 * math.pi * k / CONTINUOUS_STEPS))
+                continuous.append((r, offset - r @ offset))
+        out[int(key)] = [(rd @ rc, rd @ tc + td) for rd, td in discrete for rc, tc in continuous]
     return out
 
 

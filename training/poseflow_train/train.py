@@ -12,6 +12,7 @@ cumulative training time.
 """
 
 import argparse
+import glob
 import json
 import os
 import time
@@ -26,9 +27,22 @@ from .evaluate import validate
 from .model import Encoder, ModelConfig, VelocityNet
 
 
+def shard_paths(patterns, key):
+    """Shard files named by paths or glob patterns, in sorted order."""
+    paths = []
+    for pattern in patterns:
+        found = sorted(glob.glob(pattern))
+        if not found:
+            raise SystemExit(f"config: {key}: {pattern!r} matches no file (render them with training/make-data)")
+        paths.extend(found)
+    return paths
+
+
 def load_config(path):
     config = json.loads(Path(path).read_text())
     config["model"] = ModelConfig(**config.get("model", {}))
+    for key in ("train", "val"):
+        config[key] = shard_paths(config[key], key)
     return config
 
 
@@ -49,6 +63,20 @@ def flow_batch(batch, cfg, samples, steps, generator):
     r_t, p_t = se3.interpolate(r0, p0, r1, p1, t)
     v_rot, v_pos = se3.target_velocity(r_t, p_t, r1, p1, t)
     return r_t, p_t, t, v_rot, v_pos
+
+
+def loss_weight(kind, t, cfg):
+    """Per-sample weight of the squared velocity errors. "velocity": 1, the
+    plain flow-matching loss, dominated by late t where the targets grow as
+    1/(1 - t). "endpoint": (1 - t)^2, which turns the velocity error into
+    the clean-pose error in the tangent space at the current pose, so every
+    t counts alike and the hard early times (where the pose comes from the
+    observation alone) are not drowned out. Same targets either way."""
+    if kind == "velocity":
+        return torch.ones_like(t)
+    if kind == "endpoint":
+        return (1.0 - t).clamp_min(cfg.min_remaining).pow(2)
+    raise SystemExit(f"config: loss_weighting {kind!r}, expected \"endpoint\" or \"velocity\"")
 
 
 def save_atomically(state, path):
@@ -102,8 +130,9 @@ def main():
         condition, mask = encoder(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
         r_t, p_t, t, v_rot, v_pos = flow_batch(batch, cfg, samples, steps, generator)
         pred_rot, pred_pos = velocity(condition, mask, r_t, p_t, t)
-        loss_rot = (pred_rot - v_rot).pow(2).sum(-1).mean()
-        loss_pos = ((pred_pos - v_pos) / cfg.translation_scale).pow(2).sum(-1).mean()
+        weight = loss_weight(config.get("loss_weighting", "endpoint"), t, cfg)
+        loss_rot = (weight * (pred_rot - v_rot).pow(2).sum(-1)).mean()
+        loss_pos = (weight * ((pred_pos - v_pos) / cfg.translation_scale).pow(2).sum(-1)).mean()
         loss = lam * loss_pos + loss_rot
         optimiser.zero_grad()
         loss.backward()

@@ -19,4 +19,13 @@ pub enum InferenceError {
 
     #[error("{model}: {detail}")]
     Run { model: &'static str, detail: String },
+
+    #[error("param `{key}`: {detail}")]
+    Params { key: String, detail: String },
+
+    #[error("frame {frame}: observation rejected: {detail}")]
+    Observation { frame: u64, detail: String },
+
+    #[error(transparent)]
+    Emit(#[from] poseflow_runtime::EmitError),
 }

@@ -63,8 +63,8 @@ pub fn mask_file(dir: &Path, scene_id: u32, im_id: u32, obj_id: u32) -> PathBuf 
 }
 
 /// Frames of a BOP dataset split with their object masks, in scene and
-/// image order, restricted to the targets of `test_targets_bop19.json` when
-/// the dataset root has one.
+/// image order; a test split (`test`, `test_primesense`, ...) is restricted to
+/// the targets of `test_targets_bop19.json` when the dataset root has one.
 #[derive(Debug)]
 pub struct BopFrames {
     split_dir: PathBuf,
@@ -103,7 +103,9 @@ impl BopFrames {
         let split_dir = root.join(split);
         let wanted = |scene_id: u32| scenes.is_empty() || scenes.contains(&scene_id);
         let targets_file = root.join("test_targets_bop19.json");
-        let targets = if targets_file.is_file() {
+        // BOP's targets name test images; training splits beside a test
+        // split in the same root use all of their images.
+        let targets = if split.starts_with("test") && targets_file.is_file() {
             let entries: Vec<TargetEntry> = bop::read_json(&targets_file)?;
             let mut targets: Vec<Target> = Vec::new();
             for entry in entries.into_iter().filter(|e| wanted(e.scene_id)) {

@@ -162,3 +162,28 @@ fn mask_files_replace_the_ground_truth() {
     assert!(err.contains("nowhere/000000"), "{err}");
     std::fs::remove_dir_all(&root).unwrap();
 }
+
+#[test]
+fn test_targets_restrict_only_the_test_split() {
+    let library = ModelLibrary::load(&objects_dir(), &[]).unwrap();
+    let spec = |split: &str, first_scene, frames_per_scene| RenderSpec {
+        split: split.into(),
+        first_scene,
+        scenes: 1,
+        frames_per_scene,
+        seed: 3,
+        occlusion: Occlusion::Low,
+        camera: lmo_camera(160, 120),
+        views: ViewRange::default(),
+        depth_noise: None,
+        rgb_noise: 0.0,
+    };
+    let root = scratch("targets");
+    write_dataset(&library, &spec("test", 7, 2), &root, |_| {}).unwrap();
+    write_dataset(&library, &spec("train", 0, 3), &root, |_| {}).unwrap();
+    assert!(root.join("test_targets_bop19.json").is_file());
+    // The targets name scene 7 only; the train split's scene 0 is still read.
+    assert_eq!(BopFrames::open(&root, "test", &[], Masks::GroundTruth).unwrap().len(), 2);
+    assert_eq!(BopFrames::open(&root, "train", &[], Masks::GroundTruth).unwrap().len(), 3);
+    std::fs::remove_dir_all(&root).unwrap();
+}

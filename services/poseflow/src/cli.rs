@@ -36,6 +36,8 @@ pub enum Command {
     Run(crate::run::RunArgs),
     /// Render a BOP-format dataset of random RGB-D tabletop scenes from object models.
     Render(crate::render::RenderArgs),
+    /// Add an object from a PLY or OBJ mesh to a BOP models directory (model file + models_info.json entry).
+    ImportModel(crate::import_model::ImportModelArgs),
     /// Write one dataset image's RGB, depth and visible masks side by side as a PNG.
     Preview(crate::preview::PreviewArgs),
     /// Write a BOP dataset's observations and ground truth as a training shard.
@@ -52,6 +54,7 @@ impl Command {
             Command::Demo => "demo",
             Command::Run(_) => "run",
             Command::Render(_) => "render",
+            Command::ImportModel(_) => "import-model",
             Command::Preview(_) => "preview",
             Command::Observe(_) => "observe",
             Command::Eval => "eval",
@@ -73,6 +76,7 @@ pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
         Command::Run(args) => return report(crate::run::run(args, log_format)),
         Command::Bench(args) => return report(crate::bench::run(args)),
         Command::Render(args) => return report(crate::render::run(&args).map(|()| ExitCode::SUCCESS)),
+        Command::ImportModel(args) => return report(crate::import_model::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Preview(args) => return report(crate::preview::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Observe(args) => return report(crate::observe::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Demo => "it needs the trained model and the estimation graph",

@@ -2,6 +2,7 @@
 
 mod bench;
 mod cli;
+mod import_model;
 mod logging;
 mod observe;
 mod preview;

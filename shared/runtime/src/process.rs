@@ -4,15 +4,15 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
+use iceoryx2::prelude::{CallbackProgression, SynchronousMultiplexing, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
 use poseflow_contracts::{MessageHeader, Stage, StageState};
 use poseflow_graph::StageWiring;
-use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, TransportError, create_node};
+use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, RequestServer, Responder, TransportError, create_node};
 
 use crate::heartbeat::HeartbeatThread;
 use crate::liveness::Liveness;
-use crate::stage::{EmitError, Emitter, Input, Sink, Source, SourceStep, Transform};
+use crate::stage::{EmitError, Emitter, Input, Server, Sink, Source, SourceStep, Transform};
 use crate::{RuntimeError, init_logging};
 
 /// How long a finished stage waits for its receivers to drain before exiting
@@ -31,6 +31,12 @@ struct StageProcess {
     node: Node,
     liveness: Arc<Liveness>,
     heartbeat: HeartbeatThread,
+}
+
+/// A request server an event loop also wakes on, and what it does then.
+struct Requests<'a, X> {
+    server: &'a X,
+    on_event: &'a mut dyn FnMut() -> Result<(), RuntimeError>,
 }
 
 /// How an event loop ended.
@@ -84,20 +90,41 @@ impl StageProcess {
     fn event_loop<H: MessageHeader>(
         &self,
         input: &EdgeSubscriber<H>,
+        on_input: impl FnMut(Input<'_, H>),
+    ) -> Result<LoopEnd, RuntimeError> {
+        self.event_loop_serving(input, on_input, None::<Requests<'_, EdgeSubscriber<H>>>)
+    }
+
+    /// As [`Self::event_loop`], also waking on a request server.
+    fn event_loop_serving<H: MessageHeader, X: SynchronousMultiplexing + std::fmt::Debug>(
+        &self,
+        input: &EdgeSubscriber<H>,
         mut on_input: impl FnMut(Input<'_, H>),
+        mut requests: Option<Requests<'_, X>>,
     ) -> Result<LoopEnd, RuntimeError> {
         let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(waitset_error)?;
         let input_guard = waitset.attach_notification(input).map_err(waitset_error)?;
+        let requests_guard = match &requests {
+            Some(r) => Some(waitset.attach_notification(r.server).map_err(waitset_error)?),
+            None => None,
+        };
         let mut ended = false;
         let mut failure = None;
         let run = waitset.wait_and_process(|id| {
+            if let (Some(guard), Some(r)) = (&requests_guard, &mut requests)
+                && id.has_event_from(guard)
+                && let Err(err) = (r.on_event)()
+            {
+                failure = Some(err);
+                return CallbackProgression::Stop;
+            }
             if id.has_event_from(&input_guard) {
                 let step = input.take_events().and_then(|end| {
                     ended |= end;
                     drain(input, &self.liveness, &mut on_input)
                 });
                 if let Err(err) = step {
-                    failure = Some(err);
+                    failure = Some(err.into());
                     return CallbackProgression::Stop;
                 }
                 if ended {
@@ -107,7 +134,7 @@ impl StageProcess {
             CallbackProgression::Continue
         });
         if let Some(err) = failure {
-            return Err(err.into());
+            return Err(err);
         }
         match run.map_err(waitset_error)? {
             WaitSetRunResult::StopRequest if ended => Ok(LoopEnd::EndOfStream),
@@ -214,6 +241,99 @@ pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, 
             }
             liveness.count_errors(stage.take_rejected());
         })?;
+        if let LoopEnd::EndOfStream = end {
+            process.liveness.set_state(StageState::Draining);
+            finish_output(&output);
+            input.acknowledge_end()?;
+        }
+        process.finish();
+        Ok(())
+    })())
+}
+
+/// Sends a [`Server`]'s reply into the response's loaned shared memory.
+struct ReplyEmitter<'a, 'r, Req: MessageHeader, Resp: MessageHeader> {
+    responder: &'a mut Responder<'r, Req, Resp>,
+    slot: Option<Stage>,
+}
+
+impl<Req: MessageHeader, Resp: MessageHeader> Emitter<Resp> for ReplyEmitter<'_, '_, Req, Resp> {
+    fn emit(&mut self, mut header: Resp, len: usize, fill: &mut dyn FnMut(&mut [f32])) -> Result<(), EmitError> {
+        if let Some(slot) = self.slot {
+            header.header_mut().stamps.stamp(slot);
+        }
+        self.responder.send(header, len, fill).map_err(|e| EmitError(e.to_string()))
+    }
+}
+
+/// Runs a [`Server`] as a graph process: its input and output edge as for
+/// [`run_transform`], plus the one request-response edge it `serves`.
+pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String>) -> ExitCode {
+    exit((|| {
+        let process = StageProcess::start(1, 1)?;
+        let wiring = &process.wiring;
+        let [served] = wiring.serves.as_slice() else {
+            return Err(RuntimeError::Shape {
+                stage: wiring.stage.clone(),
+                expected: "one request-response edge it serves",
+                found: format!("{} served edge(s)", wiring.serves.len()),
+            });
+        };
+        let mut stage = build(wiring, make)?;
+        let _span = tracing::info_span!("stage", name = %wiring.stage).entered();
+        let input = process.input::<S::In>()?;
+        let output = process.output::<S::Out>()?;
+        let server =
+            RequestServer::<S::Request, S::Response>::create(&process.node, &served.service, served.max_payload_len)?;
+        tracing::info!(input = input.name(), output = output.name(), serves = %served.edge, "running");
+        let liveness = &process.liveness;
+        // The stage is used by both handlers, never at the same time: the
+        // WaitSet calls one callback at a time.
+        let stage = std::cell::RefCell::new(&mut stage);
+        let mut on_requests = || -> Result<(), RuntimeError> {
+            server.serve(|header, payload, responder| {
+                let frame = header.header().frame_id;
+                let _span = tracing::debug_span!("request", frame).entered();
+                let started = Instant::now();
+                liveness.work_started();
+                let request = match header.check_payload(payload) {
+                    Ok(()) => Some(Input { header, payload }),
+                    Err(err) => {
+                        liveness.count_error();
+                        tracing::warn!(%err, "request breaks its contract; answered as invalid");
+                        None
+                    }
+                };
+                let mut reply = ReplyEmitter { responder, slot: S::SLOT };
+                let mut stage = stage.borrow_mut();
+                let answered = match request {
+                    Some(request) => stage.answer(request, &mut reply).map_err(|e| e.to_string()),
+                    None => stage.answer_invalid(header, &mut reply).map_err(|e| e.to_string()),
+                };
+                liveness.work_finished(started.elapsed());
+                liveness.count_errors(stage.take_rejected());
+                if let Err(err) = answered {
+                    liveness.count_error();
+                    tracing::warn!(%err, "request not answered");
+                }
+                Ok(())
+            })?;
+            Ok(())
+        };
+        let requests = Requests { server: &server, on_event: &mut on_requests };
+        let end = process.event_loop_serving(
+            &input,
+            |message| {
+                let mut emitter = IpcEmitter { publisher: &output, slot: S::SLOT, liveness };
+                let mut stage = stage.borrow_mut();
+                if let Err(err) = stage.process(message, &mut emitter) {
+                    liveness.count_error();
+                    tracing::warn!(%err, "process failed; frame skipped");
+                }
+                liveness.count_errors(stage.take_rejected());
+            },
+            Some(requests),
+        )?;
         if let LoopEnd::EndOfStream = end {
             process.liveness.set_state(StageState::Draining);
             finish_output(&output);

@@ -50,6 +50,33 @@ pub trait Transform {
     }
 }
 
+/// A [`Transform`] that also answers requests on one request-response edge:
+/// the inference stage turns each Observation into a cached condition (its
+/// output is the handle) and answers the sampler's velocity requests from
+/// that cache.
+pub trait Server: Transform {
+    type Request: MessageHeader;
+    type Response: MessageHeader;
+
+    /// Answers one request with exactly one `reply.emit`. A request that
+    /// cannot be served still gets a response (an error status in its
+    /// header), so the caller never waits for a timeout; `Err` is for a reply
+    /// that could not be sent.
+    fn answer(
+        &mut self,
+        request: Input<'_, Self::Request>,
+        reply: &mut dyn Emitter<Self::Response>,
+    ) -> Result<(), Self::Error>;
+
+    /// Answers a request whose payload breaks its contract (the runtime has
+    /// counted and logged it) with an error status.
+    fn answer_invalid(
+        &mut self,
+        request: &Self::Request,
+        reply: &mut dyn Emitter<Self::Response>,
+    ) -> Result<(), Self::Error>;
+}
+
 /// What a source did on one call.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SourceStep {

@@ -10,6 +10,7 @@
 pub mod bop;
 pub mod dataset;
 mod error;
+pub mod import;
 mod library;
 mod mesh;
 mod noise;

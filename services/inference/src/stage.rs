@@ -1,0 +1,303 @@
+//! The inference stage: Observation in, Condition handle out, velocity
+//! requests answered.
+//!
+//! Each Observation is encoded once; its condition tokens stay in this
+//! process under a `condition_id` that the handle carries to the sampler,
+//! which then asks for the velocities of all its samples at each Euler step
+//! by request-response. Only the handle and the poses cross shared memory,
+//! never the tokens.
+//!
+//! Parameters (graph `params` over `config/inference.toml`):
+//!
+//! | key | meaning | default |
+//! |---|---|---|
+//! | `model` | directory with `encoder.onnx` and `velocity.onnx` | `models/poseflow-lmo10` |
+//! | `threads` | ONNX Runtime intra-op threads per network | 2 |
+//! | `cache` | conditions kept (oldest dropped first) | 8 |
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+
+use poseflow_contracts::status as velocity_status;
+use poseflow_contracts::{
+    ConditionHandle, Header, ObservationHeader, POSE_LEN, Stage, VELOCITY_LEN, VelocityRequest, VelocityResponse,
+};
+use poseflow_runtime::{Emitter, Input, Server, Transform};
+use serde::Deserialize;
+
+use crate::{Condition, InferenceError, PoseFlowModel};
+
+/// The stage's parameters.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InferenceParams {
+    #[serde(default = "default_model")]
+    pub model: PathBuf,
+    #[serde(default = "default_threads")]
+    pub threads: usize,
+    #[serde(default = "default_cache")]
+    pub cache: usize,
+}
+
+fn default_model() -> PathBuf {
+    PathBuf::from("models/poseflow-lmo10")
+}
+fn default_threads() -> usize {
+    2
+}
+fn default_cache() -> usize {
+    8
+}
+
+impl InferenceParams {
+    /// Reads the graph's `params`, naming the key that is wrong.
+    pub fn from_json(value: &serde_json::Value) -> Result<Self, InferenceError> {
+        let params: Self = serde_json::from_value(value.clone())
+            .map_err(|e| InferenceError::Params { key: "inference".into(), detail: e.to_string() })?;
+        if !(1..=64).contains(&params.threads) {
+            return Err(InferenceError::Params {
+                key: "threads".into(),
+                detail: format!("{}: expected 1 to 64", params.threads),
+            });
+        }
+        if params.cache == 0 {
+            return Err(InferenceError::Params { key: "cache".into(), detail: "0: expected at least 1".into() });
+        }
+        Ok(params)
+    }
+}
+
+/// One encoded observation, kept for its velocity requests.
+#[derive(Debug)]
+struct Cached {
+    id: u64,
+    condition: Condition,
+    point_scale: f32,
+}
+
+/// The inference stage: the model, the condition cache and the buffers a
+/// velocity request is unpacked into (reused, so the hot path does not
+/// allocate once warm).
+#[derive(Debug)]
+pub struct InferenceStage {
+    model: PoseFlowModel,
+    capacity: usize,
+    cache: VecDeque<Cached>,
+    /// High 32 bits of every condition id: differs between runs, so a
+    /// sampler holding an id from before a restart gets UNKNOWN_CONDITION
+    /// instead of another observation's condition.
+    run_nonce: u64,
+    encoded: u64,
+    points: Vec<f32>,
+    rotations: Vec<f32>,
+    translations: Vec<f32>,
+    times: Vec<f32>,
+    response: Vec<f32>,
+    rejected: u64,
+}
+
+fn run_nonce() -> u64 {
+    let mixed = poseflow_contracts::monotonic_ns() ^ (u64::from(std::process::id()) << 20);
+    // splitmix64 finaliser: spreads nearby clock values over all bits.
+    let mut z = mixed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    ((z ^ (z >> 31)) & 0xFFFF_FFFF).max(1) << 32
+}
+
+impl InferenceStage {
+    pub fn new(params: &InferenceParams) -> Result<Self, InferenceError> {
+        Ok(Self::with_model(PoseFlowModel::load(&params.model, params.threads)?, params.cache))
+    }
+
+    pub fn with_model(model: PoseFlowModel, capacity: usize) -> Self {
+        Self {
+            model,
+            capacity: capacity.max(1),
+            cache: VecDeque::new(),
+            run_nonce: run_nonce(),
+            encoded: 0,
+            points: Vec::new(),
+            rotations: Vec::new(),
+            translations: Vec::new(),
+            times: Vec::new(),
+            response: Vec::new(),
+            rejected: 0,
+        }
+    }
+
+    pub fn model_dir(&self) -> &Path {
+        &self.model.dir
+    }
+
+    /// Encodes one observation and caches its condition; returns the handle.
+    pub fn encode(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<ConditionHandle, InferenceError> {
+        let frame = header.header.frame_id;
+        let bad = |detail: String| InferenceError::Observation { frame, detail };
+        let info = &self.model.info;
+        let sizes = [
+            ("image_size", header.image_size as usize, info.image_size),
+            ("patch_grid", header.patch_grid as usize, info.patch_grid),
+            ("point_count", header.point_count as usize, info.point_count),
+        ];
+        for (field, found, expected) in sizes {
+            if found != expected {
+                return Err(bad(format!(
+                    "{field} {found}, but the model in {} expects {expected} (set the ingest stage's {field} to match)",
+                    self.model.dir.display()
+                )));
+            }
+        }
+        let object_index = self.model.object_index(header.header.object_id).ok_or_else(|| {
+            bad(format!(
+                "object {} is not one the model knows (its objects: {:?})",
+                header.header.object_id, self.model.info.object_ids
+            ))
+        })?;
+        if !(header.point_scale.is_finite() && header.point_scale > 0.0) {
+            return Err(bad(format!("point_scale {}: expected a positive number", header.point_scale)));
+        }
+        let view = header.view(payload).map_err(|e| bad(e.to_string()))?;
+        // The network takes metres.
+        self.points.clear();
+        self.points.extend(view.points.iter().map(|&x| x * header.point_scale));
+        let condition = self.model.encode(view.image, view.token_mask, &self.points, object_index)?;
+        self.encoded += 1;
+        let id = self.run_nonce | (self.encoded & 0xFFFF_FFFF);
+        let active_image_tokens = view.token_mask.iter().filter(|&&m| m > 0.5).count() as u32;
+        let image_tokens = (self.model.info.patch_grid * self.model.info.patch_grid) as u32;
+        let handle = ConditionHandle {
+            header: header.header,
+            condition_id: id,
+            image_tokens,
+            point_tokens: (self.model.info.tokens as u32).saturating_sub(image_tokens),
+            active_image_tokens,
+            model_width: self.model.info.width as u32,
+            centroid: header.centroid,
+            point_scale: header.point_scale,
+        };
+        if self.cache.len() == self.capacity {
+            self.cache.pop_front();
+        }
+        self.cache.push_back(Cached { id, condition, point_scale: header.point_scale });
+        Ok(handle)
+    }
+
+    /// Velocities (`v` then `ω`, 6 per sample, the request's frame) of a
+    /// request's samples, written into `out`; Err carries the status code.
+    pub fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), u32> {
+        let Some(cached) = self.cache.iter().find(|c| c.id == request.condition_id) else {
+            return Err(velocity_status::UNKNOWN_CONDITION);
+        };
+        let n = request.sample_count as usize;
+        if poses.len() != n * POSE_LEN || out.len() != n * VELOCITY_LEN || poses.iter().any(|x| !x.is_finite()) {
+            return Err(velocity_status::INVALID_REQUEST);
+        }
+        let scale = cached.point_scale;
+        self.rotations.clear();
+        self.translations.clear();
+        for pose in poses.chunks_exact(POSE_LEN) {
+            self.rotations.extend_from_slice(&pose[..9]);
+            self.translations.extend(pose[9..].iter().map(|&x| x * scale));
+        }
+        self.times.clear();
+        self.times.resize(n, request.t);
+        let velocities = self
+            .model
+            .velocity(&cached.condition, &self.rotations, &self.translations, &self.times)
+            .map_err(|err| {
+                tracing::warn!(%err, "velocity network failed");
+                velocity_status::INFERENCE_FAILED
+            })?;
+        for ((o, v), w) in out
+            .chunks_exact_mut(VELOCITY_LEN)
+            .zip(velocities.translation.chunks_exact(3))
+            .zip(velocities.rotation.chunks_exact(3))
+        {
+            o[0] = v[0] / scale;
+            o[1] = v[1] / scale;
+            o[2] = v[2] / scale;
+            o[3..].copy_from_slice(w);
+        }
+        Ok(())
+    }
+
+    fn reply_status(
+        header: Header,
+        request_id: u64,
+        status: u32,
+        reply: &mut dyn Emitter<VelocityResponse>,
+    ) -> Result<(), InferenceError> {
+        let response = VelocityResponse { header, request_id, sample_count: 0, status };
+        reply.emit(response, 0, &mut |_| {})?;
+        Ok(())
+    }
+}
+
+impl Transform for InferenceStage {
+    type In = ObservationHeader;
+    type Out = ConditionHandle;
+    type Error = InferenceError;
+    const SLOT: Option<Stage> = Some(Stage::Encode);
+
+    fn process(
+        &mut self,
+        input: Input<'_, ObservationHeader>,
+        output: &mut dyn Emitter<ConditionHandle>,
+    ) -> Result<(), InferenceError> {
+        let handle = self.encode(input.header, input.payload)?;
+        tracing::debug!(condition = handle.condition_id, "encoded");
+        output.emit(handle, 0, &mut |_| {})?;
+        Ok(())
+    }
+
+    fn take_rejected(&mut self) -> u64 {
+        std::mem::take(&mut self.rejected)
+    }
+}
+
+impl Server for InferenceStage {
+    type Request = VelocityRequest;
+    type Response = VelocityResponse;
+
+    fn answer(
+        &mut self,
+        request: Input<'_, VelocityRequest>,
+        reply: &mut dyn Emitter<VelocityResponse>,
+    ) -> Result<(), InferenceError> {
+        let header = request.header;
+        let n = header.sample_count as usize;
+        // Computed before the response is loaned: its header (status and
+        // length) must be known first; the copy into shared memory is N·6
+        // floats.
+        let mut velocities = std::mem::take(&mut self.response);
+        velocities.resize(n * VELOCITY_LEN, 0.0);
+        let result = self.velocities(header, request.payload, &mut velocities);
+        let sent = match result {
+            Ok(()) => {
+                let response = VelocityResponse {
+                    header: header.header,
+                    request_id: header.request_id,
+                    sample_count: header.sample_count,
+                    status: velocity_status::OK,
+                };
+                reply.emit(response, velocities.len(), &mut |out| out.copy_from_slice(&velocities)).map_err(Into::into)
+            }
+            Err(status) => {
+                self.rejected += 1;
+                tracing::warn!(condition = header.condition_id, status, "velocity request not served");
+                Self::reply_status(header.header, header.request_id, status, reply)
+            }
+        };
+        self.response = velocities;
+        sent
+    }
+
+    fn answer_invalid(
+        &mut self,
+        request: &VelocityRequest,
+        reply: &mut dyn Emitter<VelocityResponse>,
+    ) -> Result<(), InferenceError> {
+        Self::reply_status(request.header, request.request_id, velocity_status::INVALID_REQUEST, reply)
+    }
+}

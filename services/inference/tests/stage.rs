@@ -1,0 +1,137 @@
+//! The inference stage in-process: encoder once per observation, velocity
+//! requests answered from the cached condition in the contract's layout and
+//! frame, every failure answered with a status.
+
+mod common;
+
+use std::collections::BTreeMap;
+
+use common::{max_difference, model_dir, parity};
+use poseflow_contracts::{Header, MessageHeader, ObservationHeader, VelocityRequest, status};
+use poseflow_inference::PoseFlowModel;
+use poseflow_inference::stage::{InferenceParams, InferenceStage};
+
+fn stage(cache: usize) -> InferenceStage {
+    InferenceStage::with_model(PoseFlowModel::load(&model_dir(), 1).unwrap(), cache)
+}
+
+/// The stored observation as an Observation message whose points are
+/// divided by `point_scale`.
+fn observation(v: &BTreeMap<String, Vec<f32>>, object_id: u32, point_scale: f32) -> (ObservationHeader, Vec<f32>) {
+    let header = ObservationHeader {
+        header: Header::new(7, object_id),
+        centroid: [0.1, -0.05, 0.8],
+        point_scale,
+        crop: [100.0, 80.0, 212.0, 192.0],
+        image_size: 112,
+        patch_grid: 8,
+        point_count: 1024,
+        valid_point_count: 1024,
+        ..ObservationHeader::default()
+    };
+    let points = v["points"].iter().map(|x| x / point_scale);
+    let payload: Vec<f32> = v["image"].iter().chain(&v["token_mask"]).copied().chain(points).collect();
+    header.check_payload(&payload).unwrap();
+    (header, payload)
+}
+
+/// The stored poses as a request payload (R row-major, t), translations
+/// divided by `point_scale`.
+fn poses(v: &BTreeMap<String, Vec<f32>>, point_scale: f32) -> Vec<f32> {
+    v["rotation"]
+        .chunks_exact(9)
+        .zip(v["translation"].chunks_exact(3))
+        .flat_map(|(r, t)| r.iter().copied().chain(t.iter().map(|x| x / point_scale)))
+        .collect()
+}
+
+fn request(condition_id: u64, sample_count: u32, t: f32) -> VelocityRequest {
+    VelocityRequest {
+        header: Header::new(7, 1),
+        condition_id,
+        request_id: 3,
+        sample_count,
+        t,
+        step_index: 1,
+        step_count: 5,
+    }
+}
+
+#[test]
+fn velocities_come_from_the_cached_condition_as_v_then_omega() {
+    let v = parity();
+    let obj = 5; // object index 1 of the fixture's [1, 5, 6, ...]
+    let mut stage = stage(4);
+    let (header, payload) = observation(&v, obj, 1.0);
+    let handle = stage.encode(&header, &payload).unwrap();
+    assert_eq!((handle.image_tokens, handle.point_tokens, handle.model_width), (64, 33, 64));
+    assert_eq!(handle.active_image_tokens as usize, v["token_mask"].iter().filter(|&&m| m > 0.5).count());
+    assert_eq!((handle.centroid, handle.point_scale), (header.centroid, 1.0));
+
+    let n = v["t"].len();
+    let t = 0.4f32;
+    let mut out = vec![0.0; n * 6];
+    stage.velocities(&request(handle.condition_id, n as u32, t), &poses(&v, 1.0), &mut out).unwrap();
+
+    let mut reference = PoseFlowModel::load(&model_dir(), 1).unwrap();
+    let condition = reference.encode(&v["image"], &v["token_mask"], &v["points"], 1).unwrap();
+    let expected = reference.velocity(&condition, &v["rotation"], &v["translation"], &vec![t; n]).unwrap();
+    let v_pos: Vec<f32> = out.chunks_exact(6).flat_map(|o| o[..3].to_vec()).collect();
+    let omega: Vec<f32> = out.chunks_exact(6).flat_map(|o| o[3..].to_vec()).collect();
+    assert!(max_difference(&v_pos, &expected.translation) < 1e-5);
+    assert!(max_difference(&omega, &expected.rotation) < 1e-5);
+
+    // The same observation in units of 0.5 m: velocities scale, ω does not.
+    let (scaled_header, scaled_payload) = observation(&v, obj, 0.5);
+    let scaled = stage.encode(&scaled_header, &scaled_payload).unwrap();
+    assert_ne!(scaled.condition_id, handle.condition_id);
+    let mut scaled_out = vec![0.0; n * 6];
+    stage.velocities(&request(scaled.condition_id, n as u32, t), &poses(&v, 0.5), &mut scaled_out).unwrap();
+    let rescaled: Vec<f32> =
+        scaled_out.chunks_exact(6).flat_map(|o| [o[0] * 0.5, o[1] * 0.5, o[2] * 0.5, o[3], o[4], o[5]]).collect();
+    assert!(max_difference(&rescaled, &out) < 1e-4);
+}
+
+#[test]
+fn an_evicted_or_foreign_condition_is_unknown_and_bad_poses_are_invalid() {
+    let v = parity();
+    let mut stage = stage(1);
+    let (header, payload) = observation(&v, 1, 1.0);
+    let first = stage.encode(&header, &payload).unwrap();
+    let second = stage.encode(&header, &payload).unwrap();
+    let n = v["t"].len();
+    let mut out = vec![0.0; n * 6];
+    let mut ask = |id, poses: &[f32]| stage.velocities(&request(id, n as u32, 0.2), poses, &mut out);
+    assert_eq!(ask(first.condition_id, &poses(&v, 1.0)), Err(status::UNKNOWN_CONDITION));
+    assert_eq!(ask(second.condition_id ^ (1 << 40), &poses(&v, 1.0)), Err(status::UNKNOWN_CONDITION));
+    assert_eq!(ask(second.condition_id, &poses(&v, 1.0)), Ok(()));
+    let mut broken = poses(&v, 1.0);
+    broken[4] = f32::NAN;
+    assert_eq!(ask(second.condition_id, &broken), Err(status::INVALID_REQUEST));
+}
+
+#[test]
+fn observations_the_model_cannot_take_are_rejected_with_the_reason() {
+    let v = parity();
+    let mut stage = stage(2);
+    let (header, payload) = observation(&v, 2, 1.0);
+    let err = stage.encode(&header, &payload).unwrap_err().to_string();
+    assert!(err.contains("frame 7") && err.contains("object 2 is not one the model knows"), "{err}");
+
+    let (mut header, _) = observation(&v, 1, 1.0);
+    header.image_size = 224;
+    header.patch_grid = 16;
+    let payload = vec![0.0; header.payload_len().unwrap()];
+    let err = stage.encode(&header, &payload).unwrap_err().to_string();
+    assert!(err.contains("image_size 224") && err.contains("expects 112"), "{err}");
+}
+
+#[test]
+fn parameters_name_the_key_that_is_wrong() {
+    let params = InferenceParams::from_json(&serde_json::json!({ "model": "models/x" })).unwrap();
+    assert_eq!((params.threads, params.cache), (2, 8));
+    let err = InferenceParams::from_json(&serde_json::json!({ "threads": 0 })).unwrap_err().to_string();
+    assert!(err.contains("`threads`") && err.contains("1 to 64"), "{err}");
+    let err = InferenceParams::from_json(&serde_json::json!({ "modle": "x" })).unwrap_err().to_string();
+    assert!(err.contains("modle"), "{err}");
+}
