@@ -72,37 +72,121 @@ def errors(r, p, gt_r, gt_p, transforms):
     return best_rot, best_trans
 
 
-def validate(encoder, velocity, observations, cfg, count, samples, steps, seed):
-    """Per-sample accuracies over the first `count` observations."""
-    encoder.eval()
-    velocity.eval()
+def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed):
+    """Per-sample accuracies over the first `count` observations, overall
+    and per object. `encoder` and `velocity` are callables with the
+    signatures of the PyTorch modules (or `OnnxPoseFlow`'s)."""
     generator = torch.Generator().manual_seed(seed)
     transforms = symmetries(observations.info["dataset"])
-    rots, transs = [], []
-    for start in range(0, min(count, len(observations)), 16):
-        batch = observations.batch(range(start, min(start + 16, count, len(observations))))
+    count = min(count, len(observations))
+    rots, transs, objects = [], [], []
+    for start in range(0, count, 16):
+        batch = observations.batch(range(start, min(start + 16, count)))
         r, p = sample(encoder, velocity, batch, cfg, samples, steps, generator)
         for i in range(r.shape[0]):
-            sym = transforms.get(int(batch["obj_id"][i]), [(torch.eye(3), torch.zeros(3))])
+            obj = int(batch["obj_id"][i])
+            sym = transforms.get(obj, [(torch.eye(3), torch.zeros(3))])
             rot, trans = errors(r[i], p[i], batch["rotation"][i], batch["translation"][i], sym)
             rots.append(rot)
             transs.append(trans)
-    encoder.train()
-    velocity.train()
-    rot, trans = torch.cat(rots), torch.cat(transs)
+            objects.append(obj)
 
-    def acc(deg, cm):
-        return round(100.0 * ((rot < deg) & (trans < cm)).float().mean().item(), 2)
+    def summary(rot, trans):
+        def acc(deg, cm):
+            return round(100.0 * ((rot < deg) & (trans < cm)).float().mean().item(), 2)
 
-    return {
-        "observations": len(rots),
-        "samples": samples,
-        "steps": steps,
-        "acc_5deg_5cm": acc(5, 5),
-        "acc_10deg_5cm": acc(10, 5),
-        "acc_10deg_2cm": acc(10, 2),
-        "median_rot_deg": round(rot.median().item(), 2),
-        "median_trans_cm": round(trans.median().item(), 2),
+        return {
+            "acc_5deg_5cm": acc(5, 5),
+            "acc_10deg_5cm": acc(10, 5),
+            "acc_10deg_2cm": acc(10, 2),
+            "median_rot_deg": round(rot.median().item(), 2),
+            "median_trans_cm": round(trans.median().item(), 2),
+        }
+
+    result = {"observations": len(rots), "samples": samples, "steps": steps, **summary(torch.cat(rots), torch.cat(transs))}
+    result["per_object"] = {
+        str(obj): {"observations": objects.count(obj),
+                   **summary(torch.cat([r for r, o in zip(rots, objects) if o == obj]),
+                             torch.cat([t for t, o in zip(transs, objects) if o == obj]))}
+        for obj in sorted(set(objects))
     }
+    return result
 
 
+def validate(encoder, velocity, observations, cfg, count, samples, steps, seed):
+    """`accuracy` of the modules in eval mode, during training."""
+    encoder.eval()
+    velocity.eval()
+    try:
+        return accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed)
+    finally:
+        encoder.train()
+        velocity.train()
+
+
+class OnnxPoseFlow:
+    """An exported model directory through ONNX Runtime, callable like the
+    PyTorch modules, so the figures of a model card come from the files the
+    inference stage serves."""
+
+    def __init__(self, model_dir, threads):
+        import onnxruntime
+
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = threads
+        model_dir = Path(model_dir)
+        self.encoder_session = onnxruntime.InferenceSession(str(model_dir / "encoder.onnx"), options)
+        self.velocity_session = onnxruntime.InferenceSession(str(model_dir / "velocity.onnx"), options)
+        meta = self.encoder_session.get_modelmeta().custom_metadata_map
+        self.object_ids = json.loads(meta["object_ids"])
+        self.translation_noise_std = float(meta["translation_noise_std"])
+
+    def encoder(self, image, token_mask, points, object_index):
+        condition, mask = self.encoder_session.run(
+            None, {"image": image.numpy(), "token_mask": token_mask.numpy(), "points": points.numpy(),
+                   "object_index": object_index.numpy()})
+        return torch.from_numpy(condition), torch.from_numpy(mask)
+
+    def velocity(self, condition, mask, r, p, t):
+        """The contract's velocity net takes one condition: samples are
+        grouped by observation, in order."""
+        b = condition.shape[0]
+        n = r.shape[0] // b
+        v_rot, v_pos = [], []
+        for i in range(b):
+            part = slice(i * n, (i + 1) * n)
+            w, v = self.velocity_session.run(
+                None, {"condition": condition[i:i + 1].numpy(), "condition_mask": mask[i:i + 1].numpy(),
+                       "rotation": r[part].numpy(), "translation": p[part].numpy(), "t": t[part].numpy()})
+            v_rot.append(torch.from_numpy(w))
+            v_pos.append(torch.from_numpy(v))
+        return torch.cat(v_rot), torch.cat(v_pos)
+
+
+def main():
+    import argparse
+    from types import SimpleNamespace
+
+    from .data import Observations
+
+    parser = argparse.ArgumentParser(description="Per-sample accuracy of an exported model on a held-out shard.")
+    parser.add_argument("--model", required=True, help="directory with encoder.onnx and velocity.onnx")
+    parser.add_argument("--shard", required=True, nargs="+")
+    parser.add_argument("--samples", type=int, default=50)
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--count", type=int, default=10**9, help="first observations only")
+    parser.add_argument("--min-visib-fract", type=float, default=0.1)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    model = OnnxPoseFlow(args.model, args.threads)
+    observations = Observations(args.shard, model.object_ids, args.min_visib_fract)
+    cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std)
+    result = accuracy(model.encoder, model.velocity, observations, cfg, args.count, args.samples, args.steps, args.seed)
+    result.update({"model": args.model, "shard": args.shard, "min_visib_fract": args.min_visib_fract})
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()

@@ -42,6 +42,7 @@ def metadata(cfg, extra):
         "translation_scale": cfg.translation_scale,
         "translation_noise_std": cfg.translation_noise_std,
         "object_ids": cfg.object_ids,
+        "image_encoder": cfg.image_encoder,
         **extra,
     }
     return {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()}

@@ -22,6 +22,7 @@ import torch
 from torch import nn
 
 from . import se3
+from .dinov2 import DinoV2Small
 
 
 @dataclass
@@ -45,8 +46,20 @@ class ModelConfig:
     # past t = (K - 1) / K).
     min_remaining: float = 0.05
     object_ids: list = field(default_factory=lambda: [1])
-    # "scratch": a small ViT trained with the rest (the CPU default).
+    # "scratch": a small ViT trained with the rest (the CPU default);
+    # "dinov2": a frozen DINOv2 ViT-S/14 from `dinov2_checkpoint` (Meta's
+    # dinov2_vits14_pretrain.pth; image_size must be 14 * patch_grid).
     image_encoder: str = "scratch"
+    dinov2_checkpoint: str = ""
+
+    def __post_init__(self):
+        if self.image_encoder not in ("scratch", "dinov2"):
+            raise SystemExit(f"model.image_encoder: {self.image_encoder!r}, expected \"scratch\" or \"dinov2\"")
+        if self.image_encoder == "dinov2" and self.image_size != 14 * self.patch_grid:
+            raise SystemExit(
+                f"model.image_size {self.image_size}: DINOv2 takes 14-pixel patches, so 14 x patch_grid "
+                f"= {14 * self.patch_grid}"
+            )
 
     def to_dict(self):
         return asdict(self)
@@ -179,9 +192,13 @@ class Encoder(nn.Module):
 
     def __init__(self, cfg):
         super().__init__()
-        self.image = ImageEncoder(cfg)
+        if cfg.image_encoder == "dinov2":
+            self.image = DinoV2Small(cfg.dinov2_checkpoint, cfg.patch_grid)
+        else:
+            self.image = ImageEncoder(cfg)
+        image_width = self.image.width if cfg.image_encoder == "dinov2" else cfg.width
         self.points = PointEncoder(cfg)
-        self.image_proj, self.point_proj = nn.Linear(cfg.width, cfg.width), nn.Linear(cfg.width, cfg.width)
+        self.image_proj, self.point_proj = nn.Linear(image_width, cfg.width), nn.Linear(cfg.width, cfg.width)
         self.kind = nn.Parameter(torch.randn(3, cfg.width) * 0.02)
         self.objects = nn.Embedding(len(cfg.object_ids), cfg.width)
 

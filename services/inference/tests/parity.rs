@@ -6,7 +6,7 @@ mod common;
 
 use std::path::PathBuf;
 
-use common::{max_difference, model_dir, parity};
+use common::{max_difference, model_dir, parity, parity_of};
 use poseflow_inference::{Condition, PoseFlowModel};
 
 #[test]
@@ -30,6 +30,31 @@ fn onnx_runtime_matches_pytorch_on_the_stored_vectors() {
     let t: Vec<f32> = v["t"].iter().copied().cycle().take(50).collect();
     let batch = model.velocity(&stored, &rotations, &translations, &t).unwrap();
     assert!(max_difference(&batch.rotation[45 * 3..], &v["v_rot"]) < 1e-4);
+}
+
+/// Every model shipped in `models/` (the default one included) reproduces
+/// its own stored vectors.
+#[test]
+fn every_shipped_model_reproduces_its_parity_vectors() {
+    let models = model_dir().parent().unwrap().to_path_buf();
+    let mut checked = Vec::new();
+    for entry in std::fs::read_dir(&models).unwrap() {
+        let dir = entry.unwrap().path();
+        if !dir.join("parity.json").is_file() {
+            continue;
+        }
+        let mut model = PoseFlowModel::load(&dir, 1).unwrap();
+        let v = parity_of(&dir);
+        let index = v["object_index"][0] as usize;
+        let condition = model.encode(&v["image"], &v["token_mask"], &v["points"], index).unwrap();
+        assert!(max_difference(&condition.tokens, &v["condition"]) < 1e-4, "{}", dir.display());
+        let stored = Condition { tokens: v["condition"].clone(), mask: v["condition_mask"].clone() };
+        let out = model.velocity(&stored, &v["rotation"], &v["translation"], &v["t"]).unwrap();
+        assert!(max_difference(&out.rotation, &v["v_rot"]) < 1e-4, "{}", dir.display());
+        assert!(max_difference(&out.translation, &v["v_pos"]) < 1e-4, "{}", dir.display());
+        checked.push(dir.file_name().unwrap().to_string_lossy().into_owned());
+    }
+    assert!(checked.contains(&"test-tiny".to_string()), "{checked:?}");
 }
 
 #[test]

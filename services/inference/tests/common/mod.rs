@@ -16,9 +16,14 @@ struct Entry {
 
 /// The stored tensors as f32 (i64 ones converted).
 pub fn parity() -> BTreeMap<String, Vec<f32>> {
+    parity_of(&model_dir())
+}
+
+/// The stored tensors of the model in `dir`.
+pub fn parity_of(dir: &std::path::Path) -> BTreeMap<String, Vec<f32>> {
     let index: BTreeMap<String, Entry> =
-        serde_json::from_str(&std::fs::read_to_string(model_dir().join("parity.json")).unwrap()).unwrap();
-    let blob = std::fs::read(model_dir().join("parity.bin")).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(dir.join("parity.json")).unwrap()).unwrap();
+    let blob = std::fs::read(dir.join("parity.bin")).unwrap();
     index
         .into_iter()
         .map(|(name, e)| {
