@@ -385,14 +385,13 @@ fn corpus_frames() -> String {
     format!("exe = \"frame-source\"\nparams = {{ source = \"bop\", dataset = \"{corpus}\", split = \"test\" }}")
 }
 
-/// A graph `frames` → [detector →] ingest, with `frames` the body of the
-/// frames stage (exe and params) and `detector` a Python detector plug-in
-/// and its params.
-fn ingest_graph(scratch: &Scratch, name: &str, frames: &str, detector: Option<(&str, &str)>) -> PathBuf {
-    let mut text = format!(
+/// The `[graph]` table and the frames and observations edges of a test
+/// graph whose observations hold up to `observation_payload` values.
+fn graph_head(name: &str, observation_payload: usize) -> String {
+    format!(
         r#"
 [graph]
-name = "ingest-corpus"
+name = "{name}"
 heartbeat_ms = 100
 
 [edges.frames]
@@ -405,8 +404,18 @@ max_payload_len = 100000
 message = "Observation"
 queue = 4
 overflow = "block"
-max_payload_len = 10000
+max_payload_len = {observation_payload}
+"#
+    )
+}
 
+/// A graph `frames` → [detector →] ingest, with `frames` the body of the
+/// frames stage (exe and params) and `detector` a Python detector plug-in
+/// and its params.
+fn ingest_graph(scratch: &Scratch, name: &str, frames: &str, detector: Option<(&str, &str)>) -> PathBuf {
+    let mut text = graph_head("ingest-corpus", 10_000);
+    text += &format!(
+        r#"
 [stages.frames]
 outputs = ["frames"]
 {frames}
@@ -551,24 +560,9 @@ fn the_inference_stage_answers_velocity_requests_over_shared_memory() {
     let graph = scratch.dir.join("inference.toml");
     std::fs::write(
         &graph,
-        format!(
-            r#"
-[graph]
-name = "inference-e2e"
-heartbeat_ms = 100
-
-[edges.frames]
-message = "Frame"
-queue = 2
-overflow = "block"
-max_payload_len = 100000
-
-[edges.observations]
-message = "Observation"
-queue = 4
-overflow = "block"
-max_payload_len = 41000
-
+        graph_head("inference-e2e", 41_000)
+            + &format!(
+                r#"
 [edges.conditions]
 message = "Condition"
 queue = 4
@@ -602,10 +596,10 @@ inputs = ["conditions"]
 calls = ["velocities"]
 params = {{ report = "{report}" }}
 "#,
-            frames = corpus_frames(),
-            model = model.display(),
-            report = report.display(),
-        ),
+                frames = corpus_frames(),
+                model = model.display(),
+                report = report.display(),
+            ),
     )
     .unwrap();
     let recording = scratch.dir.join("observations.rec");

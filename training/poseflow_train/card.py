@@ -78,7 +78,7 @@ def main():
     shards = [Shard(p) for p in config["train"]]
     train_observations = sum(len(s) for s in shards)
     val_shard = Shard(config["val"][0])
-    info = json.loads((Path(val_shard.info["dataset"]) / "models" / "models_info.json").read_text())
+    info = json.loads(val_shard.models_info.read_text())
     sizes = {f.name: f.stat().st_size for f in sorted(out.glob("*.onnx"))}
 
     curve_rows = [
@@ -125,6 +125,9 @@ Runtime reproduces within 1e-4 (checked at export and by the Rust tests).
   ω = log(R_tᵀR̂₁)/(1−t), v = (p̂₁ − p_t)/(1−t) (1−t ≥ {cfg.min_remaining}).
 - Translations in metres relative to the observed points' mean, scaled by
   {cfg.translation_scale} m inside the network; initial translations N(0, {cfg.translation_noise_std} m).
+- PointNet++'s "group all" level adds one global point token; a pooled
+  summary of the condition joins the adaLN conditioning
+  (global_condition = {cfg.global_condition}).
 
 ## Data
 
@@ -140,8 +143,9 @@ medium occlusion, never trained on.
 
 {state['step']:,} steps, {state['train_s'] / 3600:.2f} h of training on 2 CPU cores (PyTorch,
 `torch.set_num_threads(2)`), batch {config.get('batch')} observations × {config.get('samples_per_observation')} flow samples,
-AdamW lr {config.get('lr')}, loss λ·ℓ_pos + ℓ_rot with λ = {config.get('lambda_pos')}, loss weighting
-"{config.get('loss_weighting', 'endpoint')}" (see `training/poseflow_train/train.py`).
+AdamW lr {config.get('lr')}, loss λ·ℓ_pos + ℓ_rot with λ = {config.get('lambda_pos')} ("{config.get('loss', 'velocity')}"),
+plus the training-only auxiliary rotation head with weight {config.get('auxiliary_pose', 1.0)}
+(see `training/README.md` for why).
 
 ![learning curve](learning-curve.png)
 

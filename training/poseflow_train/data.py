@@ -41,7 +41,21 @@ class Shard:
         size = self.path.stat().st_size - offset
         if size % self.dtype.itemsize:
             raise ValueError(f"{self.path}: {size} bytes of records is not a whole number of records")
+        self.models_info = self.find_models_info()
         self.records = np.memmap(self.path, dtype=self.dtype, mode="r", offset=offset, shape=(size // self.dtype.itemsize,))
+
+    def find_models_info(self):
+        """The dataset's models_info.json: where the shard says the dataset
+        is (relative to where `poseflow observe` ran), or the shard's own
+        folder (where training/make-data puts it)."""
+        for root in (Path(self.info["dataset"]), self.path.parent):
+            candidate = root / "models" / "models_info.json"
+            if candidate.is_file():
+                return candidate
+        raise ValueError(
+            f"{self.path}: no models/models_info.json under {self.info['dataset']!r} or {str(self.path.parent)!r} "
+            "(needed for the objects' symmetries)"
+        )
 
     def __len__(self):
         return len(self.records)
@@ -59,6 +73,7 @@ class Observations:
                 if shard.info[key] != first[key]:
                     raise ValueError(f"{shard.path}: {key} {shard.info[key]} differs from {first[key]}")
         self.info = first
+        self.models_info = self.shards[0].models_info
         self.object_index = {obj: i for i, obj in enumerate(object_ids)}
         self.index = []
         for k, shard in enumerate(self.shards):

@@ -16,12 +16,11 @@ from . import se3
 CONTINUOUS_STEPS = 360
 
 
-def symmetries(dataset):
+def symmetries(models_info):
     """{obj_id: [(R [3,3], t [3] metres)]} with the identity first: the
     discrete symmetries, each combined with the discretised continuous ones
-    (as the BOP toolkit does)."""
-    path = Path(dataset) / "models" / "models_info.json"
-    info = json.loads(path.read_text()) if path.exists() else {}
+    (as the BOP toolkit does), from a models_info.json."""
+    info = json.loads(Path(models_info).read_text())
     out = {}
     for key, entry in info.items():
         discrete = [(torch.eye(3), torch.zeros(3))]
@@ -77,7 +76,7 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed):
     and per object. `encoder` and `velocity` are callables with the
     signatures of the PyTorch modules (or `OnnxPoseFlow`'s)."""
     generator = torch.Generator().manual_seed(seed)
-    transforms = symmetries(observations.info["dataset"])
+    transforms = symmetries(observations.models_info)
     count = min(count, len(observations))
     rots, transs, objects = [], [], []
     for start in range(0, count, 16):

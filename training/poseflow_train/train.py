@@ -2,7 +2,8 @@
 
     python -m poseflow_train.train --config training/configs/lmo.json
 
-Every `checkpoint_s` seconds of training the model, optimiser, step,
+Every `checkpoint_s` seconds of training (and when stopped by SIGTERM or
+Ctrl-C) the model, optimiser, step,
 cumulative training time and random state go to `<out>/checkpoint.pt`
 (written atomically); a later run with the same config continues from it.
 `<out>/log.jsonl` gets one line per `log_every` steps (loss) and one per
@@ -15,6 +16,7 @@ import argparse
 import glob
 import json
 import os
+import signal
 import time
 from pathlib import Path
 
@@ -24,7 +26,7 @@ import torch
 from . import se3
 from .data import Observations
 from .evaluate import validate
-from .model import Encoder, ModelConfig, VelocityNet
+from .model import AuxiliaryPose, Encoder, ModelConfig, VelocityNet
 
 
 def shard_paths(patterns, key):
@@ -99,9 +101,13 @@ def loss_weight(kind, t, cfg):
     raise SystemExit(f"config: loss_weighting {kind!r}, expected \"endpoint\" or \"velocity\"")
 
 
-def save_atomically(state, path):
+def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
+    """Everything a later run needs to continue, written atomically."""
+    saved = {name: module.state_dict() for name, module in modules.items()}
+    saved.update({"optimiser": optimiser.state_dict(), "state": state, "generator": generator.get_state(),
+                  "rng": rng.bit_generator.state, "model_config": cfg.to_dict()})
     tmp = path.with_suffix(".tmp")
-    torch.save(state, tmp)
+    torch.save(saved, tmp)
     os.replace(tmp, path)
 
 
@@ -120,9 +126,10 @@ def main():
     for key in ("image_size", "patch_grid", "point_count"):
         if train.info[key] != getattr(cfg, key):
             raise SystemExit(f"{config['train'][0]}: {key} {train.info[key]}, the model config says {getattr(cfg, key)}")
-    encoder, velocity = Encoder(cfg), VelocityNet(cfg)
+    encoder, velocity, auxiliary = Encoder(cfg), VelocityNet(cfg), AuxiliaryPose(cfg)
+    modules = {"encoder": encoder, "velocity": velocity, "auxiliary": auxiliary}
     # A frozen DINOv2 image encoder has no trainable parameters.
-    params = [p for p in list(encoder.parameters()) + list(velocity.parameters()) if p.requires_grad]
+    params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
     optimiser = torch.optim.AdamW(params, lr=config.get("lr", 3e-4), weight_decay=config.get("weight_decay", 1e-4))
     state = {"step": 0, "train_s": 0.0}
     checkpoint = out / "checkpoint.pt"
@@ -130,8 +137,8 @@ def main():
     rng = np.random.default_rng(config.get("seed", 0))
     if checkpoint.exists():
         saved = torch.load(checkpoint, weights_only=False)
-        encoder.load_state_dict(saved["encoder"])
-        velocity.load_state_dict(saved["velocity"])
+        for name, module in modules.items():
+            module.load_state_dict(saved[name])
         optimiser.load_state_dict(saved["optimiser"])
         state = saved["state"]
         generator.set_state(saved["generator"])
@@ -143,7 +150,11 @@ def main():
     run_started = time.monotonic()
     last_checkpoint = last_validation = state["train_s"]
     print(f"{len(train)} training and {len(val)} validation observations", flush=True)
-    while state["step"] < config.get("max_steps", 10**9):
+    # SIGTERM / SIGINT end the run after the current step, with a checkpoint.
+    stop = []
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda number, frame: stop.append(number))
+    while state["step"] < config.get("max_steps", 10**9) and not stop:
         if args.max_minutes is not None and time.monotonic() - run_started > 60 * args.max_minutes:
             break
         started = time.monotonic()
@@ -151,7 +162,8 @@ def main():
         condition, mask = encoder(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
         flow = flow_batch(batch, cfg, samples, steps, generator)
         loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
-        loss = lam * loss_pos + loss_rot
+        loss_aux = (auxiliary(condition) - batch["rotation"]).pow(2).sum((-1, -2)).mean()
+        loss = lam * loss_pos + loss_rot + config.get("auxiliary_pose", 1.0) * loss_aux
         optimiser.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, config.get("clip", 1.0))
@@ -160,7 +172,7 @@ def main():
         state["train_s"] += time.monotonic() - started
         if state["step"] % config.get("log_every", 20) == 0:
             entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "loss": loss.item(),
-                     "loss_rot": loss_rot.item(), "loss_pos": loss_pos.item()}
+                     "loss_rot": loss_rot.item(), "loss_pos": loss_pos.item(), "loss_aux": loss_aux.item()}
             log.write(json.dumps(entry) + "\n")
             log.flush()
             print(entry, flush=True)
@@ -173,18 +185,8 @@ def main():
             print(entry, flush=True)
         if state["train_s"] - last_checkpoint >= config.get("checkpoint_s", 300):
             last_checkpoint = state["train_s"]
-            save_atomically(
-                {"encoder": encoder.state_dict(), "velocity": velocity.state_dict(), "optimiser": optimiser.state_dict(),
-                 "state": state, "generator": generator.get_state(), "rng": rng.bit_generator.state,
-                 "model_config": cfg.to_dict()},
-                checkpoint,
-            )
-    save_atomically(
-        {"encoder": encoder.state_dict(), "velocity": velocity.state_dict(), "optimiser": optimiser.state_dict(),
-         "state": state, "generator": generator.get_state(), "rng": rng.bit_generator.state,
-         "model_config": cfg.to_dict()},
-        checkpoint,
-    )
+            save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
+    save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
     print(f"stopped at step {state['step']} after {state['train_s'] / 60:.1f} min of training", flush=True)
 
 

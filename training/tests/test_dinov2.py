@@ -27,7 +27,8 @@ def test_a_checkpoint_in_the_released_layout_loads_frozen_and_gives_patch_tokens
     assert not encoder.image.training
     condition, mask = encoder(torch.randn(2, 3, 224, 224), torch.ones(2, 256), torch.randn(2, 1024, 3) * 0.03,
                               torch.tensor([0, 1]))
-    assert condition.shape == (2, 256 + cfg.sa2_centres + 1, 64) and mask.shape == (2, 256 + cfg.sa2_centres + 1)
+    tokens = 256 + cfg.sa2_centres + 2  # image, local point, global point, object
+    assert condition.shape == (2, tokens, 64) and mask.shape == (2, tokens)
 
 
 def test_wrong_sizes_and_files_are_named(tmp_path):

@@ -10,7 +10,7 @@ from poseflow_train.evaluate import errors, symmetries
 def write_info(tmp_path, entry):
     (tmp_path / "models").mkdir()
     (tmp_path / "models" / "models_info.json").write_text(json.dumps({"13": entry}))
-    return symmetries(tmp_path)[13]
+    return symmetries(tmp_path / "models" / "models_info.json")[13]
 
 
 def test_a_pose_turned_about_a_continuous_axis_scores_as_the_ground_truth(tmp_path):

@@ -36,7 +36,7 @@ struct StageProcess {
 /// A request server an event loop also wakes on, and what it does then.
 struct Requests<'a, X> {
     server: &'a X,
-    on_event: &'a mut dyn FnMut() -> Result<(), RuntimeError>,
+    on_event: &'a mut dyn FnMut() -> Result<(), TransportError>,
 }
 
 /// How an event loop ended.
@@ -115,7 +115,7 @@ impl StageProcess {
                 && id.has_event_from(guard)
                 && let Err(err) = (r.on_event)()
             {
-                failure = Some(err);
+                failure = Some(err.into());
                 return CallbackProgression::Stop;
             }
             if id.has_event_from(&input_guard) {
@@ -195,8 +195,8 @@ impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
     }
 }
 
-fn finish_output<H: MessageHeader>(output: &Publisher<H>) {
-    match output.end_of_stream(END_OF_STREAM_TIMEOUT) {
+fn finish_output<H: MessageHeader>(output: &Publisher<H>, meanwhile: impl FnMut() -> Result<(), TransportError>) {
+    match output.end_of_stream_serving(END_OF_STREAM_TIMEOUT, meanwhile) {
         Ok(end) => tracing::info!(
             edge = output.name(),
             receivers = end.receivers,
@@ -233,22 +233,42 @@ pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, 
         let output = process.output::<T::Out>()?;
         tracing::info!(input = input.name(), output = output.name(), "running");
         let liveness = &process.liveness;
-        let end = process.event_loop(&input, |message| {
-            let mut emitter = IpcEmitter { publisher: &output, slot: T::SLOT, liveness };
-            if let Err(err) = stage.process(message, &mut emitter) {
-                liveness.count_error();
-                tracing::warn!(%err, "process failed; frame skipped");
-            }
-            liveness.count_errors(stage.take_rejected());
-        })?;
-        if let LoopEnd::EndOfStream = end {
-            process.liveness.set_state(StageState::Draining);
-            finish_output(&output);
-            input.acknowledge_end()?;
-        }
-        process.finish();
-        Ok(())
+        let end = process.event_loop(&input, |message| transform_one(&mut stage, message, &output, liveness))?;
+        finish_transform(process, &input, &output, end, || Ok(()))
     })())
+}
+
+/// Hands one input to a [`Transform`], counting its failures and rejects.
+fn transform_one<T: Transform>(
+    stage: &mut T,
+    message: Input<'_, T::In>,
+    output: &Publisher<T::Out>,
+    liveness: &Liveness,
+) {
+    let mut emitter = IpcEmitter { publisher: output, slot: T::SLOT, liveness };
+    if let Err(err) = stage.process(message, &mut emitter) {
+        liveness.count_error();
+        tracing::warn!(%err, "process failed; frame skipped");
+    }
+    liveness.count_errors(stage.take_rejected());
+}
+
+/// Passes end-of-stream on (when the stream ended rather than the stage
+/// being stopped) and reports the stage finished.
+fn finish_transform<I: MessageHeader, O: MessageHeader>(
+    process: StageProcess,
+    input: &EdgeSubscriber<I>,
+    output: &Publisher<O>,
+    end: LoopEnd,
+    meanwhile: impl FnMut() -> Result<(), TransportError>,
+) -> Result<(), RuntimeError> {
+    if let LoopEnd::EndOfStream = end {
+        process.liveness.set_state(StageState::Draining);
+        finish_output(output, meanwhile);
+        input.acknowledge_end()?;
+    }
+    process.finish();
+    Ok(())
 }
 
 /// Sends a [`Server`]'s reply into the response's loaned shared memory.
@@ -286,11 +306,14 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
         let server =
             RequestServer::<S::Request, S::Response>::create(&process.node, &served.service, served.max_payload_len)?;
         tracing::info!(input = input.name(), output = output.name(), serves = %served.edge, "running");
-        let liveness = &process.liveness;
+        // Shared with the request handler, which outlives the event loop: it
+        // keeps answering while the output drains.
+        let liveness = process.liveness.clone();
+        let liveness = &*liveness;
         // The stage is used by both handlers, never at the same time: the
         // WaitSet calls one callback at a time.
         let stage = std::cell::RefCell::new(&mut stage);
-        let mut on_requests = || -> Result<(), RuntimeError> {
+        let mut on_requests = || -> Result<(), TransportError> {
             server.serve(|header, payload, responder| {
                 let frame = header.header().frame_id;
                 let _span = tracing::debug_span!("request", frame).entered();
@@ -323,24 +346,11 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
         let requests = Requests { server: &server, on_event: &mut on_requests };
         let end = process.event_loop_serving(
             &input,
-            |message| {
-                let mut emitter = IpcEmitter { publisher: &output, slot: S::SLOT, liveness };
-                let mut stage = stage.borrow_mut();
-                if let Err(err) = stage.process(message, &mut emitter) {
-                    liveness.count_error();
-                    tracing::warn!(%err, "process failed; frame skipped");
-                }
-                liveness.count_errors(stage.take_rejected());
-            },
+            |message| transform_one(&mut **stage.borrow_mut(), message, &output, liveness),
             Some(requests),
         )?;
-        if let LoopEnd::EndOfStream = end {
-            process.liveness.set_state(StageState::Draining);
-            finish_output(&output);
-            input.acknowledge_end()?;
-        }
-        process.finish();
-        Ok(())
+        // The readers of the handles may still be asking for velocities.
+        finish_transform(process, &input, &output, end, on_requests)
     })())
 }
 
@@ -408,7 +418,7 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
         };
         if finished {
             process.liveness.set_state(StageState::Draining);
-            finish_output(&output);
+            finish_output(&output, || Ok(()));
         }
         process.finish();
         Ok(())

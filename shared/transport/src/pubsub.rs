@@ -157,6 +157,9 @@ pub struct EndOfStream {
     pub acknowledged: usize,
 }
 
+/// How often a draining publisher hands control back to its stage.
+const SERVE_SLICE: Duration = Duration::from_millis(5);
+
 /// The sending end of an edge.
 #[derive(Debug)]
 pub struct Publisher<H: MessageHeader> {
@@ -250,9 +253,30 @@ impl<H: MessageHeader> Publisher<H> {
     /// dropped, so a stage that exits right after its last send would lose
     /// whatever its receivers had not yet taken.
     pub fn end_of_stream(&self, timeout: Duration) -> Result<EndOfStream, TransportError> {
+        self.end_of_stream_serving(timeout, || Ok(()))
+    }
+
+    /// As [`Self::end_of_stream`], calling `meanwhile` every few milliseconds
+    /// while it waits: a stage that also answers requests keeps answering
+    /// them, since its readers may need answers before they can finish.
+    pub fn end_of_stream_serving(
+        &self,
+        timeout: Duration,
+        mut meanwhile: impl FnMut() -> Result<(), TransportError>,
+    ) -> Result<EndOfStream, TransportError> {
         let receivers = self.service.dynamic_config().number_of_subscribers();
         notify(&self.notifier, events::END_OF_STREAM, "notify on", &self.name)?;
-        let acknowledged = self.wait_for_acks(events::END_ACKNOWLEDGED, receivers, timeout)?;
+        let mut acknowledged = 0;
+        let deadline = Instant::now() + timeout;
+        while acknowledged < receivers {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() || termination_requested() {
+                break;
+            }
+            meanwhile()?;
+            acknowledged +=
+                self.wait_for_acks(events::END_ACKNOWLEDGED, receivers - acknowledged, left.min(SERVE_SLICE))?;
+        }
         if acknowledged < receivers {
             tracing::warn!(edge = %self.name, receivers, acknowledged, "end-of-stream not acknowledged by every receiver in time");
         }

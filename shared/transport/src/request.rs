@@ -228,6 +228,7 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestServer<Req, Resp> {
             }
             handled += 1;
         }
+        tracing::trace!(service = %self.name, handled, "served");
         Ok(handled)
     }
 }
