@@ -643,3 +643,168 @@ params = {{ report = "{report}" }}
     drop(scratch);
     assert_nothing_leaked(&before);
 }
+
+/// frames → ingest → inference ⇄ sampler → selector (Observations as its
+/// side input), each its own process: the hypotheses and estimates that
+/// cross shared memory are bit for bit those of the same stages run
+/// in-process on the recorded observations with the same seed.
+#[test]
+fn the_estimation_graph_matches_the_in_process_run_bit_for_bit() {
+    use std::cell::RefCell;
+
+    use poseflow_contracts::{EstimateHeader, HypothesesHeader, MessageHeader, ObservationHeader};
+    use poseflow_inference::PoseFlowModel;
+    use poseflow_inference::stage::InferenceStage;
+    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+    use poseflow_sampler::SamplerParams;
+    use poseflow_sampler::stage::SamplerStage;
+    use poseflow_selector::SelectorParams;
+    use poseflow_selector::stage::{SelectorStage, estimate_header, estimate_payload_len, write_estimate_payload};
+
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("estimation");
+    let root = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
+    let model = root.join("models/test-tiny");
+    let models = root.join("objects/lmo");
+    let sampler_params = serde_json::json!({ "samples": 16, "steps": 3, "seed": 7 });
+    let selector_params = serde_json::json!({
+        "method": "sdf", "models": models, "refine": true, "score_points": 128, "sdf_resolution": 32,
+    });
+    let graph = scratch.dir.join("estimation.toml");
+    std::fs::write(
+        &graph,
+        graph_head("estimation-e2e", 41_000)
+            + &format!(
+                r#"
+[edges.conditions]
+message = "Condition"
+queue = 4
+overflow = "block"
+
+[edges.velocities]
+message = "Velocity"
+pattern = "request-response"
+max_payload_len = 600
+
+[edges.hypotheses]
+message = "Hypotheses"
+queue = 4
+overflow = "block"
+max_payload_len = 600
+
+[edges.estimates]
+message = "Estimate"
+queue = 4
+overflow = "block"
+max_payload_len = 2000
+
+[stages.frames]
+outputs = ["frames"]
+{frames}
+
+[stages.ingest]
+exe = "ingest"
+inputs = ["frames"]
+outputs = ["observations"]
+params = {{ image_size = 112, patch_grid = 8, point_count = 1024 }}
+
+[stages.inference]
+exe = "inference"
+inputs = ["observations"]
+outputs = ["conditions"]
+serves = ["velocities"]
+params = {{ model = "{model}", threads = 1 }}
+
+[stages.sampler]
+exe = "sampler"
+inputs = ["conditions"]
+calls = ["velocities"]
+outputs = ["hypotheses"]
+params = {sampler_params}
+
+[stages.selector]
+exe = "selector"
+inputs = ["hypotheses"]
+side_inputs = ["observations"]
+outputs = ["estimates"]
+params = {selector_params}
+"#,
+                frames = corpus_frames(),
+                model = model.display(),
+                sampler_params = toml_inline(&sampler_params),
+                selector_params = toml_inline(&selector_params),
+            ),
+    )
+    .unwrap();
+    let recording = scratch.dir.join("estimation.rec");
+    let (result, stderr) = run_recording(&graph, "observations,hypotheses,estimates", &recording);
+    for stage in ["ingest", "inference", "sampler", "selector"] {
+        assert_eq!(result["stages"][stage]["outcome"], "finished", "{result}\n{stderr}");
+    }
+    for stage in ["inference", "sampler", "selector"] {
+        assert_eq!(result["stages"][stage]["errors"], 0, "{stage}: {result}\n{stderr}");
+        assert_eq!(result["stages"][stage]["dropped"], 0, "{stage}: {result}\n{stderr}");
+    }
+
+    let mut recorded: std::collections::BTreeMap<String, Vec<_>> = Default::default();
+    let mut reader = RecordingReader::open(&recording).unwrap();
+    while let Some(message) = reader.next_message().unwrap() {
+        recorded.entry(message.edge.clone()).or_default().push(message);
+    }
+    let [observations, hypotheses, estimates] =
+        ["observations", "hypotheses", "estimates"].map(|edge| recorded.remove(edge).unwrap_or_default());
+    assert_eq!((observations.len(), hypotheses.len(), estimates.len()), (3, 3, 3), "{result}");
+
+    let inference = RefCell::new(InferenceStage::with_model(PoseFlowModel::load(&model, 1).unwrap(), 8));
+    let field = |request: &poseflow_contracts::VelocityRequest, poses: &[f32], out: &mut [f32]| {
+        inference.borrow_mut().velocities(request, poses, out).map_err(|status| format!("status {status}"))
+    };
+    let mut sampler = SamplerStage::new(SamplerParams::from_json(&sampler_params).unwrap(), field);
+    let mut selector = SelectorStage::new(SelectorParams::from_json(&selector_params).unwrap()).unwrap();
+    for ((observation, hypothesis), estimate) in observations.iter().zip(&hypotheses).zip(&estimates) {
+        let obs: ObservationHeader = header_from_bytes(&observation.header).unwrap();
+        let handle = inference.borrow_mut().encode(&obs, &observation.payload).unwrap();
+        let (expected_header, poses) = sampler.hypotheses(&handle).unwrap();
+        let expected: Vec<f32> = poses.iter().flat_map(|p| p.to_f32_row_major()).collect();
+        let served: HypothesesHeader = header_from_bytes(&hypothesis.header).unwrap();
+        assert_eq!(served.header.frame_id, obs.header.frame_id);
+        assert_eq!(served.header.object_id, obs.header.object_id);
+        assert_eq!(
+            (served.sample_count, served.step_count),
+            (expected_header.sample_count, expected_header.step_count)
+        );
+        assert_eq!(
+            hypothesis.payload, expected,
+            "hypotheses of frame {} object {}",
+            obs.header.frame_id, obs.header.object_id
+        );
+
+        selector.keep_observation(&obs, &observation.payload).unwrap();
+        let selection = selector.select_for(&served, &hypothesis.payload).unwrap();
+        let mut expected = vec![0.0; estimate_payload_len(&selection)];
+        write_estimate_payload(&selection, &mut expected);
+        let served: EstimateHeader = header_from_bytes(&estimate.header).unwrap();
+        served.check_payload(&estimate.payload).unwrap();
+        let local = estimate_header(&selection, served.header);
+        assert_eq!(served, local, "estimate header of frame {}", obs.header.frame_id);
+        assert_eq!(estimate.payload, expected, "estimate of frame {}", obs.header.frame_id);
+        assert_eq!((served.kept_count, served.refined), (4, 1));
+    }
+    drop(scratch);
+    assert_nothing_leaked(&before);
+}
+
+/// A JSON object as a TOML inline table.
+fn toml_inline(value: &serde_json::Value) -> String {
+    let fields: Vec<String> = value
+        .as_object()
+        .unwrap()
+        .iter()
+        .map(|(k, v)| match v {
+            serde_json::Value::String(s) => format!("{k} = {s:?}"),
+            other => format!("{k} = {other}"),
+        })
+        .collect();
+    format!("{{ {} }}", fields.join(", "))
+}

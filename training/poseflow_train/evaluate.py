@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 
 from . import se3
+from .model import read_hint
 
 
 # Continuous symmetries are discretised in steps of 1 degree (the rotation
@@ -16,7 +17,7 @@ from . import se3
 CONTINUOUS_STEPS = 360
 
 
-def symmetries(models_info):
+def symmetries(models_info, continuous_steps=CONTINUOUS_STEPS):
     """{obj_id: [(R [3,3], t [3] metres)]} with the identity first: the
     discrete symmetries, each combined with the discretised continuous ones
     (as the BOP toolkit does), from a models_info.json."""
@@ -32,8 +33,8 @@ def symmetries(models_info):
             axis = torch.tensor(sym["axis"], dtype=torch.float32)
             axis = axis / axis.norm()
             offset = torch.tensor(sym["offset"], dtype=torch.float32) / 1000.0
-            for k in range(1, CONTINUOUS_STEPS):
-                r = se3.so3_exp(axis * (2 * math.pi * k / CONTINUOUS_STEPS))
+            for k in range(1, continuous_steps):
+                r = se3.so3_exp(axis * (2 * math.pi * k / continuous_steps))
                 continuous.append((r, offset - r @ offset))
         out[int(key)] = [(rd @ rc, rd @ tc + td) for rd, td in discrete for rc, tc in continuous]
     return out
@@ -42,7 +43,8 @@ def symmetries(models_info):
 @torch.no_grad()
 def sample(encoder, velocity, batch, cfg, samples, steps, generator):
     """N samples per observation after K Euler steps from uniform rotations
-    and Gaussian translations: ([B, N, 3, 3], [B, N, 3])."""
+    and Gaussian translations: ([B, N, 3, 3], [B, N, 3]), and the encoder's
+    coarse poses ([B, 3, 3], [B, 3])."""
     condition, mask = encoder(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
     b = condition.shape[0]
     m = b * samples
@@ -52,7 +54,7 @@ def sample(encoder, velocity, batch, cfg, samples, steps, generator):
         t = torch.full((m,), k / steps)
         v_rot, v_pos = velocity(condition, mask, r, p, t)
         r, p = se3.euler_step(r, p, v_rot, v_pos, 1.0 / steps)
-    return r.reshape(b, samples, 3, 3), p.reshape(b, samples, 3)
+    return r.reshape(b, samples, 3, 3), p.reshape(b, samples, 3), read_hint(condition, cfg)
 
 
 def errors(r, p, gt_r, gt_p, transforms):
@@ -78,10 +80,10 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed):
     generator = torch.Generator().manual_seed(seed)
     transforms = symmetries(observations.models_info)
     count = min(count, len(observations))
-    rots, transs, objects = [], [], []
+    rots, transs, objects, coarse_rots, coarse_transs = [], [], [], [], []
     for start in range(0, count, 16):
         batch = observations.batch(range(start, min(start + 16, count)))
-        r, p = sample(encoder, velocity, batch, cfg, samples, steps, generator)
+        r, p, (coarse_r, coarse_p) = sample(encoder, velocity, batch, cfg, samples, steps, generator)
         for i in range(r.shape[0]):
             obj = int(batch["obj_id"][i])
             sym = transforms.get(obj, [(torch.eye(3), torch.zeros(3))])
@@ -89,6 +91,9 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed):
             rots.append(rot)
             transs.append(trans)
             objects.append(obj)
+            rot, trans = errors(coarse_r[i:i + 1], coarse_p[i:i + 1], batch["rotation"][i], batch["translation"][i], sym)
+            coarse_rots.append(rot)
+            coarse_transs.append(trans)
 
     def summary(rot, trans):
         def acc(deg, cm):
@@ -103,6 +108,8 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed):
         }
 
     result = {"observations": len(rots), "samples": samples, "steps": steps, **summary(torch.cat(rots), torch.cat(transs))}
+    # The encoder's coarse pose alone (one per observation), for comparison.
+    result["coarse"] = summary(torch.cat(coarse_rots), torch.cat(coarse_transs))
     result["per_object"] = {
         str(obj): {"observations": objects.count(obj),
                    **summary(torch.cat([r for r, o in zip(rots, objects) if o == obj]),
@@ -139,6 +146,8 @@ class OnnxPoseFlow:
         meta = self.encoder_session.get_modelmeta().custom_metadata_map
         self.object_ids = json.loads(meta["object_ids"])
         self.translation_noise_std = float(meta["translation_noise_std"])
+        self.translation_scale = float(meta["translation_scale"])
+        self.width = int(meta["width"])
 
     def encoder(self, image, token_mask, points, object_index):
         condition, mask = self.encoder_session.run(
@@ -181,7 +190,7 @@ def main():
     torch.set_num_threads(args.threads)
     model = OnnxPoseFlow(args.model, args.threads)
     observations = Observations(args.shard, model.object_ids, args.min_visib_fract)
-    cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std)
+    cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std, translation_scale=model.translation_scale)
     result = accuracy(model.encoder, model.velocity, observations, cfg, args.count, args.samples, args.steps, args.seed)
     result.update({"model": args.model, "shard": args.shard, "min_visib_fract": args.min_visib_fract})
     print(json.dumps(result))

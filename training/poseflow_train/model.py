@@ -11,6 +11,17 @@ budget this learns rotation far faster than regressing velocities directly
 (../shared/DESIGN.md, "Training on a CPU"); the exported velocity contract is
 the same either way.
 
+Beyond the paper, for the CPU budget: the encoder also predicts, for each of
+the first `correspondence_points` observed points, where it lies on the
+object (object-frame coordinates, trained densely against the ground truth,
+NOCS-style), aligns those to the observed points (Horn's closed form) and
+appends the resulting coarse pose as a last condition token. The velocity
+network predicts the clean pose as a correction of that coarse pose. Dense
+per-point supervision teaches orientation an order of magnitude faster than
+a rotation read from a global feature (measured: 10-object held-out rotation
+error below 10 degrees for 8.6 % of observations after 4 minutes, against
+0.5 % for a regressed rotation from the same points).
+
 Units: points and translations in metres (centred on the observed points'
 mean); internally translations are divided by `translation_scale`.
 """
@@ -59,6 +70,9 @@ class ModelConfig:
     # (as DiT adds its class embedding to the time embedding), beside the
     # cross-attention: every block is then modulated by the observation.
     global_condition: bool = True
+    # Points whose object-frame coordinates the encoder predicts (a prefix of
+    # the farthest-point order) for the coarse pose token.
+    correspondence_points: int = 256
 
     def __post_init__(self):
         if self.image_encoder not in ("scratch", "dinov2"):
@@ -201,27 +215,51 @@ class PointEncoder(nn.Module):
         return torch.cat([features + self.position(centres), whole], 1)
 
 
-class AuxiliaryPose(nn.Module):
-    """Training only, not exported: the rotation read from the global point
-    token and the object token alone, trained against the ground truth
-    beside the flow loss. Without it the velocity network first learns to
-    copy R_t (which lowers the loss for every t > 0) and the encoder is slow
-    to learn orientation at all (measured: rotation at chance after 900
-    steps on one object, where a plain PointNet regressor learned)."""
+class Correspondences(nn.Module):
+    """Object-frame coordinates of observed points: a PointNet segmentation
+    network (per-point features, the cloud's max-pooled feature, the
+    object's embedding) over the first `correspondence_points` centred
+    points. Returns [B, n, 3] in metres (model frame)."""
 
     def __init__(self, cfg):
         super().__init__()
-        w = cfg.width
-        self.head = nn.Sequential(nn.LayerNorm(2 * w), nn.Linear(2 * w, w), nn.GELU(), nn.Linear(w, 6))
+        self.count, self.scale = cfg.correspondence_points, cfg.translation_scale
+        self.objects = nn.Embedding(len(cfg.object_ids), 64)
+        self.local = nn.Sequential(nn.Linear(3, 64), nn.LayerNorm(64), nn.GELU(), nn.Linear(64, 128), nn.LayerNorm(128), nn.GELU())
+        self.whole = nn.Sequential(nn.Linear(128 + 64, 256), nn.LayerNorm(256), nn.GELU(), nn.Linear(256, 512))
+        self.head = nn.Sequential(
+            nn.Linear(128 + 512 + 64, 256), nn.LayerNorm(256), nn.GELU(), nn.Linear(256, 128), nn.GELU(), nn.Linear(128, 3)
+        )
 
-    def forward(self, condition):
-        return se3.rotation_from_6d(self.head(torch.cat([condition[:, -2], condition[:, -1]], -1)))
+    def forward(self, points, object_index):
+        x = points[:, : self.count] / self.scale
+        o = self.objects(object_index)[:, None, :].expand(-1, x.shape[1], -1)
+        local = self.local(x)
+        whole = self.whole(torch.cat([local, o], -1)).amax(1, keepdim=True).expand(-1, x.shape[1], -1)
+        return self.head(torch.cat([local, whole, o], -1)) * self.scale
+
+
+# Layout of the coarse pose token (the last condition token): R row-major,
+# then p / translation_scale, then zeros.
+HINT_VALUES = 12
+
+
+def hint_token(rotation, translation, cfg):
+    b = rotation.shape[0]
+    values = torch.cat([rotation.reshape(b, 9), translation / cfg.translation_scale], -1)
+    return torch.cat([values, torch.zeros(b, cfg.width - HINT_VALUES, dtype=values.dtype)], -1)[:, None, :]
+
+
+def read_hint(condition, cfg):
+    """(R [Bc,3,3], p [Bc,3] metres) from the last condition token."""
+    values = condition[:, -1, :HINT_VALUES]
+    return values[:, :9].reshape(-1, 3, 3), values[:, 9:] * cfg.translation_scale
 
 
 class Encoder(nn.Module):
     """Observation -> condition tokens [B, T, D] and their mask [B, T]:
     P*P image tokens (masked by the token mask), point tokens, one object
-    token."""
+    token, the coarse pose token."""
 
     def __init__(self, cfg):
         super().__init__()
@@ -234,14 +272,33 @@ class Encoder(nn.Module):
         self.image_proj, self.point_proj = nn.Linear(image_width, cfg.width), nn.Linear(cfg.width, cfg.width)
         self.kind = nn.Parameter(torch.randn(3, cfg.width) * 0.02)
         self.objects = nn.Embedding(len(cfg.object_ids), cfg.width)
+        self.correspondences = Correspondences(cfg)
+        self.cfg = cfg
 
-    def forward(self, image, token_mask, points, object_index):
+    def coarse_pose(self, points, object_index):
+        """(model-frame coordinates [B, n, 3], R [B,3,3], p [B,3]): the
+        predicted coordinates aligned to the observed points. The pose is
+        an input of the velocity network, not trained through (the
+        coordinates have their own loss)."""
+        coordinates = self.correspondences(points, object_index)
+        observed = points[:, : coordinates.shape[1]]
+        rotation, translation = se3.align(coordinates.detach(), observed)
+        return coordinates, rotation, translation
+
+    def encode(self, image, token_mask, points, object_index):
+        """(condition, condition_mask, predicted model-frame coordinates)."""
         image_tokens = self.image_proj(self.image(image)) + self.kind[0]
         point_tokens = self.point_proj(self.points(points)) + self.kind[1]
         object_token = (self.objects(object_index) + self.kind[2])[:, None, :]
-        condition = torch.cat([image_tokens, point_tokens, object_token], 1)
-        ones = torch.ones(points.shape[0], point_tokens.shape[1] + 1, dtype=token_mask.dtype, device=token_mask.device)
-        return condition, torch.cat([token_mask, ones], 1)
+        coordinates, rotation, translation = self.coarse_pose(points, object_index)
+        hint = hint_token(rotation, translation, self.cfg)
+        condition = torch.cat([image_tokens, point_tokens, object_token, hint], 1)
+        ones = torch.ones(points.shape[0], point_tokens.shape[1] + 2, dtype=token_mask.dtype, device=token_mask.device)
+        return condition, torch.cat([token_mask, ones], 1), coordinates
+
+    def forward(self, image, token_mask, points, object_index):
+        condition, mask, _ = self.encode(image, token_mask, points, object_index)
+        return condition, mask
 
 
 def fourier(t, count):
@@ -288,16 +345,15 @@ class VelocityNet(nn.Module):
         self.time = nn.Sequential(nn.Linear(2 * cfg.fourier_features, w), nn.SiLU(), nn.Linear(w, w))
         if cfg.global_condition:
             self.summary = nn.Sequential(nn.LayerNorm(w), nn.Linear(w, w), nn.SiLU(), nn.Linear(w, w))
+        self.hint = nn.Sequential(nn.Linear(HINT_VALUES, w), nn.SiLU(), nn.Linear(w, w))
         self.blocks = nn.ModuleList([DiTBlock(w, cfg.heads) for _ in range(cfg.dit_depth)])
         self.final_norm = nn.LayerNorm(w, elementwise_affine=False)
         self.final_modulation = nn.Linear(w, 2 * w)
         self.rotation_head, self.translation_head = nn.Linear(w, 6), nn.Linear(w, 3)
-        # Start from R1_hat = identity (6D), p1_hat = the observed points' mean.
+        # Start from the coarse pose: the heads predict corrections of it.
         for head in (self.rotation_head, self.translation_head):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
-        with torch.no_grad():
-            self.rotation_head.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
 
     def clean_pose(self, condition, condition_mask, rotation, translation, t):
         """The predicted clean pose (R1_hat, p1_hat in metres)."""
@@ -307,23 +363,29 @@ class VelocityNet(nn.Module):
             1,
         )
         c = self.time(fourier(t, self.cfg.fourier_features))
+        # Per-observation conditioning, shared by its samples (grouped as in
+        # `Attention`): the coarse pose and the masked mean of the tokens.
+        bc = condition.shape[0]
+        hint_r, hint_p = read_hint(condition, self.cfg)
+        per_observation = self.hint(condition[:, -1, :HINT_VALUES])
         if self.cfg.global_condition:
-            # Masked mean of each observation's tokens, shared by its samples
-            # (grouped as in `Attention`).
             weights = condition_mask[:, :, None]
             pooled = (condition * weights).sum(1) / weights.sum(1).clamp_min(1.0)
-            bc = condition.shape[0]
-            c = (c.reshape(bc, -1, c.shape[-1]) + self.summary(pooled)[:, None, :]).reshape(-1, c.shape[-1])
+            per_observation = per_observation + self.summary(pooled)
+        c = (c.reshape(bc, -1, c.shape[-1]) + per_observation[:, None, :]).reshape(-1, c.shape[-1])
+        samples = rotation.shape[0] // bc
         for block in self.blocks:
             x = block(x, c, condition, condition_mask)
         shift, scl = self.final_modulation(nn.functional.silu(c))[:, None, :].chunk(2, -1)
         x = self.final_norm(x) * (1 + scl) + shift
-        # Absolute, not a correction of (R_t, p_t): at small t the current
-        # pose is noise, and a correction would have to undo a random
-        # rotation, which an MLP learns slowly (a run with corrections stayed
-        # at chance rotation error for 11,000 steps).
-        r1 = se3.rotation_from_6d(self.rotation_head(x[:, 0]))
-        p1 = self.translation_head(x[:, 1]) * scale
+        # Corrections of the coarse pose, not of (R_t, p_t): at small t the
+        # current pose is noise, and a correction of it would have to undo a
+        # random rotation, which an MLP learns slowly (a run with
+        # corrections of R_t stayed at chance for 11,000 steps).
+        base_6d = torch.cat([hint_r[:, :, 0], hint_r[:, :, 1]], -1)[:, None, :].expand(bc, samples, 6).reshape(-1, 6)
+        base_p = hint_p[:, None, :].expand(bc, samples, 3).reshape(-1, 3)
+        r1 = se3.rotation_from_6d(base_6d + self.rotation_head(x[:, 0]))
+        p1 = base_p + self.translation_head(x[:, 1]) * scale
         return r1, p1
 
     def forward(self, condition, condition_mask, rotation, translation, t):

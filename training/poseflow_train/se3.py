@@ -125,3 +125,44 @@ def geodesic_angle(r1, r2):
     """Angle of r1^T r2 in radians, [0, pi]."""
     cos = (((r1.transpose(-1, -2) @ r2).diagonal(dim1=-2, dim2=-1).sum(-1)) - 1.0) / 2.0
     return torch.acos(cos.clamp(-1.0, 1.0))
+
+
+def align(a, b, weights=None, squarings=10):
+    """The rigid motion (R, p) minimising sum_i w_i |R a_i + p - b_i|^2 for
+    point sets a, b [B, N, 3] (Horn's closed form: R from the dominant
+    eigenvector of a 4x4 symmetric matrix). The eigenvector comes from
+    repeated squaring, only matrix products, so this exports to ONNX where
+    an SVD would not; the result is always a proper rotation. Ambiguous
+    sets (collinear points, symmetric shapes) give one of the optimal
+    rotations."""
+    if weights is None:
+        weights = torch.ones_like(a[..., 0])
+    w = (weights / weights.sum(-1, keepdim=True).clamp_min(1e-12))[..., None]
+    a_mean, b_mean = (w * a).sum(1), (w * b).sum(1)
+    s = ((a - a_mean[:, None]) * w).transpose(1, 2) @ (b - b_mean[:, None])  # s[i, j] = sum a_i b_j
+    sxx, sxy, sxz = s[:, 0, 0], s[:, 0, 1], s[:, 0, 2]
+    syx, syy, syz = s[:, 1, 0], s[:, 1, 1], s[:, 1, 2]
+    szx, szy, szz = s[:, 2, 0], s[:, 2, 1], s[:, 2, 2]
+    n = torch.stack(
+        [
+            torch.stack([sxx + syy + szz, syz - szy, szx - sxz, sxy - syx], -1),
+            torch.stack([syz - szy, sxx - syy - szz, sxy + syx, szx + sxz], -1),
+            torch.stack([szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy], -1),
+            torch.stack([sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz], -1),
+        ],
+        -2,
+    )
+    # The eigenvalues of n lie within +-2 |s|_F: shifting by that makes the
+    # wanted (largest) one also the largest in magnitude.
+    eye = torch.eye(4, dtype=a.dtype, device=a.device)
+    shift = 2.0 * s.pow(2).sum((-1, -2)).sqrt()[:, None, None] + 1e-12
+    m = n + shift * eye
+    for _ in range(squarings):
+        m = m / m.abs().amax((-1, -2), keepdim=True).clamp_min(1e-30)
+        m = m @ m
+    # m ~ q q^T: its largest diagonal entry picks a column parallel to q.
+    column = (m * eye).sum(-1).argmax(-1)
+    q = torch.gather(m, 2, column[:, None, None].expand(-1, 4, 1))[..., 0]
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    r = matrix_from_quaternion(q)
+    return r, b_mean - (r @ a_mean[..., None])[..., 0]

@@ -25,8 +25,8 @@ import torch
 
 from . import se3
 from .data import Observations
-from .evaluate import validate
-from .model import AuxiliaryPose, Encoder, ModelConfig, VelocityNet
+from .evaluate import symmetries, validate
+from .model import Encoder, ModelConfig, VelocityNet
 
 
 def shard_paths(patterns, key):
@@ -101,6 +101,31 @@ def loss_weight(kind, t, cfg):
     raise SystemExit(f"config: loss_weighting {kind!r}, expected \"endpoint\" or \"velocity\"")
 
 
+def symmetry_table(models_info, object_ids, continuous_steps):
+    """Per object index, K symmetry transforms (R [n_obj, K, 3, 3], t [n_obj,
+    K, 3] metres), identity first, padded by repetition: what the
+    correspondence loss minimises over."""
+    table = symmetries(models_info, continuous_steps)
+    lists = [table.get(obj, [(torch.eye(3), torch.zeros(3))]) for obj in object_ids]
+    k = max(len(entries) for entries in lists)
+    rotations = torch.stack([torch.stack([entries[i % len(entries)][0] for i in range(k)]) for entries in lists])
+    translations = torch.stack([torch.stack([entries[i % len(entries)][1] for i in range(k)]) for entries in lists])
+    return rotations, translations
+
+
+def correspondence_loss(coordinates, batch, table, cfg):
+    """Mean L1 distance (in translation_scale units) between the predicted
+    and the true model-frame coordinates of the observed points, under the
+    closest symmetric version of the ground truth."""
+    sym_r, sym_t = (x[batch["object_index"]] for x in table)
+    r = batch["rotation"][:, None] @ sym_r
+    t = (batch["rotation"][:, None] @ sym_t[..., None])[..., 0] + batch["translation"][:, None]
+    observed = batch["points"][:, None, : coordinates.shape[1]]
+    truth = (observed - t[:, :, None]) @ r  # rows: R^T (x - t)
+    error = (coordinates[:, None] - truth).abs().sum(-1).mean(-1) / cfg.translation_scale
+    return error.amin(1).mean()
+
+
 def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
     """Everything a later run needs to continue, written atomically."""
     saved = {name: module.state_dict() for name, module in modules.items()}
@@ -126,8 +151,9 @@ def main():
     for key in ("image_size", "patch_grid", "point_count"):
         if train.info[key] != getattr(cfg, key):
             raise SystemExit(f"{config['train'][0]}: {key} {train.info[key]}, the model config says {getattr(cfg, key)}")
-    encoder, velocity, auxiliary = Encoder(cfg), VelocityNet(cfg), AuxiliaryPose(cfg)
-    modules = {"encoder": encoder, "velocity": velocity, "auxiliary": auxiliary}
+    encoder, velocity = Encoder(cfg), VelocityNet(cfg)
+    modules = {"encoder": encoder, "velocity": velocity}
+    table = symmetry_table(train.models_info, cfg.object_ids, config.get("loss_continuous_steps", 36))
     # A frozen DINOv2 image encoder has no trainable parameters.
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
     optimiser = torch.optim.AdamW(params, lr=config.get("lr", 3e-4), weight_decay=config.get("weight_decay", 1e-4))
@@ -159,11 +185,24 @@ def main():
             break
         started = time.monotonic()
         batch = train.batch(rng.integers(0, len(train), batch_size))
-        condition, mask = encoder(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
-        flow = flow_batch(batch, cfg, samples, steps, generator)
-        loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
-        loss_aux = (auxiliary(condition) - batch["rotation"]).pow(2).sum((-1, -2)).mean()
-        loss = lam * loss_pos + loss_rot + config.get("auxiliary_pose", 1.0) * loss_aux
+        if state["train_s"] < config.get("correspondence_warmup_s", 0):
+            # Warm-up: the correspondence network alone, many times faster
+            # per observation than the whole model.
+            coordinates = encoder.correspondences(batch["points"], batch["object_index"])
+            loss_rot = loss_pos = torch.zeros(())
+        else:
+            condition, mask, coordinates = encoder.encode(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
+            flow = flow_batch(batch, cfg, samples, steps, generator)
+            loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
+        loss_corr = correspondence_loss(coordinates, batch, table, cfg)
+        extra = config.get("correspondence_extra_batch", 0)
+        if extra and state["train_s"] >= config.get("correspondence_warmup_s", 0):
+            # The correspondences are the slow part to learn and cheap to
+            # train alone: each step also trains them on more observations.
+            more = train.batch(rng.integers(0, len(train), extra))
+            coordinates = encoder.correspondences(more["points"], more["object_index"])
+            loss_corr = (batch_size * loss_corr + extra * correspondence_loss(coordinates, more, table, cfg)) / (batch_size + extra)
+        loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr
         optimiser.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, config.get("clip", 1.0))
@@ -172,7 +211,7 @@ def main():
         state["train_s"] += time.monotonic() - started
         if state["step"] % config.get("log_every", 20) == 0:
             entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "loss": loss.item(),
-                     "loss_rot": loss_rot.item(), "loss_pos": loss_pos.item(), "loss_aux": loss_aux.item()}
+                     "loss_rot": loss_rot.item(), "loss_pos": loss_pos.item(), "loss_corr": loss_corr.item()}
             log.write(json.dumps(entry) + "\n")
             log.flush()
             print(entry, flush=True)

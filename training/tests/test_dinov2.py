@@ -27,7 +27,7 @@ def test_a_checkpoint_in_the_released_layout_loads_frozen_and_gives_patch_tokens
     assert not encoder.image.training
     condition, mask = encoder(torch.randn(2, 3, 224, 224), torch.ones(2, 256), torch.randn(2, 1024, 3) * 0.03,
                               torch.tensor([0, 1]))
-    tokens = 256 + cfg.sa2_centres + 2  # image, local point, global point, object
+    tokens = 256 + cfg.sa2_centres + 3  # image, local point, global point, object, coarse pose
     assert condition.shape == (2, tokens, 64) and mask.shape == (2, tokens)
 
 

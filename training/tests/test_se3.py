@@ -53,3 +53,28 @@ def test_uniform_rotations_are_rotations():
     eye = torch.eye(3, dtype=torch.float64)
     assert torch.allclose(r @ r.transpose(-1, -2), eye.expand_as(r), atol=1e-12)
     assert torch.allclose(torch.linalg.det(r), torch.ones(1000, dtype=torch.float64))
+
+
+def test_align_recovers_a_rigid_motion_including_half_turns():
+    g = torch.Generator().manual_seed(3)
+    rotations = torch.cat([se3.uniform_rotation((30,), generator=g, dtype=torch.float64),
+                           se3.so3_exp(torch.tensor([[torch.pi, 0.0, 0.0], [0.0, 0.0, 1e-9]], dtype=torch.float64))])
+    points = torch.randn(32, 50, 3, generator=g, dtype=torch.float64)
+    shift = torch.randn(32, 3, generator=g, dtype=torch.float64)
+    moved = points @ rotations.transpose(1, 2) + shift[:, None]
+    r, p = se3.align(points, moved)
+    assert torch.allclose(r, rotations, atol=1e-9) and torch.allclose(p, shift, atol=1e-9)
+
+
+def test_align_is_a_least_squares_fit_under_noise_and_always_a_rotation():
+    g = torch.Generator().manual_seed(4)
+    rotation = se3.uniform_rotation((16,), generator=g, dtype=torch.float64)
+    points = torch.randn(16, 200, 3, generator=g, dtype=torch.float64)
+    noisy = points @ rotation.transpose(1, 2) + 0.05 * torch.randn(16, 200, 3, generator=g, dtype=torch.float64)
+    r, _ = se3.align(points, noisy)
+    assert torch.rad2deg(se3.geodesic_angle(r, rotation)).max() < 2.0
+    # Collinear points leave the rotation about the line free: still a rotation.
+    line = torch.linspace(-1, 1, 20, dtype=torch.float64)[None, :, None] * torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
+    r, _ = se3.align(line, line)
+    assert torch.allclose(r @ r.transpose(1, 2), torch.eye(3, dtype=torch.float64)[None], atol=1e-9)
+    assert torch.allclose(torch.det(r), torch.ones(1, dtype=torch.float64))

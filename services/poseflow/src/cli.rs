@@ -31,7 +31,7 @@ pub struct Cli {
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Run the end-to-end demo on the embedded default model and data.
-    Demo,
+    Demo(crate::demo::DemoArgs),
     /// Launch a process graph from a graph file (deploy/*.toml).
     Run(crate::run::RunArgs),
     /// Render a BOP-format dataset of random RGB-D tabletop scenes from object models.
@@ -51,7 +51,7 @@ pub enum Command {
 impl Command {
     fn name(&self) -> &'static str {
         match self {
-            Command::Demo => "demo",
+            Command::Demo(_) => "demo",
             Command::Run(_) => "run",
             Command::Render(_) => "render",
             Command::ImportModel(_) => "import-model",
@@ -74,12 +74,12 @@ pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
     // What has to land before a subcommand works.
     let missing = match command {
         Command::Run(args) => return report(crate::run::run(args, log_format)),
+        Command::Demo(args) => return report(crate::demo::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Bench(args) => return report(crate::bench::run(args)),
         Command::Render(args) => return report(crate::render::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::ImportModel(args) => return report(crate::import_model::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Preview(args) => return report(crate::preview::run(&args).map(|()| ExitCode::SUCCESS)),
         Command::Observe(args) => return report(crate::observe::run(&args).map(|()| ExitCode::SUCCESS)),
-        Command::Demo => "it needs the trained model and the estimation graph",
         Command::Eval => "it needs the estimation graph and the BOP benchmark runner",
     };
     tracing::error!(

@@ -2,6 +2,7 @@
 
 mod bench;
 mod cli;
+mod demo;
 mod import_model;
 mod logging;
 mod observe;

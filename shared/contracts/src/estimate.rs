@@ -56,10 +56,11 @@ impl SelectionMethod {
     }
 }
 
-/// `f32` values per mode or kept hypothesis: pose (12) then weight (1).
+/// `f32` values per mode or scored hypothesis: pose (12) then a weight or
+/// score (1).
 pub const WEIGHTED_POSE_LEN: usize = POSE_LEN + 1;
 
-/// User header of an Estimate (336 bytes, alignment 8).
+/// User header of an Estimate (344 bytes, alignment 8).
 ///
 /// | offset | size | field            | type      | meaning |
 /// |-------:|-----:|------------------|-----------|---------|
@@ -70,13 +71,18 @@ pub const WEIGHTED_POSE_LEN: usize = POSE_LEN + 1;
 /// | 320    | 4    | rotation_trace   | f32       | trace of the rotational 3×3 block (rad²) |
 /// | 324    | 4    | selection        | u32       | [`SelectionMethod`] |
 /// | 328    | 4    | mode_count       | u32       | M clusters found |
-/// | 332    | 4    | hypothesis_count | u32       | K hypotheses kept |
+/// | 332    | 4    | hypothesis_count | u32       | N hypotheses scored (every sample) |
+/// | 336    | 4    | kept_count       | u32       | K ≤ N of them kept (the first K) |
+/// | 340    | 4    | refined          | u32       | 1 when the kept hypotheses were refined against the observed points |
 ///
-/// Payload (`f32`): M modes × 13 (pose, weight = share of samples) ‖ K kept
-/// hypotheses × 13 (pose, normalised weight), each pose `R` row-major then `t`.
+/// Payload (`f32`): M modes × 13 (pose, weight = share of samples) ‖ N
+/// hypotheses × 13 (pose, score), best score first; each pose `R` row-major
+/// then `t`. Scores: log-likelihood of the observed points (Chamfer, SDF),
+/// the share of samples in the hypothesis's cluster (model-free, 0 for
+/// noise), 0 without selection.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("poseflow/Estimate/v1")]
+#[type_name("poseflow/Estimate/v2")]
 pub struct EstimateHeader {
     pub header: Header,
     pub best: [f32; 12],
@@ -86,6 +92,8 @@ pub struct EstimateHeader {
     pub selection: u32,
     pub mode_count: u32,
     pub hypothesis_count: u32,
+    pub kept_count: u32,
+    pub refined: u32,
 }
 
 impl Default for EstimateHeader {
@@ -99,6 +107,8 @@ impl Default for EstimateHeader {
             selection: SelectionMethod::None as u32,
             mode_count: 0,
             hypothesis_count: 0,
+            kept_count: 0,
+            refined: 0,
         }
     }
 }
@@ -119,8 +129,16 @@ impl EstimateHeader {
             expected: "0 (none), 1 (model-free), 2 (chamfer) or 3 (sdf)",
         })?;
         let m = bounded(Self::NAME, "mode_count", self.mode_count, 0, limits::MAX_MODES, "0..=64")?;
-        let k = bounded(Self::NAME, "hypothesis_count", self.hypothesis_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
-        Ok([m * WEIGHTED_POSE_LEN, k * WEIGHTED_POSE_LEN])
+        let n = bounded(Self::NAME, "hypothesis_count", self.hypothesis_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
+        if self.kept_count == 0 || self.kept_count > self.hypothesis_count {
+            return Err(ContractError::FieldOutOfRange {
+                message: Self::NAME,
+                field: "kept_count",
+                value: u64::from(self.kept_count),
+                expected: "1..=hypothesis_count",
+            });
+        }
+        Ok([m * WEIGHTED_POSE_LEN, n * WEIGHTED_POSE_LEN])
     }
 
     pub fn view<'a>(&self, payload: &'a [f32]) -> Result<EstimateView<'a>, ContractError> {

@@ -37,7 +37,7 @@
 //! | VelocityRequest | [`VelocityRequest`] | poses N·12 | sampler → inference |
 //! | VelocityResponse | [`VelocityResponse`] | velocities N·6 | inference → sampler |
 //! | Hypotheses | [`HypothesesHeader`] | poses N·12 | sampler → selector |
-//! | Estimate | [`EstimateHeader`] | modes M·13 ‖ hypotheses K·13 | selector → grasp, nbv, robot |
+//! | Estimate | [`EstimateHeader`] | modes M·13 ‖ scored hypotheses N·13 | selector → grasp, nbv, robot |
 //! | Grasps | [`GraspsHeader`] | grasps G·15 | grasp → robot |
 //! | NextView | [`NextViewHeader`] | candidates C·13 | nbv → robot |
 //! | Heartbeat | [`Heartbeat`] | none | every stage → supervisor |
@@ -104,9 +104,9 @@ mod layout {
     assert_layout!(VelocityResponse, size 96, align 8,
         header @ 0, request_id @ 80, sample_count @ 88, status @ 92);
     assert_layout!(HypothesesHeader, size 88, align 8, header @ 0, sample_count @ 80, step_count @ 84);
-    assert_layout!(EstimateHeader, size 336, align 8,
+    assert_layout!(EstimateHeader, size 344, align 8,
         header @ 0, best @ 80, mean @ 128, covariance @ 176, rotation_trace @ 320,
-        selection @ 324, mode_count @ 328, hypothesis_count @ 332);
+        selection @ 324, mode_count @ 328, hypothesis_count @ 332, kept_count @ 336, refined @ 340);
     assert_layout!(GraspsHeader, size 88, align 8, header @ 0, grasp_count @ 80, hypothesis_count @ 84);
     assert_layout!(Heartbeat, size 136, align 8,
         header @ 0, pid @ 80, state @ 84, frames_in @ 88, frames_out @ 96, dropped @ 104,

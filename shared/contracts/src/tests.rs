@@ -17,7 +17,7 @@ fn type_names_are_stable_and_versioned() {
     assert_eq!(type_name::<VelocityRequest>(), "poseflow/VelocityRequest/v1");
     assert_eq!(type_name::<VelocityResponse>(), "poseflow/VelocityResponse/v1");
     assert_eq!(type_name::<HypothesesHeader>(), "poseflow/Hypotheses/v1");
-    assert_eq!(type_name::<EstimateHeader>(), "poseflow/Estimate/v1");
+    assert_eq!(type_name::<EstimateHeader>(), "poseflow/Estimate/v2");
     assert_eq!(type_name::<GraspsHeader>(), "poseflow/Grasps/v1");
     assert_eq!(type_name::<NextViewHeader>(), "poseflow/NextView/v1");
     assert_eq!(type_name::<Heartbeat>(), "poseflow/Heartbeat/v1");
@@ -93,6 +93,7 @@ fn estimate_sections_and_selection_codes() {
         selection: SelectionMethod::ModelFree as u32,
         mode_count: 2,
         hypothesis_count: 10,
+        kept_count: 3,
         ..Default::default()
     };
     let payload = vec![0.5; (2 + 10) * WEIGHTED_POSE_LEN];
@@ -101,6 +102,10 @@ fn estimate_sections_and_selection_codes() {
     assert_eq!(view.hypotheses.len(), 130);
     let bad = EstimateHeader { selection: 9, ..header };
     assert!(bad.payload_len().unwrap_err().to_string().contains("selection"));
+    for kept in [0, 11] {
+        let bad = EstimateHeader { kept_count: kept, ..header };
+        assert!(bad.payload_len().unwrap_err().to_string().contains("kept_count"), "{kept}");
+    }
     assert_eq!(SelectionMethod::from_code(3), Some(SelectionMethod::Sdf));
 }
 
@@ -155,9 +160,11 @@ proptest! {
 
     #[test]
     fn arbitrary_estimate_headers_are_checked_not_trusted(
-        selection in any::<u32>(), modes in any::<u32>(), kept in any::<u32>(),
+        selection in any::<u32>(), modes in any::<u32>(), scored in any::<u32>(), kept in any::<u32>(),
     ) {
-        let header = EstimateHeader { selection, mode_count: modes, hypothesis_count: kept, ..Default::default() };
+        let header = EstimateHeader {
+            selection, mode_count: modes, hypothesis_count: scored, kept_count: kept, ..Default::default()
+        };
         if let Ok(len) = header.payload_len() {
             prop_assert!(len <= (64 + 4096) * WEIGHTED_POSE_LEN);
             prop_assert!(header.view(&vec![0.0; len]).is_ok());
@@ -175,7 +182,7 @@ fn message_names_resolve_to_their_header_types() {
         }
     }
     assert_eq!(visit_message("Observation", Size), Some(152));
-    assert_eq!(visit_message("Estimate", Size), Some(336));
+    assert_eq!(visit_message("Estimate", Size), Some(344));
     assert_eq!(visit_message("Tensor", Size), Some(104));
     assert_eq!(visit_message("Pose", Size), None);
 }

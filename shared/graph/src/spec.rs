@@ -106,6 +106,12 @@ pub(crate) struct StageSpec {
     pub inputs: Vec<String>,
     #[serde(default)]
     pub outputs: Vec<String>,
+    /// Edges read beside the input, whose messages the stage keeps for
+    /// later (the selector keeps each Observation until its Hypotheses
+    /// come; a tracking sampler keeps the last Estimate). Never waited on,
+    /// so one may close a loop.
+    #[serde(default)]
+    pub side_inputs: Vec<String>,
     /// Request-response edges this stage answers.
     #[serde(default)]
     pub serves: Vec<String>,

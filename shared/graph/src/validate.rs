@@ -47,10 +47,20 @@ pub struct Stage {
     pub args: Vec<String>,
     pub inputs: Vec<String>,
     pub outputs: Vec<String>,
+    /// Read beside the input, never waited on (see the graph file's
+    /// `side_inputs`); exempt from the cycle check.
+    pub side_inputs: Vec<String>,
     pub serves: Vec<String>,
     pub calls: Vec<String>,
     pub params: serde_json::Value,
     pub restart: Restart,
+}
+
+impl Stage {
+    /// Whether the stage subscribes to `edge` (as its input or a side input).
+    pub fn reads(&self, edge: &str) -> bool {
+        self.inputs.iter().chain(&self.side_inputs).any(|e| e == edge)
+    }
 }
 
 /// Reads and validates a graph file. `search_path` is where bare executable
@@ -185,6 +195,7 @@ impl Checker<'_> {
         for (field, list, pattern) in [
             ("inputs", &spec.inputs, EdgePattern::PublishSubscribe),
             ("outputs", &spec.outputs, EdgePattern::PublishSubscribe),
+            ("side_inputs", &spec.side_inputs, EdgePattern::PublishSubscribe),
             ("serves", &spec.serves, EdgePattern::RequestResponse),
             ("calls", &spec.calls, EdgePattern::RequestResponse),
         ] {
@@ -213,6 +224,13 @@ impl Checker<'_> {
                 }
             }
         }
+        if let Some(edge) = spec.side_inputs.iter().find(|e| spec.inputs.contains(e) || spec.outputs.contains(e)) {
+            return Err(self.invalid(
+                format!("{key}.side_inputs"),
+                "edges that are not also the stage's inputs or outputs",
+                format!("{edge:?}"),
+            ));
+        }
         let params = self.params(&key, spec.config.as_deref(), spec.params, graph_dir)?;
         if spec.backoff_ms == 0 || spec.max_backoff_ms < spec.backoff_ms {
             return Err(self.invalid(
@@ -227,6 +245,7 @@ impl Checker<'_> {
             args: spec.args,
             inputs: spec.inputs,
             outputs: spec.outputs,
+            side_inputs: spec.side_inputs,
             serves: spec.serves,
             calls: spec.calls,
             params,
@@ -277,7 +296,7 @@ impl Checker<'_> {
             let (producers, consumers): (Vec<&str>, Vec<&str>) = match edge.pattern {
                 EdgePattern::PublishSubscribe => (
                     stages.values().filter(|s| s.outputs.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
-                    stages.values().filter(|s| s.inputs.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
+                    stages.values().filter(|s| s.reads(&edge.name)).map(|s| s.name.as_str()).collect(),
                 ),
                 EdgePattern::RequestResponse => (
                     stages.values().filter(|s| s.serves.contains(&edge.name)).map(|s| s.name.as_str()).collect(),
@@ -411,11 +430,7 @@ impl Graph {
                         queue: edge.queue,
                         overflow: edge.overflow,
                         max_payload_len: edge.max_payload_len,
-                        readers: self
-                            .stages
-                            .values()
-                            .filter(|s| s.inputs.contains(name) || s.calls.contains(name))
-                            .count(),
+                        readers: self.stages.values().filter(|s| s.reads(name) || s.calls.contains(name)).count(),
                     })
                 })
                 .collect()
@@ -425,6 +440,7 @@ impl Graph {
             stage: stage.name.clone(),
             inputs: wire(&stage.inputs)?,
             outputs: wire(&stage.outputs)?,
+            side_inputs: wire(&stage.side_inputs)?,
             serves: wire(&stage.serves)?,
             calls: wire(&stage.calls)?,
             heartbeat_service: poseflow_transport::heartbeat_service_name(instance, &stage.name)

@@ -47,6 +47,9 @@ pub struct StageWiring {
     pub stage: String,
     pub inputs: Vec<EdgeWiring>,
     pub outputs: Vec<EdgeWiring>,
+    /// Edges read beside the input (absent in wirings of older launchers).
+    #[serde(default)]
+    pub side_inputs: Vec<EdgeWiring>,
     pub serves: Vec<EdgeWiring>,
     pub calls: Vec<EdgeWiring>,
     /// iceoryx2 service on which the stage publishes its heartbeat.

@@ -150,6 +150,52 @@ inputs = ["hyps"]
 }
 
 #[test]
+fn a_side_input_may_close_a_loop_and_counts_as_a_reader() {
+    let tracking = r#"
+[graph]
+name = "tracking"
+[edges.handles]
+message = "Condition"
+[edges.hyps]
+message = "Hypotheses"
+[edges.estimates]
+message = "Estimate"
+[stages.source]
+exe = "true"
+outputs = ["handles"]
+[stages.sampler]
+exe = "true"
+inputs = ["handles"]
+side_inputs = ["estimates"]
+outputs = ["hyps"]
+[stages.selector]
+exe = "true"
+inputs = ["hyps"]
+outputs = ["estimates"]
+[stages.sink]
+exe = "true"
+inputs = ["estimates"]
+"#;
+    let graph = check(tracking).unwrap();
+    let selector = graph.wiring(&graph.stages["selector"], "t1").unwrap();
+    assert_eq!(selector.outputs[0].readers, 2, "the sampler's side input and the sink");
+    let sampler = graph.wiring(&graph.stages["sampler"], "t1").unwrap();
+    assert_eq!(sampler.side_inputs.len(), 1);
+    assert_eq!(sampler.side_inputs[0].edge, "estimates");
+
+    // As a plain input the same edge is a cycle.
+    let err = error(
+        &tracking
+            .replace("inputs = [\"handles\"]\nside_inputs = [\"estimates\"]", "inputs = [\"handles\", \"estimates\"]"),
+    );
+    assert!(err.contains("sampler -> selector -> sampler"), "{err}");
+    let err = error(&tracking.replace("side_inputs = [\"estimates\"]", "side_inputs = [\"handles\"]"));
+    assert!(err.contains("`stages.sampler.side_inputs`") && err.contains("\"handles\""), "{err}");
+    let err = error(&tracking.replace("side_inputs = [\"estimates\"]", "side_inputs = [\"nowhere\"]"));
+    assert!(err.contains("`stages.sampler.side_inputs`"), "{err}");
+}
+
+#[test]
 fn parameter_files_are_read_relative_to_the_graph() {
     let dir = std::env::temp_dir().join(format!("poseflow-graph-test-{}", std::process::id()));
     std::fs::create_dir_all(dir.join("config")).unwrap();

@@ -1,8 +1,8 @@
 //! The stage runtime.
 //!
-//! A stage is a library implementing [`Transform`], [`Server`], [`Source`] or [`Sink`]:
+//! A stage is a library implementing [`Transform`], [`Server`], [`Joined`], [`Source`] or [`Sink`]:
 //! plain functions from messages to messages. This crate runs it as a
-//! process of a graph ([`run_transform`], [`run_server`], [`run_source`], [`run_sink`]):
+//! process of a graph ([`run_transform`], [`run_server`], [`run_joined`], [`run_source`], [`run_sink`]):
 //! it reads the stage's wiring from the environment, connects to its
 //! iceoryx2 services, sleeps in a WaitSet until data or a timer wakes it,
 //! validates every message against its contract, stamps per-stage
@@ -21,5 +21,5 @@ mod stage;
 pub use error::RuntimeError;
 pub use local::{LocalGraph, LocalOverflow, LocalReport};
 pub use logging::init_logging;
-pub use process::{run_server, run_sink, run_source, run_transform};
-pub use stage::{EmitError, Emitter, Input, Server, Sink, Source, SourceStep, Transform};
+pub use process::{run_joined, run_server, run_sink, run_source, run_transform};
+pub use stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};

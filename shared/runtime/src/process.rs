@@ -12,7 +12,7 @@ use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, RequestServer, Re
 
 use crate::heartbeat::HeartbeatThread;
 use crate::liveness::Liveness;
-use crate::stage::{EmitError, Emitter, Input, Server, Sink, Source, SourceStep, Transform};
+use crate::stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};
 use crate::{RuntimeError, init_logging};
 
 /// How long a finished stage waits for its receivers to drain before exiting
@@ -33,9 +33,10 @@ struct StageProcess {
     heartbeat: HeartbeatThread,
 }
 
-/// A request server an event loop also wakes on, and what it does then.
-struct Requests<'a, X> {
-    server: &'a X,
+/// Something else an event loop wakes on (a request server, a side input),
+/// and what it does then.
+struct Attachment<'a, X> {
+    source: &'a X,
     on_event: &'a mut dyn FnMut() -> Result<(), TransportError>,
 }
 
@@ -92,28 +93,28 @@ impl StageProcess {
         input: &EdgeSubscriber<H>,
         on_input: impl FnMut(Input<'_, H>),
     ) -> Result<LoopEnd, RuntimeError> {
-        self.event_loop_serving(input, on_input, None::<Requests<'_, EdgeSubscriber<H>>>)
+        self.event_loop_also(input, on_input, None::<Attachment<'_, EdgeSubscriber<H>>>)
     }
 
-    /// As [`Self::event_loop`], also waking on a request server.
-    fn event_loop_serving<H: MessageHeader, X: SynchronousMultiplexing + std::fmt::Debug>(
+    /// As [`Self::event_loop`], also waking on `also`.
+    fn event_loop_also<H: MessageHeader, X: SynchronousMultiplexing + std::fmt::Debug>(
         &self,
         input: &EdgeSubscriber<H>,
         mut on_input: impl FnMut(Input<'_, H>),
-        mut requests: Option<Requests<'_, X>>,
+        mut also: Option<Attachment<'_, X>>,
     ) -> Result<LoopEnd, RuntimeError> {
         let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(waitset_error)?;
         let input_guard = waitset.attach_notification(input).map_err(waitset_error)?;
-        let requests_guard = match &requests {
-            Some(r) => Some(waitset.attach_notification(r.server).map_err(waitset_error)?),
+        let also_guard = match &also {
+            Some(a) => Some(waitset.attach_notification(a.source).map_err(waitset_error)?),
             None => None,
         };
         let mut ended = false;
         let mut failure = None;
         let run = waitset.wait_and_process(|id| {
-            if let (Some(guard), Some(r)) = (&requests_guard, &mut requests)
+            if let (Some(guard), Some(a)) = (&also_guard, &mut also)
                 && id.has_event_from(guard)
-                && let Err(err) = (r.on_event)()
+                && let Err(err) = (a.on_event)()
             {
                 failure = Some(err.into());
                 return CallbackProgression::Stop;
@@ -343,8 +344,8 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
             })?;
             Ok(())
         };
-        let requests = Requests { server: &server, on_event: &mut on_requests };
-        let end = process.event_loop_serving(
+        let requests = Attachment { source: &server, on_event: &mut on_requests };
+        let end = process.event_loop_also(
             &input,
             |message| transform_one(&mut **stage.borrow_mut(), message, &output, liveness),
             Some(requests),
@@ -352,6 +353,84 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
         // The readers of the handles may still be asking for velocities.
         finish_transform(process, &input, &output, end, on_requests)
     })())
+}
+
+/// Runs a [`Joined`] transform as a graph process: its input and output edge
+/// as for [`run_transform`], plus the one edge in its `side_inputs`.
+pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String>) -> ExitCode {
+    exit((|| {
+        let process = StageProcess::start(1, 1)?;
+        let wiring = &process.wiring;
+        let [side_edge] = wiring.side_inputs.as_slice() else {
+            return Err(RuntimeError::Shape {
+                stage: wiring.stage.clone(),
+                expected: "one side input",
+                found: format!("{} side input(s)", wiring.side_inputs.len()),
+            });
+        };
+        // Subscribed before the stage is built (a selector precomputes its
+        // distance grids), so nothing published meanwhile is missed: the
+        // edges queue and push back.
+        let input = process.input::<J::In>()?;
+        let side = EdgeSubscriber::<J::Side>::create(&process.node, &side_edge.service, &side_edge.options())?;
+        let mut stage = build(wiring, make)?;
+        let _span = tracing::info_span!("stage", name = %wiring.stage).entered();
+        let output = process.output::<J::Out>()?;
+        tracing::info!(input = input.name(), side = side.name(), output = output.name(), "running");
+        let liveness = process.liveness.clone();
+        let liveness = &*liveness;
+        // Both handlers use the stage, one at a time (the WaitSet calls one
+        // callback at a time).
+        let stage = std::cell::RefCell::new(&mut stage);
+        let mut side_ended = false;
+        // Also called while the output drains at the end: a side input that
+        // closes a loop ends only after this stage's output has.
+        let mut on_side = || -> Result<(), TransportError> {
+            let ended = side.take_events()?;
+            drain_side(&side, &mut **stage.borrow_mut(), liveness)?;
+            if ended && !side_ended {
+                side_ended = true;
+                side.acknowledge_end()?;
+            }
+            Ok(())
+        };
+        let attachment = Attachment { source: &side, on_event: &mut on_side };
+        let end = process.event_loop_also(
+            &input,
+            |message| {
+                let mut stage = stage.borrow_mut();
+                if let Err(err) = drain_side(&side, &mut **stage, liveness) {
+                    tracing::warn!(%err, "side input not read");
+                }
+                transform_one(&mut **stage, message, &output, liveness)
+            },
+            Some(attachment),
+        )?;
+        finish_transform(process, &input, &output, end, on_side)
+    })())
+}
+
+/// Hands every queued side message to the stage. Side messages are not
+/// frames of this stage's stream: they are checked against their contract
+/// but not counted as inputs or gaps.
+fn drain_side<J: Joined>(
+    side: &EdgeSubscriber<J::Side>,
+    stage: &mut J,
+    liveness: &Liveness,
+) -> Result<(), TransportError> {
+    while let Some(message) = side.receive()? {
+        let header = message.header();
+        let frame = header.header().frame_id;
+        let kept = header
+            .check_payload(message.payload())
+            .map_err(|e| e.to_string())
+            .and_then(|()| stage.side(Input { header, payload: message.payload() }).map_err(|e| e.to_string()));
+        if let Err(err) = kept {
+            liveness.count_error();
+            tracing::warn!(edge = side.name(), frame, %err, "side message rejected");
+        }
+    }
+    Ok(())
 }
 
 /// Runs a [`Sink`] as a graph process.

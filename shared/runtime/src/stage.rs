@@ -77,6 +77,17 @@ pub trait Server: Transform {
     ) -> Result<(), Self::Error>;
 }
 
+/// A [`Transform`] that also reads a side input (graph key `side_inputs`):
+/// messages it keeps for the inputs that need them. The selector keeps each
+/// Observation's points until that object's Hypotheses arrive; a tracking
+/// sampler keeps the last Estimate of each object. Side messages published
+/// before an input are handed over before that input.
+pub trait Joined: Transform {
+    type Side: MessageHeader;
+
+    fn side(&mut self, input: Input<'_, Self::Side>) -> Result<(), Self::Error>;
+}
+
 /// What a source did on one call.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SourceStep {

@@ -1,0 +1,72 @@
+//! The demo's graph: `deploy/estimation.toml` itself, with the frame source
+//! pointed at the rendered scene and the paths made absolute (the copy
+//! lives in the output folder).
+
+use std::path::Path;
+
+use anyhow::{Context, bail};
+
+/// Per-stage inline parameters the demo sets on top of the graph file's.
+pub struct Overrides<'a> {
+    pub dataset: &'a Path,
+    pub model: &'a Path,
+    pub object_models: &'a Path,
+    pub selection: &'a str,
+    pub refine: bool,
+    pub samples: usize,
+    pub steps: usize,
+}
+
+fn absolute(path: &Path) -> anyhow::Result<String> {
+    let path = std::path::absolute(path).with_context(|| format!("{}: cannot make absolute", path.display()))?;
+    Ok(path.display().to_string())
+}
+
+/// The estimation graph with `overrides`, as TOML text.
+pub fn estimation_graph(graph_file: &Path, overrides: &Overrides<'_>) -> anyhow::Result<String> {
+    let text = std::fs::read_to_string(graph_file).with_context(|| {
+        format!("{}: cannot read the estimation graph (run from the repository root)", graph_file.display())
+    })?;
+    let mut graph: toml::Table = text.parse().with_context(|| format!("{}: not TOML", graph_file.display()))?;
+    let graph_dir = graph_file.parent().unwrap_or(Path::new("."));
+    let Some(stages) = graph.get_mut("stages").and_then(|s| s.as_table_mut()) else {
+        bail!("{}: no [stages] table", graph_file.display());
+    };
+    for (name, stage) in stages.iter_mut() {
+        let Some(stage) = stage.as_table_mut() else { bail!("{}: stages.{name} is not a table", graph_file.display()) };
+        if name == "frames" {
+            stage.remove("config");
+        }
+        if let Some(config) = stage.get("config").and_then(|c| c.as_str()) {
+            let resolved = absolute(&graph_dir.join(config))?;
+            stage.insert("config".into(), resolved.into());
+        }
+        let params = stage.entry("params").or_insert_with(|| toml::Table::new().into());
+        let Some(params) = params.as_table_mut() else {
+            bail!("{}: stages.{name}.params is not a table", graph_file.display())
+        };
+        match name.as_str() {
+            "frames" => {
+                // The rendered scene, not the graph's own source settings.
+                params.clear();
+                params.insert("source".into(), "bop".into());
+                params.insert("dataset".into(), absolute(overrides.dataset)?.into());
+                params.insert("split".into(), "test".into());
+            }
+            "inference" => {
+                params.insert("model".into(), absolute(overrides.model)?.into());
+            }
+            "sampler" => {
+                params.insert("samples".into(), (overrides.samples as i64).into());
+                params.insert("steps".into(), (overrides.steps as i64).into());
+            }
+            "selector" => {
+                params.insert("method".into(), overrides.selection.into());
+                params.insert("models".into(), absolute(overrides.object_models)?.into());
+                params.insert("refine".into(), overrides.refine.into());
+            }
+            _ => {}
+        }
+    }
+    Ok(toml::to_string(&graph)?)
+}

@@ -1,0 +1,318 @@
+//! `poseflow demo`: renders a scene of the vendored objects, runs the
+//! estimation graph on it as processes, and reports each object's selected
+//! pose against the ground truth, with pictures.
+
+mod graph;
+mod pictures;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{Context, bail};
+use clap::{Args, ValueEnum};
+use poseflow_contracts::{EstimateHeader, HypothesesHeader, POSE_LEN};
+use poseflow_geometry::{Pose, SymmetrySet};
+use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+use poseflow_scene::bop::{CameraEntry, GtEntry, SceneDir, read_json, read_rgb_png};
+use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset};
+use poseflow_scene::scene::{Occlusion, ViewRange};
+use poseflow_scene::{DepthNoise, ModelLibrary};
+use serde::Serialize;
+
+use self::graph::{Overrides, estimation_graph};
+use self::pictures::{Outlined, mollweide_panels, overlay};
+
+/// Rotation steps of continuous symmetries in the reported errors (BOP's
+/// discretisation).
+const SYMMETRY_STEP_DEG: f64 = 1.0;
+/// Hypotheses outlined per object.
+const OUTLINED_HYPOTHESES: usize = 5;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SelectionArg {
+    None,
+    ModelFree,
+    Chamfer,
+    Sdf,
+}
+
+impl SelectionArg {
+    fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::ModelFree => "model-free",
+            Self::Chamfer => "chamfer",
+            Self::Sdf => "sdf",
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+#[command(after_help = "Run from the repository root after `cargo build --release --workspace` (the stages are \
+    separate executables). Writes <out>/scene (the rendered BOP scene), <out>/estimation.toml (the graph run), \
+    <out>/estimation.rec (its hypotheses and estimates), <out>/overlay.png (outlines: green = selected pose, \
+    orange = hypotheses) and <out>/mollweide.png (one panel per object, top to bottom in the table's order: \
+    rotation samples coloured by tilt, the ground truth as a ring).")]
+pub struct DemoArgs {
+    /// Output folder.
+    #[arg(long, default_value = "target/demo")]
+    pub out: PathBuf,
+    /// Seed of the rendered scene.
+    #[arg(long, default_value_t = 3)]
+    pub seed: u64,
+    /// Model directory (encoder.onnx, velocity.onnx).
+    #[arg(long, default_value = "models/poseflow-lmo10")]
+    pub model: PathBuf,
+    /// BOP models directory of the objects to render and score.
+    #[arg(long, default_value = "objects/lmo")]
+    pub objects: PathBuf,
+    /// The estimation graph to run.
+    #[arg(long, default_value = "deploy/estimation.toml")]
+    pub graph: PathBuf,
+    /// How the selector chooses the pose.
+    #[arg(long, value_enum, default_value_t = SelectionArg::Sdf)]
+    pub selection: SelectionArg,
+    /// Skip the refinement of the kept hypotheses.
+    #[arg(long)]
+    pub no_refine: bool,
+    /// Pose samples per object.
+    #[arg(long, default_value_t = 50)]
+    pub samples: usize,
+    /// Euler steps.
+    #[arg(long, default_value_t = 5)]
+    pub steps: usize,
+    /// Print one JSON object instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One object's result.
+#[derive(Debug, Serialize)]
+struct ObjectReport {
+    obj_id: u32,
+    /// Selected pose: R row-major, t in metres (camera frame).
+    rotation: [f64; 9],
+    translation_m: [f64; 3],
+    rotation_error_deg: f64,
+    translation_error_cm: f64,
+    /// √(trace Σ) of the kept hypotheses: rotation (degrees), translation (cm).
+    rotation_spread_deg: f64,
+    translation_spread_cm: f64,
+    modes: u32,
+    kept: u32,
+    hypotheses: u32,
+    /// Share of samples within 10° and 5 cm of the ground truth.
+    samples_within_10deg_5cm: f64,
+}
+
+#[derive(Debug, Serialize)]
+struct Report {
+    out: PathBuf,
+    selection: &'static str,
+    refined: bool,
+    objects: Vec<ObjectReport>,
+    overlay: PathBuf,
+    mollweide: PathBuf,
+}
+
+/// What the graph recorded for one object.
+struct Recorded {
+    estimate: EstimateHeader,
+    hypotheses: Vec<Pose>,
+}
+
+fn poses(payload: &[f32], stride: usize) -> anyhow::Result<Vec<Pose>> {
+    payload
+        .chunks_exact(stride)
+        .map(|c| Pose::from_f32_row_major(c[..POSE_LEN].try_into().expect("12 values")).map_err(Into::into))
+        .collect()
+}
+
+fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
+    let mut reader = RecordingReader::open(path).with_context(|| format!("{}", path.display()))?;
+    let (mut estimates, mut hypotheses) = (Vec::new(), Vec::new());
+    while let Some(message) = reader.next_message()? {
+        match message.edge.as_str() {
+            "estimates" => {
+                let header: EstimateHeader = header_from_bytes(&message.header).context("estimate header")?;
+                estimates.push(header);
+            }
+            "hypotheses" => {
+                let header: HypothesesHeader = header_from_bytes(&message.header).context("hypotheses header")?;
+                hypotheses.push((header.header.object_id, poses(&message.payload, POSE_LEN)?));
+            }
+            _ => {}
+        }
+    }
+    estimates
+        .into_iter()
+        .map(|estimate| {
+            let object = estimate.header.object_id;
+            let samples = hypotheses.iter().find(|(o, _)| *o == object).map(|(_, p)| p.clone()).unwrap_or_default();
+            Ok(Recorded { estimate, hypotheses: samples })
+        })
+        .collect()
+}
+
+fn render_scene(library: &ModelLibrary, seed: u64, out: &Path) -> anyhow::Result<()> {
+    let spec = RenderSpec {
+        split: "test".into(),
+        first_scene: 0,
+        scenes: 1,
+        frames_per_scene: 1,
+        seed,
+        occlusion: Occlusion::Medium,
+        camera: lmo_camera(640, 480),
+        views: ViewRange::default(),
+        depth_noise: Some(DepthNoise::default()),
+        rgb_noise: 2.0,
+    };
+    write_dataset(library, &spec, out, |_| {}).with_context(|| format!("{}: cannot write the scene", out.display()))
+}
+
+fn run_graph(graph: &Path, recording: &Path) -> anyhow::Result<()> {
+    let exe = std::env::current_exe().context("cannot find the poseflow executable")?;
+    let output = Command::new(&exe)
+        .args(["run", "--status-ms", "0", "--json", "--record"])
+        .arg(recording)
+        .args(["--record-edges", "hypotheses,estimates", "--graph"])
+        .arg(graph)
+        .output()
+        .with_context(|| format!("cannot start {}", exe.display()))?;
+    if !output.status.success() {
+        bail!(
+            "the estimation graph failed ({}); its log:\n{}\n(build every stage first: cargo build --release --workspace)",
+            output.status,
+            String::from_utf8_lossy(&output.stderr)
+        );
+    }
+    Ok(())
+}
+
+pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
+    if args.samples == 0 || args.steps == 0 {
+        bail!("--samples {} --steps {}: expected at least 1 of each", args.samples, args.steps);
+    }
+    let library = ModelLibrary::load(&args.objects, &[])
+        .with_context(|| format!("--objects {}: cannot load the object models", args.objects.display()))?;
+    std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
+    let dataset = args.out.join("scene");
+    render_scene(&library, args.seed, &dataset)?;
+    let overrides = Overrides {
+        dataset: &dataset,
+        model: &args.model,
+        object_models: &args.objects,
+        selection: args.selection.name(),
+        refine: !args.no_refine,
+        samples: args.samples,
+        steps: args.steps,
+    };
+    let graph = args.out.join("estimation.toml");
+    std::fs::write(&graph, estimation_graph(&args.graph, &overrides)?)
+        .with_context(|| format!("{}", graph.display()))?;
+    let recording = args.out.join("estimation.rec");
+    run_graph(&graph, &recording)?;
+    let recorded = read_recording(&recording)?;
+
+    let scene = SceneDir::new(&dataset.join("test"), 0);
+    let gt: std::collections::BTreeMap<String, Vec<GtEntry>> = read_json(&scene.scene_gt())?;
+    let cameras: std::collections::BTreeMap<String, CameraEntry> = read_json(&scene.scene_camera())?;
+    let truths: Vec<(u32, Pose)> = gt["0"]
+        .iter()
+        .enumerate()
+        .map(|(i, entry)| Ok((entry.obj_id, entry.pose(&scene.scene_gt(), 0, i)?)))
+        .collect::<anyhow::Result<_>>()?;
+    let rgb = read_rgb_png(&scene.rgb(0))?;
+    let camera = cameras["0"].camera(rgb.width, rgb.height, &scene.scene_camera(), 0)?;
+
+    let mut objects = Vec::new();
+    let mut outlined = Vec::new();
+    let mut panels = Vec::new();
+    for entry in &recorded {
+        let estimate = &entry.estimate;
+        let obj_id = estimate.header.object_id;
+        let Some((_, truth)) = truths.iter().find(|(id, _)| *id == obj_id) else { continue };
+        let object = library.objects.iter().find(|o| o.obj_id == obj_id).context("an object of the scene")?;
+        let symmetries = SymmetrySet::from_model_info(&object.info, SYMMETRY_STEP_DEG.to_radians());
+        let best = Pose::from_f32_row_major(&estimate.best)?;
+        let error = symmetries.pose_error(&best, truth);
+        let within = entry
+            .hypotheses
+            .iter()
+            .filter(|p| {
+                let e = symmetries.pose_error(p, truth);
+                e.rotation.to_degrees() < 10.0 && e.translation < 0.05
+            })
+            .count();
+        let c = &estimate.covariance;
+        let rotation_trace = f64::from(estimate.rotation_trace);
+        let translation_trace = f64::from(c[0] + c[7] + c[14]);
+        objects.push(ObjectReport {
+            obj_id,
+            rotation: std::array::from_fn(|i| best.rotation.matrix()[(i / 3, i % 3)]),
+            translation_m: [best.translation.x, best.translation.y, best.translation.z],
+            rotation_error_deg: error.rotation.to_degrees(),
+            translation_error_cm: error.translation * 100.0,
+            rotation_spread_deg: rotation_trace.max(0.0).sqrt().to_degrees(),
+            translation_spread_cm: translation_trace.max(0.0).sqrt() * 100.0,
+            modes: estimate.mode_count,
+            kept: estimate.kept_count,
+            hypotheses: estimate.hypothesis_count,
+            samples_within_10deg_5cm: within as f64 / entry.hypotheses.len().max(1) as f64,
+        });
+        outlined.push(Outlined {
+            model: &object.model,
+            selected: best,
+            hypotheses: entry.hypotheses.iter().take(OUTLINED_HYPOTHESES).copied().collect(),
+        });
+        panels.push((entry.hypotheses.clone(), *truth));
+    }
+    if objects.is_empty() {
+        bail!("the graph produced no estimate for the scene's objects (see {})", recording.display());
+    }
+    let overlay_path = args.out.join("overlay.png");
+    overlay(&rgb, &camera, &outlined, &overlay_path)?;
+    let mollweide_path = args.out.join("mollweide.png");
+    mollweide_panels(&panels, &mollweide_path)?;
+    let report = Report {
+        out: args.out.clone(),
+        selection: args.selection.name(),
+        refined: !args.no_refine,
+        objects,
+        overlay: overlay_path,
+        mollweide: mollweide_path,
+    };
+    if args.json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        print_table(&report);
+    }
+    Ok(())
+}
+
+fn print_table(report: &Report) {
+    println!(
+        "selection {}{}; errors against the ground truth (symmetry-aware), spread = √trace of the kept hypotheses' covariance",
+        report.selection,
+        if report.refined { " + refinement" } else { "" }
+    );
+    println!(
+        "object  t (m)                    rot err °  trans err cm  rot spread °  trans spread cm  modes  samples ≤10°5cm"
+    );
+    for o in &report.objects {
+        println!(
+            "{:>6}  [{:+.3}, {:+.3}, {:+.3}]  {:>9.1}  {:>12.2}  {:>12.1}  {:>15.2}  {:>5}  {:>14.0} %",
+            o.obj_id,
+            o.translation_m[0],
+            o.translation_m[1],
+            o.translation_m[2],
+            o.rotation_error_deg,
+            o.translation_error_cm,
+            o.rotation_spread_deg,
+            o.translation_spread_cm,
+            o.modes,
+            100.0 * o.samples_within_10deg_5cm
+        );
+    }
+    println!("pictures: {} and {}", report.overlay.display(), report.mollweide.display());
+}

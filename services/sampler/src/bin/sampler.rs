@@ -1,0 +1,34 @@
+//! The sampler stage process: `exe = "sampler"` in a graph file; Condition
+//! handles in, Hypotheses out, velocities asked of the inference stage over
+//! the request-response edge in `calls`; in tracking mode the selector's
+//! Estimates come back as a side input (`side_inputs`).
+
+use std::process::ExitCode;
+use std::time::Duration;
+
+use poseflow_graph::StageWiring;
+use poseflow_sampler::SamplerParams;
+use poseflow_sampler::stage::{RemoteField, SamplerStage};
+use poseflow_transport::{RequestClient, create_node};
+
+fn make(wiring: &StageWiring) -> Result<SamplerStage<RemoteField>, String> {
+    let params = SamplerParams::from_json(&wiring.params).map_err(|e| e.to_string())?;
+    let [edge] = wiring.calls.as_slice() else {
+        return Err(format!(
+            "stage `{}`: expected exactly one request-response edge in `calls` (the inference stage's velocities), found {}",
+            wiring.stage,
+            wiring.calls.len()
+        ));
+    };
+    let node = create_node(&format!("{}-velocity", wiring.stage)).map_err(|e| e.to_string())?;
+    let client = RequestClient::create(&node, &edge.service, edge.max_payload_len).map_err(|e| e.to_string())?;
+    let timeout = Duration::from_millis(params.velocity_timeout_ms);
+    tracing::info!(samples = params.samples, steps = params.steps, tracking = params.tracking.enabled, "sampler ready");
+    Ok(SamplerStage::new(params, RemoteField::new(node, client, timeout)))
+}
+
+fn main() -> ExitCode {
+    // With the selector's Estimates as a side input it can track.
+    let has_side_input = StageWiring::from_env().is_ok_and(|w| !w.side_inputs.is_empty());
+    if has_side_input { poseflow_runtime::run_joined(make) } else { poseflow_runtime::run_transform(make) }
+}

@@ -1,0 +1,18 @@
+//! The flow sampler: turns a Condition handle into N pose hypotheses by
+//! integrating the learned velocity field on SE(3) (paper, "Inference"),
+//! asking the inference stage for the velocities of all N samples at once
+//! per Euler step.
+//!
+//! The heart is [`FlowSampler::sample`], a plain function of a handle, a
+//! start ([`Start`]) and a [`VelocityField`]; the same code runs in-process
+//! (the field is the inference stage's library) and as a process (the field
+//! is an iceoryx2 request-response client, [`stage::RemoteField`]).
+
+mod error;
+mod flow;
+mod params;
+pub mod stage;
+
+pub use error::SamplerError;
+pub use flow::{FlowSampler, Start, VelocityField, sample_seed};
+pub use params::{SamplerParams, TrackingParams};

@@ -1,0 +1,153 @@
+//! The sampler's parameters (graph `params` over `config/sampler.toml`).
+
+use serde::Deserialize;
+
+use crate::SamplerError;
+
+/// | key | meaning | default |
+/// |---|---|---|
+/// | `samples` | N hypotheses per observation | 50 |
+/// | `steps` | K Euler steps from t = 0 | 5 |
+/// | `seed` | seed of the initial draws (mixed with frame and object ids) | 0 |
+/// | `translation_noise_std` | σ of the initial translations, metres; must match the model's `translation_noise_std` metadata | 0.05 |
+/// | `velocity_timeout_ms` | how long one velocity request may take before the frame is dropped (counted) | 5000 |
+/// | `tracking` | see [`TrackingParams`] | off |
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SamplerParams {
+    #[serde(default = "default_samples")]
+    pub samples: usize,
+    #[serde(default = "default_steps")]
+    pub steps: usize,
+    #[serde(default)]
+    pub seed: u64,
+    #[serde(default = "default_noise")]
+    pub translation_noise_std: f64,
+    #[serde(default = "default_timeout")]
+    pub velocity_timeout_ms: u64,
+    #[serde(default)]
+    pub tracking: TrackingParams,
+}
+
+/// Tracking mode: a frame whose object has an estimate from an earlier frame
+/// starts from that estimate instead of the uniform prior.
+///
+/// | key | meaning | default |
+/// |---|---|---|
+/// | `enabled` | start from the previous estimate when there is one | false |
+/// | `steps` | Euler steps from `start_time` to 1 | 1 |
+/// | `start_time` | flow time the previous estimate is placed at (the network trusts poses near t = 1 more) | 0.8 |
+/// | `rotation_noise_deg` | σ per axis of the perturbation about the previous rotation | 5 |
+/// | `translation_noise` | σ per axis of the perturbation of the previous translation, metres | 0.01 |
+/// | `max_age_frames` | an estimate older than this many frames is not used | 5 |
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackingParams {
+    #[serde(default)]
+    pub enabled: bool,
+    #[serde(default = "default_tracking_steps")]
+    pub steps: usize,
+    #[serde(default = "default_start_time")]
+    pub start_time: f64,
+    #[serde(default = "default_rotation_noise")]
+    pub rotation_noise_deg: f64,
+    #[serde(default = "default_translation_noise")]
+    pub translation_noise: f64,
+    #[serde(default = "default_max_age")]
+    pub max_age_frames: u64,
+}
+
+impl Default for TrackingParams {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            steps: default_tracking_steps(),
+            start_time: default_start_time(),
+            rotation_noise_deg: default_rotation_noise(),
+            translation_noise: default_translation_noise(),
+            max_age_frames: default_max_age(),
+        }
+    }
+}
+
+fn default_samples() -> usize {
+    50
+}
+fn default_steps() -> usize {
+    5
+}
+fn default_noise() -> f64 {
+    0.05
+}
+fn default_timeout() -> u64 {
+    5000
+}
+fn default_tracking_steps() -> usize {
+    1
+}
+fn default_start_time() -> f64 {
+    0.8
+}
+fn default_rotation_noise() -> f64 {
+    5.0
+}
+fn default_translation_noise() -> f64 {
+    0.01
+}
+fn default_max_age() -> u64 {
+    5
+}
+
+impl Default for SamplerParams {
+    fn default() -> Self {
+        serde_json::from_value(serde_json::json!({})).expect("every field has a default")
+    }
+}
+
+impl SamplerParams {
+    /// Reads the graph's `params`, naming the key that is wrong.
+    pub fn from_json(value: &serde_json::Value) -> Result<Self, SamplerError> {
+        let params: Self = serde_json::from_value(value.clone())
+            .map_err(|e| SamplerError::Params { key: "sampler", detail: e.to_string() })?;
+        params.validate()?;
+        Ok(params)
+    }
+
+    fn validate(&self) -> Result<(), SamplerError> {
+        let max = poseflow_contracts::limits::MAX_SAMPLES as usize;
+        let checks: [(&'static str, bool, String); 7] = [
+            ("samples", (1..=max).contains(&self.samples), format!("{}: expected 1 to {max}", self.samples)),
+            ("steps", (1..=1000).contains(&self.steps), format!("{}: expected 1 to 1000", self.steps)),
+            (
+                "translation_noise_std",
+                self.translation_noise_std.is_finite() && self.translation_noise_std >= 0.0,
+                format!("{}: expected metres >= 0", self.translation_noise_std),
+            ),
+            ("velocity_timeout_ms", self.velocity_timeout_ms > 0, "0: expected at least 1".into()),
+            (
+                "tracking.steps",
+                (1..=1000).contains(&self.tracking.steps),
+                format!("{}: expected 1 to 1000", self.tracking.steps),
+            ),
+            (
+                "tracking.start_time",
+                (0.0..1.0).contains(&self.tracking.start_time),
+                format!("{}: expected a flow time 0 <= t < 1", self.tracking.start_time),
+            ),
+            (
+                "tracking.rotation_noise_deg / translation_noise",
+                [self.tracking.rotation_noise_deg, self.tracking.translation_noise]
+                    .iter()
+                    .all(|x| x.is_finite() && *x >= 0.0),
+                format!(
+                    "{} / {}: expected numbers >= 0",
+                    self.tracking.rotation_noise_deg, self.tracking.translation_noise
+                ),
+            ),
+        ];
+        match checks.into_iter().find(|(_, ok, _)| !ok) {
+            Some((key, _, detail)) => Err(SamplerError::Params { key, detail }),
+            None => Ok(()),
+        }
+    }
+}

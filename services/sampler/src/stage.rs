@@ -1,0 +1,153 @@
+//! The sampler stage: Condition handle in, Hypotheses out; velocities from
+//! a [`VelocityField`] (over request-response in a process).
+
+use std::collections::HashMap;
+use std::time::Duration;
+
+use poseflow_contracts::{
+    ConditionHandle, EstimateHeader, HypothesesHeader, POSE_LEN, Stage, VelocityRequest, VelocityResponse, flags,
+    status as velocity_status,
+};
+use poseflow_geometry::Pose;
+use poseflow_runtime::{Emitter, Input, Joined, Transform};
+use poseflow_transport::{Node, RequestClient};
+
+use crate::flow::write_poses;
+use crate::{FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
+
+/// The inference stage over iceoryx2 request-response.
+#[derive(Debug)]
+pub struct RemoteField {
+    // Declared before the node it was created on, so it is dropped first.
+    client: RequestClient<VelocityRequest, VelocityResponse>,
+    _node: Node,
+    timeout: Duration,
+}
+
+impl RemoteField {
+    pub fn new(node: Node, client: RequestClient<VelocityRequest, VelocityResponse>, timeout: Duration) -> Self {
+        Self { client, _node: node, timeout }
+    }
+}
+
+impl VelocityField for RemoteField {
+    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
+        let reply = self
+            .client
+            .call(*request, poses.len(), |buffer| buffer.copy_from_slice(poses), self.timeout)
+            .map_err(|e| e.to_string())?;
+        let response = reply.header();
+        if response.status != velocity_status::OK {
+            let meaning = match response.status {
+                velocity_status::UNKNOWN_CONDITION => "unknown condition (the inference stage restarted or evicted it)",
+                velocity_status::INVALID_REQUEST => "invalid request",
+                velocity_status::INFERENCE_FAILED => "the network failed",
+                _ => "unknown status",
+            };
+            return Err(format!("inference answered status {}: {meaning}", response.status));
+        }
+        if response.request_id != request.request_id || reply.payload().len() != out.len() {
+            return Err(format!(
+                "answer to request {} with {} values, expected request {} with {}",
+                response.request_id,
+                reply.payload().len(),
+                request.request_id,
+                out.len()
+            ));
+        }
+        out.copy_from_slice(reply.payload());
+        Ok(())
+    }
+}
+
+/// The last estimate of one object, to seed tracking.
+#[derive(Debug, Clone, Copy)]
+struct Previous {
+    frame_id: u64,
+    pose: Pose,
+}
+
+/// The stage: the sampler, its velocity field and, in tracking mode, the
+/// last estimate per object.
+#[derive(Debug)]
+pub struct SamplerStage<F> {
+    sampler: FlowSampler,
+    field: F,
+    previous: HashMap<u32, Previous>,
+}
+
+impl<F: VelocityField> SamplerStage<F> {
+    pub fn new(params: SamplerParams, field: F) -> Self {
+        Self { sampler: FlowSampler::new(params), field, previous: HashMap::new() }
+    }
+
+    /// Records an estimate (camera frame) that later frames of the object
+    /// start from in tracking mode.
+    pub fn remember(&mut self, frame_id: u64, object_id: u32, pose: Pose) {
+        self.previous.insert(object_id, Previous { frame_id, pose });
+    }
+
+    /// Where the handle's frame starts: the object's previous estimate when
+    /// tracking and recent enough, else the prior.
+    pub fn start_for(&self, handle: &ConditionHandle) -> Start {
+        let tracking = &self.sampler.params().tracking;
+        let recent = self.previous.get(&handle.header.object_id).filter(|p| {
+            p.frame_id < handle.header.frame_id && handle.header.frame_id - p.frame_id <= tracking.max_age_frames
+        });
+        match recent {
+            Some(previous) if tracking.enabled => Start::Track(previous.pose),
+            _ => Start::Prior,
+        }
+    }
+
+    /// The sampled hypotheses of one handle (camera frame) and the header
+    /// they are published under.
+    pub fn hypotheses(&mut self, handle: &ConditionHandle) -> Result<(HypothesesHeader, &[Pose]), SamplerError> {
+        let start = self.start_for(handle);
+        let sampled = self.sampler.sample(handle, &start, &mut self.field)?;
+        let mut header = handle.header;
+        if matches!(start, Start::Track(_)) {
+            header.flags |= flags::TRACKING;
+        }
+        let out =
+            HypothesesHeader { header, sample_count: sampled.poses.len() as u32, step_count: sampled.steps as u32 };
+        Ok((out, sampled.poses))
+    }
+}
+
+impl<F: VelocityField> Transform for SamplerStage<F> {
+    type In = ConditionHandle;
+    type Out = HypothesesHeader;
+    type Error = SamplerError;
+    const SLOT: Option<Stage> = Some(Stage::Sampler);
+
+    fn process(
+        &mut self,
+        input: Input<'_, ConditionHandle>,
+        output: &mut dyn Emitter<HypothesesHeader>,
+    ) -> Result<(), SamplerError> {
+        let handle = input.header;
+        let _span =
+            tracing::debug_span!("sample", frame = handle.header.frame_id, object = handle.header.object_id).entered();
+        let (header, poses) = self.hypotheses(handle)?;
+        output.emit(header, poses.len() * POSE_LEN, &mut |buffer| write_poses(poses, buffer))?;
+        Ok(())
+    }
+}
+
+/// Tracking: the selector's Estimates as a side input (`side_inputs`), each
+/// remembered as its object's previous pose.
+impl<F: VelocityField> Joined for SamplerStage<F> {
+    type Side = EstimateHeader;
+
+    fn side(&mut self, input: Input<'_, EstimateHeader>) -> Result<(), SamplerError> {
+        let header = &input.header.header;
+        let best = Pose::from_f32_row_major(&input.header.best).map_err(|e| SamplerError::Geometry {
+            frame: header.frame_id,
+            object: header.object_id,
+            detail: format!("estimate's best pose: {e}"),
+        })?;
+        self.remember(header.frame_id, header.object_id, best);
+        Ok(())
+    }
+}

@@ -1,0 +1,183 @@
+//! The sampler against velocity fields with known flows.
+
+use nalgebra::Vector3;
+use poseflow_contracts::{ConditionHandle, Header, VelocityRequest, flags};
+use poseflow_geometry::flow::target_velocity;
+use poseflow_geometry::{Pose, so3};
+use poseflow_runtime::{EmitError, Emitter, Input, Transform};
+use poseflow_sampler::stage::SamplerStage;
+use poseflow_sampler::{FlowSampler, SamplerParams, Start, TrackingParams};
+
+fn handle(frame: u64) -> ConditionHandle {
+    ConditionHandle {
+        header: Header::new(frame, 5),
+        condition_id: 42,
+        centroid: [0.1, -0.05, 0.7],
+        point_scale: 0.5,
+        ..Default::default()
+    }
+}
+
+/// The camera-frame pose every flow should reach.
+fn target() -> Pose {
+    Pose::new(so3::exp(&Vector3::new(0.3, 2.0, -0.4)), Vector3::new(0.12, -0.03, 0.72))
+}
+
+/// The exact velocity toward `target` (the paper's conditional velocity),
+/// in the request frame of `handle`; records the times it was asked at.
+fn toward_target<'a>(
+    handle: &ConditionHandle,
+    times: &'a mut Vec<f32>,
+) -> impl FnMut(&VelocityRequest, &[f32], &mut [f32]) -> Result<(), String> + 'a {
+    let scale = f64::from(handle.point_scale);
+    let centroid = Vector3::from(handle.centroid.map(f64::from));
+    let goal = Pose::new(target().rotation, (target().translation - centroid) / scale);
+    move |request, poses, out| {
+        times.push(request.t);
+        for (pose, velocity) in poses.chunks_exact(12).zip(out.chunks_exact_mut(6)) {
+            let current = Pose::from_f32_row_major(pose.try_into().unwrap()).map_err(|e| e.to_string())?;
+            let v = target_velocity(&current, &goal, f64::from(request.t)).map_err(|e| e.to_string())?;
+            velocity.copy_from_slice(&v.to_f32());
+        }
+        Ok(())
+    }
+}
+
+fn assert_near_target(poses: &[Pose], degrees: f64, metres: f64) {
+    for pose in poses {
+        let angle = so3::geodesic_angle(&pose.rotation, &target().rotation).to_degrees();
+        let offset = (pose.translation - target().translation).norm();
+        assert!(angle < degrees && offset < metres, "{angle} deg, {offset} m");
+    }
+}
+
+#[test]
+fn the_exact_flow_carries_every_sample_to_the_target_in_the_camera_frame() {
+    let handle = handle(3);
+    let mut times = Vec::new();
+    let mut sampler = FlowSampler::new(SamplerParams { samples: 20, steps: 5, ..Default::default() });
+    let sampled = sampler.sample(&handle, &Start::Prior, &mut toward_target(&handle, &mut times)).unwrap();
+    assert_eq!((sampled.poses.len(), sampled.steps), (20, 5));
+    // f32 poses in the requests: micro-degree and sub-micrometre rounding.
+    assert_near_target(sampled.poses, 1e-3, 1e-5);
+    assert_eq!(times, vec![0.0, 0.2, 0.4, 0.6, 0.8]);
+}
+
+#[test]
+fn draws_depend_on_seed_frame_and_object_only() {
+    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), String> {
+        out.fill(0.0);
+        Ok(())
+    };
+    let draw = |params: SamplerParams, handle: &ConditionHandle| -> Vec<Pose> {
+        let mut field = zero;
+        FlowSampler::new(params).sample(handle, &Start::Prior, &mut field).unwrap().poses.to_vec()
+    };
+    let params = SamplerParams { samples: 8, ..Default::default() };
+    let a = draw(params.clone(), &handle(3));
+    assert_eq!(a, draw(params.clone(), &handle(3)));
+    assert_ne!(a, draw(params.clone(), &handle(4)));
+    assert_ne!(a, draw(SamplerParams { seed: 1, ..params.clone() }, &handle(3)));
+    // The prior: rotations spread, translations about the centroid with
+    // the configured spread (0.05 m).
+    let spread = a.iter().map(|p| (p.translation - Vector3::new(0.1, -0.05, 0.7)).norm()).fold(0.0, f64::max);
+    assert!(spread > 0.01 && spread < 0.4, "{spread}");
+}
+
+#[test]
+fn tracking_starts_from_the_previous_estimate_late_in_the_flow() {
+    let params = SamplerParams {
+        samples: 10,
+        tracking: TrackingParams { enabled: true, steps: 2, ..Default::default() },
+        ..Default::default()
+    };
+    let mut times = Vec::new();
+    {
+        let first = handle(10);
+        let field = toward_target(&first, &mut times);
+        let mut stage = SamplerStage::new(params, field);
+        assert_eq!(stage.start_for(&first), Start::Prior);
+        stage.remember(10, 5, target());
+        let next = handle(11);
+        assert_eq!(stage.start_for(&next), Start::Track(target()));
+        let (header, poses) = stage.hypotheses(&next).unwrap();
+        assert!(header.header.has_flag(flags::TRACKING));
+        assert_eq!(header.step_count, 2);
+        assert_near_target(poses, 1e-3, 1e-5);
+        // Too old an estimate is not used.
+        assert_eq!(stage.start_for(&handle(17)), Start::Prior);
+    }
+    assert_eq!(times.len(), 2);
+    assert!((times[0] - 0.8).abs() < 1e-6 && (times[1] - 0.9).abs() < 1e-6, "{times:?}");
+}
+
+struct Collect(Vec<(poseflow_contracts::HypothesesHeader, Vec<f32>)>);
+
+impl Emitter<poseflow_contracts::HypothesesHeader> for Collect {
+    fn emit(
+        &mut self,
+        header: poseflow_contracts::HypothesesHeader,
+        len: usize,
+        fill: &mut dyn FnMut(&mut [f32]),
+    ) -> Result<(), EmitError> {
+        let mut payload = vec![0.0; len];
+        fill(&mut payload);
+        self.0.push((header, payload));
+        Ok(())
+    }
+}
+
+#[test]
+fn failed_or_non_finite_velocities_fail_the_frame_with_its_ids() {
+    let failing = |_: &VelocityRequest, _: &[f32], _: &mut [f32]| -> Result<(), String> { Err("timed out".into()) };
+    let mut stage = SamplerStage::new(SamplerParams::default(), failing);
+    let h = handle(9);
+    let mut out = Collect(Vec::new());
+    let err = stage.process(Input { header: &h, payload: &[] }, &mut out).unwrap_err().to_string();
+    assert!(err.contains("frame 9 object 5") && err.contains("step 0") && err.contains("timed out"), "{err}");
+    assert!(out.0.is_empty());
+
+    let nan = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), String> {
+        out.fill(f32::NAN);
+        Ok(())
+    };
+    let err = SamplerStage::new(SamplerParams::default(), nan).hypotheses(&h).unwrap_err().to_string();
+    assert!(err.contains("not finite"), "{err}");
+
+    let bad_scale = ConditionHandle { point_scale: 0.0, ..h };
+    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), String> {
+        out.fill(0.0);
+        Ok(())
+    };
+    let err = SamplerStage::new(SamplerParams::default(), zero).hypotheses(&bad_scale).unwrap_err().to_string();
+    assert!(err.contains("point_scale 0"), "{err}");
+}
+
+#[test]
+fn the_stage_publishes_camera_frame_poses() {
+    let h = handle(2);
+    let mut times = Vec::new();
+    let mut stage =
+        SamplerStage::new(SamplerParams { samples: 4, ..Default::default() }, toward_target(&h, &mut times));
+    let mut out = Collect(Vec::new());
+    stage.process(Input { header: &h, payload: &[] }, &mut out).unwrap();
+    let (header, payload) = &out.0[0];
+    assert_eq!((header.sample_count, header.step_count, header.header.frame_id), (4, 5, 2));
+    let poses: Vec<Pose> =
+        payload.chunks_exact(12).map(|c| Pose::from_f32_row_major(c.try_into().unwrap()).unwrap()).collect();
+    assert_near_target(&poses, 1e-3, 1e-5);
+}
+
+#[test]
+fn bad_parameters_are_named() {
+    for (json, expected) in [
+        (serde_json::json!({"samples": 0}), "samples"),
+        (serde_json::json!({"steps": 0}), "steps"),
+        (serde_json::json!({"tracking": {"start_time": 1.0}}), "tracking.start_time"),
+        (serde_json::json!({"tracking": {"enable": true}}), "unknown field `enable`"),
+        (serde_json::json!({"translation_noise_std": -1.0}), "translation_noise_std"),
+    ] {
+        let err = SamplerParams::from_json(&json).unwrap_err().to_string();
+        assert!(err.contains(expected), "{json}: {err}");
+    }
+}

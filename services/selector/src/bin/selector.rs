@@ -1,0 +1,29 @@
+//! The selector stage process: `exe = "selector"` in a graph file;
+//! Hypotheses in, Estimate out, and — for the model-based methods and
+//! refinement — the Observations as a side input (`side_inputs`).
+
+use std::process::ExitCode;
+
+use poseflow_graph::StageWiring;
+use poseflow_selector::SelectorParams;
+use poseflow_selector::stage::SelectorStage;
+
+fn make(wiring: &StageWiring) -> Result<SelectorStage, String> {
+    let params = SelectorParams::from_json(&wiring.params).map_err(|e| e.to_string())?;
+    if params.needs_models() && wiring.side_inputs.is_empty() {
+        return Err(format!(
+            "stage `{}`: method {:?}{} scores the observed points: list the Observation edge in `side_inputs`",
+            wiring.stage,
+            params.method,
+            if params.refine { " with refine" } else { "" }
+        ));
+    }
+    let stage = SelectorStage::new(params).map_err(|e| e.to_string())?;
+    tracing::info!(method = ?stage.params().method, refine = stage.params().refine, "selector ready");
+    Ok(stage)
+}
+
+fn main() -> ExitCode {
+    let has_side_input = StageWiring::from_env().is_ok_and(|w| !w.side_inputs.is_empty());
+    if has_side_input { poseflow_runtime::run_joined(make) } else { poseflow_runtime::run_transform(make) }
+}

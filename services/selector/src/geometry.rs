@@ -1,0 +1,124 @@
+//! The object models the model-based scores and the refinement need: the
+//! triangle mesh (exact distances) and, built on first use, its signed
+//! distance grid.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::time::Instant;
+
+use nalgebra::Point3;
+use parry3d::shape::{TriMesh, TriMeshFlags};
+use poseflow_geometry::models_info::ModelsInfo;
+use poseflow_scene::{load_mesh, model_file_name};
+
+use crate::SelectorError;
+use crate::sdf::SignedDistanceGrid;
+
+/// BOP model files are in millimetres.
+const BOP_MODEL_SCALE: f32 = 1e-3;
+
+/// One object model, model frame, metres.
+#[derive(Debug)]
+pub struct ObjectGeometry {
+    pub obj_id: u32,
+    pub mesh: TriMesh,
+    resolution: usize,
+    grid: OnceLock<SignedDistanceGrid>,
+}
+
+impl ObjectGeometry {
+    /// The model of a closed triangle mesh (model frame, metres). Faces
+    /// wound inwards (negative enclosed volume) are flipped: the
+    /// inside/outside test needs outward normals.
+    pub fn from_mesh(
+        obj_id: u32,
+        vertices: Vec<Point3<f32>>,
+        mut triangles: Vec<[u32; 3]>,
+        resolution: usize,
+    ) -> Result<Self, String> {
+        let volume: f64 = triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| vertices[i as usize].coords.cast::<f64>());
+                a.dot(&b.cross(&c)) / 6.0
+            })
+            .sum();
+        if volume < 0.0 {
+            triangles.iter_mut().for_each(|t| t.swap(1, 2));
+        }
+        let flags = TriMeshFlags::ORIENTED | TriMeshFlags::MERGE_DUPLICATE_VERTICES;
+        let mesh = TriMesh::with_flags(vertices, triangles, flags)
+            .map_err(|e| format!("cannot build a triangle mesh: {e}"))?;
+        Ok(Self { obj_id, mesh, resolution, grid: OnceLock::new() })
+    }
+
+    /// The signed distance grid, computed on first use (about a second for
+    /// a 64-cell grid; logged).
+    pub fn grid(&self) -> &SignedDistanceGrid {
+        self.grid.get_or_init(|| {
+            let started = Instant::now();
+            // A margin of a few cells, so points a little off the surface
+            // still interpolate inside the grid.
+            let extent = self.mesh.local_aabb().extents().max() as f64;
+            let grid = SignedDistanceGrid::build(&self.mesh, self.resolution, 4.0 * extent / self.resolution as f64);
+            tracing::info!(
+                object = self.obj_id,
+                dims = ?grid.dims(),
+                ms = started.elapsed().as_millis() as u64,
+                "signed distance grid built"
+            );
+            grid
+        })
+    }
+}
+
+/// The objects of a BOP models directory.
+#[derive(Debug)]
+pub struct ObjectLibrary {
+    pub dir: PathBuf,
+    objects: BTreeMap<u32, ObjectGeometry>,
+}
+
+impl ObjectLibrary {
+    /// Loads every object of `dir/models_info.json` that has a model file.
+    pub fn load(dir: &Path, sdf_resolution: usize) -> Result<Self, SelectorError> {
+        let info_path = dir.join("models_info.json");
+        let info = ModelsInfo::from_path(&info_path)
+            .map_err(|e| SelectorError::Model { path: info_path.clone(), detail: e.to_string() })?;
+        let mut objects = BTreeMap::new();
+        for &obj_id in info.objects.keys() {
+            let path = dir.join(model_file_name(obj_id));
+            if !path.is_file() {
+                continue;
+            }
+            let mesh = load_mesh(&path, BOP_MODEL_SCALE)
+                .map_err(|e| SelectorError::Model { path: path.clone(), detail: e.to_string() })?;
+            let object = ObjectGeometry::from_mesh(obj_id, mesh.vertices, mesh.triangles, sdf_resolution)
+                .map_err(|detail| SelectorError::Model { path: path.clone(), detail })?;
+            objects.insert(obj_id, object);
+        }
+        if objects.is_empty() {
+            return Err(SelectorError::Model {
+                path: dir.to_path_buf(),
+                detail: "no object of models_info.json has a model file (expected obj_NNNNNN.ply beside it)".into(),
+            });
+        }
+        Ok(Self { dir: dir.to_path_buf(), objects })
+    }
+
+    pub fn get(&self, obj_id: u32) -> Option<&ObjectGeometry> {
+        self.objects.get(&obj_id)
+    }
+
+    /// Computes every object's signed distance grid now.
+    pub fn build_grids(&self) {
+        for object in self.objects.values() {
+            object.grid();
+        }
+    }
+
+    pub fn ids(&self) -> Vec<u32> {
+        self.objects.keys().copied().collect()
+    }
+}

@@ -1,0 +1,29 @@
+//! Pose selection (paper, "Pose selection"): from N flow samples to one
+//! Estimate — the selected pose, the mean and tangent covariance of the
+//! kept hypotheses, the modes, and every hypothesis with its score.
+//!
+//! - model-free: DBSCAN with the paper's thresholds, the largest cluster,
+//!   its Karcher mean ([`cluster`]);
+//! - model-based: how well the observed points fit the object under each
+//!   hypothesis, by exact point-to-mesh distance (Chamfer) or by a signed
+//!   distance grid precomputed once per object ([`sdf`], [`score`]);
+//! - refinement (beyond the paper): Levenberg-Marquardt on SE(3) pulling
+//!   the kept hypotheses onto the observed points through the same grid
+//!   ([`refine`]).
+//!
+//! [`select`] is the plain function; [`stage::SelectorStage`] the stage.
+
+pub mod cluster;
+mod error;
+mod geometry;
+mod params;
+pub mod refine;
+pub mod score;
+pub mod sdf;
+mod select;
+pub mod stage;
+
+pub use error::SelectorError;
+pub use geometry::{ObjectGeometry, ObjectLibrary};
+pub use params::{Method, SelectorParams};
+pub use select::{Selection, select};

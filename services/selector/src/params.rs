@@ -1,0 +1,181 @@
+//! The selector's parameters (graph `params` over `config/selector.toml`).
+
+use std::path::PathBuf;
+
+use serde::Deserialize;
+
+use crate::SelectorError;
+
+/// How the selected pose is chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// No selection: the Karcher mean of all samples.
+    None,
+    /// The Karcher mean of the largest DBSCAN cluster.
+    ModelFree,
+    /// The best one-sided Chamfer score (exact point-to-mesh distances).
+    Chamfer,
+    /// The best signed-distance score (a grid precomputed per object).
+    Sdf,
+}
+
+impl Method {
+    pub fn needs_model(self) -> bool {
+        matches!(self, Self::Chamfer | Self::Sdf)
+    }
+}
+
+/// | key | meaning | default |
+/// |---|---|---|
+/// | `method` | `none`, `model-free`, `chamfer` or `sdf` | `model-free` |
+/// | `epsilon_rotation_deg` | DBSCAN neighbourhood: rotation (paper: 10°) | 10 |
+/// | `epsilon_translation` | DBSCAN neighbourhood: translation, metres | 0.02 |
+/// | `min_samples` | DBSCAN core-point size (the point itself included) | 3 |
+/// | `keep_fraction` | share of best-scored hypotheses kept (model-based) | 0.2 |
+/// | `models` | BOP models directory (`models_info.json`, `obj_NNNNNN.ply`, mm) for `chamfer`, `sdf`, `refine` | none |
+/// | `score_points` | observed points scored (a prefix of the farthest-point order) | 256 |
+/// | `noise_std` | σ of point-to-surface residuals in the likelihood, metres | 0.005 |
+/// | `outlier_distance` | residuals are truncated here (occluders, mask bleed), metres | 0.02 |
+/// | `sdf_resolution` | grid cells along the object's longest side | 64 |
+/// | `refine` | refine the kept hypotheses (Levenberg-Marquardt on the grid) | false |
+/// | `refine_iterations` | iterations per hypothesis | 10 |
+/// | `observations` | Observations kept while their Hypotheses are awaited | 64 |
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SelectorParams {
+    #[serde(default = "default_method")]
+    pub method: Method,
+    #[serde(default = "default_epsilon_rotation")]
+    pub epsilon_rotation_deg: f64,
+    #[serde(default = "default_epsilon_translation")]
+    pub epsilon_translation: f64,
+    #[serde(default = "default_min_samples")]
+    pub min_samples: usize,
+    #[serde(default = "default_keep_fraction")]
+    pub keep_fraction: f64,
+    #[serde(default)]
+    pub models: Option<PathBuf>,
+    #[serde(default = "default_score_points")]
+    pub score_points: usize,
+    #[serde(default = "default_noise_std")]
+    pub noise_std: f64,
+    #[serde(default = "default_outlier_distance")]
+    pub outlier_distance: f64,
+    #[serde(default = "default_sdf_resolution")]
+    pub sdf_resolution: usize,
+    #[serde(default)]
+    pub refine: bool,
+    #[serde(default = "default_refine_iterations")]
+    pub refine_iterations: usize,
+    #[serde(default = "default_observations")]
+    pub observations: usize,
+}
+
+fn default_method() -> Method {
+    Method::ModelFree
+}
+fn default_epsilon_rotation() -> f64 {
+    10.0
+}
+fn default_epsilon_translation() -> f64 {
+    0.02
+}
+fn default_min_samples() -> usize {
+    3
+}
+fn default_keep_fraction() -> f64 {
+    0.2
+}
+fn default_score_points() -> usize {
+    256
+}
+fn default_noise_std() -> f64 {
+    0.005
+}
+fn default_outlier_distance() -> f64 {
+    0.02
+}
+fn default_sdf_resolution() -> usize {
+    64
+}
+fn default_refine_iterations() -> usize {
+    10
+}
+fn default_observations() -> usize {
+    64
+}
+
+impl Default for SelectorParams {
+    fn default() -> Self {
+        serde_json::from_value(serde_json::json!({})).expect("every field has a default")
+    }
+}
+
+impl SelectorParams {
+    /// Reads the graph's `params`, naming the key that is wrong.
+    pub fn from_json(value: &serde_json::Value) -> Result<Self, SelectorError> {
+        let params: Self = serde_json::from_value(value.clone())
+            .map_err(|e| SelectorError::Params { key: "selector", detail: e.to_string() })?;
+        params.validate()?;
+        Ok(params)
+    }
+
+    /// Whether the object models must be loaded.
+    pub fn needs_models(&self) -> bool {
+        self.method.needs_model() || self.refine
+    }
+
+    pub fn validate(&self) -> Result<(), SelectorError> {
+        let positive = |x: f64| x.is_finite() && x > 0.0;
+        let checks: [(&'static str, bool, String); 9] = [
+            (
+                "epsilon_rotation_deg",
+                positive(self.epsilon_rotation_deg) && self.epsilon_rotation_deg <= 180.0,
+                format!("{}: expected degrees in (0, 180]", self.epsilon_rotation_deg),
+            ),
+            (
+                "epsilon_translation",
+                positive(self.epsilon_translation),
+                format!("{}: expected metres > 0", self.epsilon_translation),
+            ),
+            ("min_samples", self.min_samples >= 1, format!("{}: expected at least 1", self.min_samples)),
+            (
+                "keep_fraction",
+                self.keep_fraction > 0.0 && self.keep_fraction <= 1.0,
+                format!("{}: expected a share in (0, 1]", self.keep_fraction),
+            ),
+            ("score_points", self.score_points >= 3, format!("{}: expected at least 3", self.score_points)),
+            (
+                "noise_std / outlier_distance",
+                positive(self.noise_std) && positive(self.outlier_distance),
+                format!("{} / {}: expected metres > 0", self.noise_std, self.outlier_distance),
+            ),
+            (
+                "sdf_resolution",
+                (8..=256).contains(&self.sdf_resolution),
+                format!("{}: expected 8 to 256 cells", self.sdf_resolution),
+            ),
+            (
+                "refine_iterations",
+                (1..=100).contains(&self.refine_iterations),
+                format!("{}: expected 1 to 100", self.refine_iterations),
+            ),
+            ("observations", self.observations >= 1, format!("{}: expected at least 1", self.observations)),
+        ];
+        if let Some((key, _, detail)) = checks.into_iter().find(|(_, ok, _)| !ok) {
+            return Err(SelectorError::Params { key, detail });
+        }
+        if self.needs_models() && self.models.is_none() {
+            return Err(SelectorError::Params {
+                key: "models",
+                detail: format!(
+                    "method {:?}{} needs the object models: set `models` to a BOP models directory",
+                    self.method,
+                    if self.refine { " with refine" } else { "" }
+                ),
+            });
+        }
+        Ok(())
+    }
+}

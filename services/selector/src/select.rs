@@ -1,0 +1,134 @@
+//! The selector's plain function: hypotheses (and, for model-based scores
+//! and refinement, the observed points and the object model) in, a
+//! [`Selection`] out.
+
+use nalgebra::Point3;
+use poseflow_contracts::limits;
+use poseflow_geometry::mean::karcher_mean_poses;
+use poseflow_geometry::{KarcherOptions, Pose, PoseStatistics};
+
+use crate::cluster::{Clusters, Neighbourhood, dbscan};
+use crate::refine::refine;
+use crate::score::{Likelihood, Residuals};
+use crate::{Method, ObjectGeometry, SelectorError, SelectorParams};
+
+/// The outcome for one object in one frame. Poses are camera-frame.
+#[derive(Debug, Clone)]
+pub struct Selection {
+    pub method: Method,
+    /// The selected pose.
+    pub best: Pose,
+    /// Karcher mean and tangent covariance of the kept hypotheses.
+    pub statistics: PoseStatistics,
+    /// DBSCAN clusters of all hypotheses, largest first: (Karcher mean,
+    /// share of samples).
+    pub modes: Vec<(Pose, f64)>,
+    /// Every hypothesis with its score, best first; the first `kept` were
+    /// kept.
+    pub scored: Vec<(Pose, f64)>,
+    pub kept: usize,
+    pub refined: bool,
+}
+
+fn failed(detail: impl std::fmt::Display) -> SelectorError {
+    SelectorError::Selection { detail: detail.to_string() }
+}
+
+/// Selects a pose from `hypotheses`. `points` (camera frame, metres) and
+/// `object` are needed by the model-based methods and by refinement.
+pub fn select(
+    hypotheses: &[Pose],
+    points: Option<&[Point3<f64>]>,
+    object: Option<&ObjectGeometry>,
+    params: &SelectorParams,
+) -> Result<Selection, SelectorError> {
+    let n = hypotheses.len();
+    if n == 0 {
+        return Err(failed("no hypotheses to select from"));
+    }
+    let karcher = KarcherOptions::default();
+    let neighbourhood = Neighbourhood {
+        rotation: params.epsilon_rotation_deg.to_radians(),
+        translation: params.epsilon_translation,
+        min_samples: params.min_samples,
+    };
+    let clusters = dbscan(hypotheses, &neighbourhood);
+    let modes = modes(hypotheses, &clusters, &karcher)?;
+    let likelihood = Likelihood { noise_std: params.noise_std, outlier_distance: params.outlier_distance };
+    let needs_points = params.method.needs_model() || params.refine;
+    let (points, object) = match (points, object) {
+        (Some(p), Some(o)) => (p, Some(o)),
+        _ if needs_points => {
+            return Err(failed(format!(
+                "method {:?}{} needs the observed points and the object model, and {} missing",
+                params.method,
+                if params.refine { " with refine" } else { "" },
+                if points.is_none() { "the points are" } else { "the model is" }
+            )));
+        }
+        _ => (&[][..], None),
+    };
+    let residuals = match (params.method, object) {
+        (Method::Chamfer, Some(o)) => Some(Residuals::Chamfer(o)),
+        (Method::Sdf, Some(o)) => Some(Residuals::Sdf(o)),
+        _ => None,
+    };
+
+    // Score, then order: best score first; model-free ties go to the larger
+    // cluster, then to sample order (a stable, seed-independent order).
+    let score = |i: usize| -> f64 {
+        match (params.method, residuals) {
+            (Method::ModelFree, _) => clusters.labels[i].map_or(0.0, |c| clusters.sizes[c] as f64 / n as f64),
+            (_, Some(r)) => r.score(&hypotheses[i], points, &likelihood),
+            _ => 0.0,
+        }
+    };
+    let scores: Vec<f64> = (0..n).map(score).collect();
+    let mut order: Vec<usize> = (0..n).collect();
+    let cluster_rank = |i: usize| clusters.labels[i].unwrap_or(usize::MAX);
+    order.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(cluster_rank(a).cmp(&cluster_rank(b))));
+    let mut scored: Vec<(Pose, f64)> = order.iter().map(|&i| (hypotheses[i], scores[i])).collect();
+    let kept = match params.method {
+        Method::None => n,
+        Method::ModelFree => clusters.sizes.first().copied().unwrap_or(n),
+        Method::Chamfer | Method::Sdf => ((params.keep_fraction * n as f64).ceil() as usize).clamp(1, n),
+    };
+
+    if let (true, Some(object)) = (params.refine, object) {
+        let grid = object.grid();
+        for entry in &mut scored[..kept] {
+            entry.0 = refine(grid, &entry.0, points, &likelihood, params.refine_iterations).pose;
+            if let Some(r) = residuals {
+                entry.1 = r.score(&entry.0, points, &likelihood);
+            }
+        }
+        if residuals.is_some() {
+            scored[..kept].sort_by(|a, b| b.1.total_cmp(&a.1));
+        }
+    }
+
+    let kept_poses: Vec<Pose> = scored[..kept].iter().map(|(p, _)| *p).collect();
+    let statistics = PoseStatistics::compute(&kept_poses, None, &karcher).map_err(failed)?;
+    let best = match params.method {
+        Method::None | Method::ModelFree => statistics.mean.mean,
+        Method::Chamfer | Method::Sdf => scored[0].0,
+    };
+    Ok(Selection { method: params.method, best, statistics, modes, scored, kept, refined: params.refine })
+}
+
+/// Karcher mean and share of samples of each cluster (at most the
+/// contract's 64), largest first.
+fn modes(
+    hypotheses: &[Pose],
+    clusters: &Clusters,
+    karcher: &KarcherOptions,
+) -> Result<Vec<(Pose, f64)>, SelectorError> {
+    let n = hypotheses.len() as f64;
+    (0..clusters.sizes.len().min(limits::MAX_MODES as usize))
+        .map(|c| {
+            let members: Vec<Pose> = clusters.members(c).map(|i| hypotheses[i]).collect();
+            let mean = karcher_mean_poses(&members, None, karcher).map_err(failed)?;
+            Ok((mean.mean, members.len() as f64 / n))
+        })
+        .collect()
+}

@@ -1,0 +1,184 @@
+//! Selection on constructed cases: a box-shaped object with known surface
+//! points, hypotheses at known errors.
+
+use nalgebra::{Point3, Vector3};
+use parry3d::shape::Cuboid;
+use poseflow_contracts::{Header, MessageHeader, SelectionMethod};
+use poseflow_geometry::{Pose, so3};
+use poseflow_selector::cluster::{Neighbourhood, dbscan};
+use poseflow_selector::refine::refine;
+use poseflow_selector::score::{Likelihood, Residuals};
+use poseflow_selector::stage::{estimate_header, estimate_payload_len, write_estimate_payload};
+use poseflow_selector::{Method, ObjectGeometry, SelectorParams, select};
+
+/// A 6 × 4 × 2 cm box (distinct side lengths: no symmetry but the box's own
+/// half turns), model frame centred.
+fn box_object() -> ObjectGeometry {
+    let (vertices, triangles) = Cuboid::new(Vector3::new(0.03, 0.02, 0.01)).to_trimesh();
+    ObjectGeometry::from_mesh(1, vertices, triangles, 48).unwrap()
+}
+
+/// Points on the three faces a camera at -z (looking along +z in the
+/// object frame... here simply: the faces with negative normals) sees.
+fn visible_surface(count: usize) -> Vec<Point3<f64>> {
+    let half = Vector3::new(0.03, 0.02, 0.01);
+    let mut out = Vec::new();
+    let mut k = 0u64;
+    while out.len() < count {
+        // A deterministic low-discrepancy walk over the faces.
+        k += 1;
+        let (u, v) = ((k as f64 * 0.618_034) % 1.0 * 2.0 - 1.0, (k as f64 * 0.754_878) % 1.0 * 2.0 - 1.0);
+        let face = k % 3;
+        let p = match face {
+            0 => Vector3::new(-half.x, u * half.y, v * half.z),
+            1 => Vector3::new(u * half.x, -half.y, v * half.z),
+            _ => Vector3::new(u * half.x, v * half.y, -half.z),
+        };
+        out.push(Point3::from(p));
+    }
+    out
+}
+
+fn truth() -> Pose {
+    Pose::new(so3::exp(&Vector3::new(0.4, -0.3, 0.9)), Vector3::new(0.05, -0.02, 0.6))
+}
+
+fn observed(points: &[Point3<f64>]) -> Vec<Point3<f64>> {
+    points.iter().map(|p| truth().transform_point(p)).collect()
+}
+
+fn turned(pose: &Pose, axis: Vector3<f64>, degrees: f64, shift: Vector3<f64>) -> Pose {
+    Pose::new(pose.rotation * so3::exp(&(axis.normalize() * degrees.to_radians())), pose.translation + shift)
+}
+
+fn angle_deg(a: &Pose, b: &Pose) -> f64 {
+    so3::geodesic_angle(&a.rotation, &b.rotation).to_degrees()
+}
+
+#[test]
+fn dbscan_finds_the_groups_largest_first_and_leaves_outliers_as_noise() {
+    let base = truth();
+    let mut poses: Vec<Pose> = (0..4).map(|i| turned(&base, Vector3::x(), i as f64, Vector3::zeros())).collect();
+    let far = turned(&base, Vector3::y(), 90.0, Vector3::zeros());
+    poses.extend((0..7).map(|i| turned(&far, Vector3::z(), i as f64 * 0.5, Vector3::new(0.0, 0.001 * i as f64, 0.0))));
+    poses.push(turned(&base, Vector3::z(), 170.0, Vector3::zeros()));
+    let clusters = dbscan(&poses, &Neighbourhood { rotation: 10f64.to_radians(), translation: 0.02, min_samples: 3 });
+    assert_eq!(clusters.sizes, vec![7, 4]);
+    assert!(clusters.labels[4..11].iter().all(|l| *l == Some(0)));
+    assert!(clusters.labels[..4].iter().all(|l| *l == Some(1)));
+    assert_eq!(clusters.labels[11], None);
+    // The translation threshold alone separates too.
+    let apart: Vec<Pose> =
+        poses[..4].iter().map(|p| Pose::new(p.rotation, p.translation + Vector3::x() * 0.1)).collect();
+    let both: Vec<Pose> = poses[..4].iter().chain(&apart).copied().collect();
+    let clusters = dbscan(&both, &Neighbourhood { rotation: 10f64.to_radians(), translation: 0.02, min_samples: 3 });
+    assert_eq!(clusters.sizes, vec![4, 4]);
+}
+
+#[test]
+fn the_signed_distance_grid_matches_the_box_in_closed_form() {
+    let object = box_object();
+    let grid = object.grid();
+    let cases = [
+        (Point3::new(0.0, 0.0, 0.0), -0.01),
+        (Point3::new(0.0, 0.0, 0.015), 0.005),
+        (Point3::new(0.04, 0.0, 0.0), 0.01),
+        (Point3::new(0.0, -0.019, 0.0), -0.001),
+    ];
+    for (p, expected) in cases {
+        let value = grid.value(&p);
+        assert!((value - expected).abs() < 0.3 * grid.cell(), "{p}: {value} vs {expected} (cell {})", grid.cell());
+    }
+    let (_, gradient) = grid.value_and_gradient(&Point3::new(0.0, 0.0, 0.012));
+    assert!(gradient.normalize().dot(&Vector3::z()) > 0.95, "{gradient}");
+    // Far outside the grid the value keeps growing with the distance.
+    assert!(grid.value(&Point3::new(0.5, 0.0, 0.0)) > 0.4);
+    // A mesh wound inwards is turned outwards first.
+    let (vertices, mut triangles) = Cuboid::new(Vector3::new(0.03, 0.02, 0.01)).to_trimesh();
+    triangles.iter_mut().for_each(|t| t.swap(0, 1));
+    let flipped = ObjectGeometry::from_mesh(2, vertices, triangles, 16).unwrap();
+    assert!(flipped.grid().value(&Point3::origin()) < -0.008);
+}
+
+#[test]
+fn scores_prefer_the_true_pose_and_refinement_recovers_it() {
+    let object = box_object();
+    let surface = visible_surface(300);
+    let points = observed(&surface);
+    let likelihood = Likelihood { noise_std: 0.005, outlier_distance: 0.02 };
+    let wrong = turned(&truth(), Vector3::new(1.0, 1.0, 0.0), 8.0, Vector3::new(0.004, 0.0, -0.003));
+    for residuals in [Residuals::Chamfer(&object), Residuals::Sdf(&object)] {
+        let right = residuals.score(&truth(), &points, &likelihood);
+        let off = residuals.score(&wrong, &points, &likelihood);
+        assert!(right > -0.05 && off < right - 0.1, "{residuals:?}: {right} vs {off}");
+    }
+    let refined = refine(object.grid(), &wrong, &points, &likelihood, 20);
+    assert!(refined.final_cost < refined.initial_cost);
+    let (rot, trans) = (angle_deg(&refined.pose, &truth()), (refined.pose.translation - truth().translation).norm());
+    assert!(rot < 1.0 && trans < 0.001, "refined to {rot:.3} deg, {:.2} mm", trans * 1e3);
+}
+
+#[test]
+fn model_free_selection_takes_the_largest_cluster_and_model_based_the_best_fit() {
+    let object = box_object();
+    let points = observed(&visible_surface(200));
+    let t = truth();
+    // 6 samples near a wrong pose, 4 near the truth.
+    let wrong = turned(&t, Vector3::z(), 40.0, Vector3::zeros());
+    let mut hypotheses: Vec<Pose> = (0..6).map(|i| turned(&wrong, Vector3::x(), i as f64, Vector3::zeros())).collect();
+    hypotheses.extend((0..4).map(|i| turned(&t, Vector3::y(), i as f64 * 0.5, Vector3::zeros())));
+
+    let model_free = select(&hypotheses, None, None, &SelectorParams::default()).unwrap();
+    assert!(angle_deg(&model_free.best, &wrong) < 4.0);
+    assert_eq!((model_free.kept, model_free.modes.len()), (6, 2));
+    assert!((model_free.modes[0].1 - 0.6).abs() < 1e-12 && (model_free.scored[0].1 - 0.6).abs() < 1e-12);
+
+    let chamfer = SelectorParams { method: Method::Chamfer, keep_fraction: 0.3, ..Default::default() };
+    let chosen = select(&hypotheses, Some(&points), Some(&object), &chamfer).unwrap();
+    assert!(angle_deg(&chosen.best, &t) < 1.6, "{}", angle_deg(&chosen.best, &t));
+    assert_eq!(chosen.kept, 3);
+    assert!(chosen.scored.windows(2).all(|w| w[0].1 >= w[1].1), "scores best first");
+
+    let refined = SelectorParams { method: Method::Sdf, refine: true, keep_fraction: 0.3, ..Default::default() };
+    let chosen = select(&hypotheses, Some(&points), Some(&object), &refined).unwrap();
+    assert!(chosen.refined && angle_deg(&chosen.best, &t) < 0.5, "{}", angle_deg(&chosen.best, &t));
+
+    let none = select(&hypotheses, None, None, &SelectorParams { method: Method::None, ..Default::default() }).unwrap();
+    assert_eq!(none.kept, 10);
+    assert!(none.statistics.rotation_covariance().trace() > model_free.statistics.rotation_covariance().trace());
+
+    let err = select(&hypotheses, None, Some(&object), &chamfer).unwrap_err().to_string();
+    assert!(err.contains("Chamfer") && err.contains("points"), "{err}");
+}
+
+#[test]
+fn the_estimate_message_carries_every_hypothesis_and_passes_its_contract() {
+    let t = truth();
+    let hypotheses: Vec<Pose> = (0..5).map(|i| turned(&t, Vector3::x(), i as f64, Vector3::zeros())).collect();
+    let selection = select(&hypotheses, None, None, &SelectorParams::default()).unwrap();
+    let header = estimate_header(&selection, Header::new(7, 1));
+    let mut payload = vec![0.0; estimate_payload_len(&selection)];
+    write_estimate_payload(&selection, &mut payload);
+    let view = header.view(&payload).unwrap();
+    assert_eq!(header.selection, SelectionMethod::ModelFree as u32);
+    assert_eq!((header.hypothesis_count, header.kept_count, header.mode_count), (5, 5, 1));
+    assert_eq!(view.hypotheses.len(), 5 * 13);
+    assert!(header.check_payload(&payload).is_ok());
+    let best = Pose::from_f32_row_major(&header.best).unwrap();
+    assert!(angle_deg(&best, &turned(&t, Vector3::x(), 2.0, Vector3::zeros())) < 0.01);
+}
+
+#[test]
+fn bad_parameters_are_named() {
+    let cases = [
+        (serde_json::json!({"method": "icp"}), "unknown variant `icp`"),
+        (serde_json::json!({"keep_fraction": 0.0}), "keep_fraction"),
+        (serde_json::json!({"method": "sdf"}), "`models`"),
+        (serde_json::json!({"refine": true}), "with refine"),
+        (serde_json::json!({"sdf_resolution": 4}), "sdf_resolution"),
+    ];
+    for (json, expected) in cases {
+        let err = SelectorParams::from_json(&json).unwrap_err().to_string();
+        assert!(err.contains(expected), "{json}: {err}");
+    }
+}
