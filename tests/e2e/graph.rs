@@ -541,28 +541,13 @@ fn the_ingest_stage_survives_the_bad_input_corpus() {
     assert_nothing_leaked(&before);
 }
 
-/// frames → ingest → inference ⇄ velocity-probe: the inference stage, as its
-/// own process, encodes each observation once and answers velocity requests
-/// over iceoryx2 request-response with exactly what the same stage computes
-/// in-process, and answers an unknown condition with its status code.
-#[test]
-fn the_inference_stage_answers_velocity_requests_over_shared_memory() {
-    use poseflow_contracts::{MessageHeader, ObservationHeader, VelocityRequest, status};
-    use poseflow_inference::PoseFlowModel;
-    use poseflow_inference::stage::InferenceStage;
-    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
-
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
-    let scratch = Scratch::new("inference");
-    let model = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models/test-tiny"));
-    let report = scratch.dir.join("velocities.jsonl");
-    let graph = scratch.dir.join("inference.toml");
-    std::fs::write(
-        &graph,
-        graph_head("inference-e2e", 41_000)
-            + &format!(
-                r#"
+/// The corpus frames → ingest (112/8/1024) → inference (`model`, one
+/// thread), with the `conditions` edge and the `velocities` request-response
+/// edge (up to 50 samples) for the stages a test adds.
+fn encoding_graph(name: &str, model: &Path) -> String {
+    graph_head(name, 41_000)
+        + &format!(
+            r#"
 [edges.conditions]
 message = "Condition"
 queue = 4
@@ -589,15 +574,40 @@ inputs = ["observations"]
 outputs = ["conditions"]
 serves = ["velocities"]
 params = {{ model = "{model}", threads = 1 }}
+"#,
+            frames = corpus_frames(),
+            model = model.display(),
+        )
+}
 
+/// frames → ingest → inference ⇄ velocity-probe: the inference stage, as its
+/// own process, encodes each observation once and answers velocity requests
+/// over iceoryx2 request-response with exactly what the same stage computes
+/// in-process, and answers an unknown condition with its status code.
+#[test]
+fn the_inference_stage_answers_velocity_requests_over_shared_memory() {
+    use poseflow_contracts::{MessageHeader, ObservationHeader, VelocityRequest, status};
+    use poseflow_inference::PoseFlowModel;
+    use poseflow_inference::stage::InferenceStage;
+    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("inference");
+    let model = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models/test-tiny"));
+    let report = scratch.dir.join("velocities.jsonl");
+    let graph = scratch.dir.join("inference.toml");
+    std::fs::write(
+        &graph,
+        encoding_graph("inference-e2e", &model)
+            + &format!(
+                r#"
 [stages.probe]
 exe = "velocity-probe"
 inputs = ["conditions"]
 calls = ["velocities"]
 params = {{ report = "{report}" }}
 "#,
-                frames = corpus_frames(),
-                model = model.display(),
                 report = report.display(),
             ),
     )
@@ -674,19 +684,9 @@ fn the_estimation_graph_matches_the_in_process_run_bit_for_bit() {
     let graph = scratch.dir.join("estimation.toml");
     std::fs::write(
         &graph,
-        graph_head("estimation-e2e", 41_000)
+        encoding_graph("estimation-e2e", &model)
             + &format!(
                 r#"
-[edges.conditions]
-message = "Condition"
-queue = 4
-overflow = "block"
-
-[edges.velocities]
-message = "Velocity"
-pattern = "request-response"
-max_payload_len = 600
-
 [edges.hypotheses]
 message = "Hypotheses"
 queue = 4
@@ -698,23 +698,6 @@ message = "Estimate"
 queue = 4
 overflow = "block"
 max_payload_len = 2000
-
-[stages.frames]
-outputs = ["frames"]
-{frames}
-
-[stages.ingest]
-exe = "ingest"
-inputs = ["frames"]
-outputs = ["observations"]
-params = {{ image_size = 112, patch_grid = 8, point_count = 1024 }}
-
-[stages.inference]
-exe = "inference"
-inputs = ["observations"]
-outputs = ["conditions"]
-serves = ["velocities"]
-params = {{ model = "{model}", threads = 1 }}
 
 [stages.sampler]
 exe = "sampler"
@@ -730,8 +713,6 @@ side_inputs = ["observations"]
 outputs = ["estimates"]
 params = {selector_params}
 "#,
-                frames = corpus_frames(),
-                model = model.display(),
                 sampler_params = toml_inline(&sampler_params),
                 selector_params = toml_inline(&selector_params),
             ),

@@ -27,7 +27,7 @@ fn help_lists_every_subcommand() {
 
 #[test]
 fn unavailable_subcommands_say_so_and_exit_2() {
-    for sub in ["demo", "eval", "bench pipeline"] {
+    for sub in ["eval", "bench pipeline"] {
         let args: Vec<&str> = sub.split(' ').collect();
         let out = poseflow(&args);
         assert_eq!(out.status.code(), Some(2), "{sub}");
@@ -38,12 +38,48 @@ fn unavailable_subcommands_say_so_and_exit_2() {
 
 #[test]
 fn json_logs_are_one_object_per_line() {
-    let out = poseflow(&["--log-format", "json", "demo"]);
+    let out = poseflow(&["--log-format", "json", "eval"]);
     let stderr = String::from_utf8(out.stderr).unwrap();
     let line = stderr.lines().next().expect("one log line");
     let value: serde_json::Value = serde_json::from_str(line).expect("log line is JSON");
     assert_eq!(value["level"], "ERROR");
-    assert_eq!(value["fields"]["subcommand"], "demo");
+    assert_eq!(value["fields"]["subcommand"], "eval");
+}
+
+/// The README's first command, small: the estimation graph as processes on
+/// a rendered scene of the vendored objects, with the default model.
+#[test]
+fn the_demo_runs_the_estimation_graph_and_draws_its_pictures() {
+    let out_dir = scratch("demo");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(["--log-format", "json", "demo", "--json", "--samples", "12", "--steps", "3", "--out"])
+        .arg(&out_dir)
+        .current_dir(&root)
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let objects = report["objects"].as_array().unwrap();
+    let ids: Vec<u64> = objects.iter().map(|o| o["obj_id"].as_u64().unwrap()).collect();
+    assert_eq!(ids.len(), 3, "{report}");
+    for id in [1, 10, 11] {
+        assert!(ids.contains(&id), "object {id} missing: {report}");
+    }
+    for o in objects {
+        let error = o["rotation_error_deg"].as_f64().unwrap();
+        assert!((0.0..=180.0).contains(&error), "{o}");
+        assert!(o["translation_error_cm"].as_f64().unwrap() >= 0.0);
+        assert_eq!(o["hypotheses"], 12, "{o}");
+        assert!(o["kept"].as_u64().unwrap() >= 1);
+    }
+    let overlay = image::open(out_dir.join("overlay.png")).unwrap().to_rgb8();
+    assert_eq!(overlay.dimensions(), (640, 480));
+    // The selected poses' outlines are drawn in green.
+    assert!(overlay.pixels().any(|p| p.0 == [40, 230, 60]), "no outline drawn");
+    let mollweide = image::open(out_dir.join("mollweide.png")).unwrap();
+    assert_eq!((mollweide.width(), mollweide.height()), (480, 3 * 240));
 }
 
 #[test]
