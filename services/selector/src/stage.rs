@@ -26,7 +26,6 @@ pub struct SelectorStage {
     params: SelectorParams,
     library: Option<ObjectLibrary>,
     observations: VecDeque<Observed>,
-    rejected: u64,
 }
 
 impl SelectorStage {
@@ -42,7 +41,7 @@ impl SelectorStage {
         if let (Some(library), true) = (&library, params.method == Method::Sdf || params.refine) {
             library.build_grids();
         }
-        Ok(Self { params, library, observations: VecDeque::new(), rejected: 0 })
+        Ok(Self { params, library, observations: VecDeque::new() })
     }
 
     pub fn params(&self) -> &SelectorParams {
@@ -168,10 +167,6 @@ impl Transform for SelectorStage {
         let estimate = estimate_header(&selection, input.forward_header());
         output.emit(estimate, estimate_payload_len(&selection), &mut |out| write_estimate_payload(&selection, out))?;
         Ok(())
-    }
-
-    fn take_rejected(&mut self) -> u64 {
-        std::mem::take(&mut self.rejected)
     }
 }
 
