@@ -550,7 +550,9 @@ fn encoding_graph(name: &str, model: &Path) -> String {
             r#"
 [edges.conditions]
 message = "Condition"
-queue = 4
+# One slot: the inference stage often waits on a full queue while the
+# sampler waits for its answers, which it must keep giving.
+queue = 1
 overflow = "block"
 
 [edges.velocities]

@@ -13,7 +13,7 @@
 //! |---|---|---|
 //! | `model` | directory with `encoder.onnx` and `velocity.onnx` | `models/poseflow-lmo10` |
 //! | `threads` | ONNX Runtime intra-op threads per network | 2 |
-//! | `cache` | conditions kept (oldest dropped first) | 8 |
+//! | `cache` | conditions kept (oldest dropped first); the process raises it to its output queue + 2 | 8 |
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};

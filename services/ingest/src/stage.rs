@@ -8,7 +8,7 @@
 //! |---|---|
 //! | `source` | `"bop"` (a dataset directory) or `"synthetic"` (the renderer) |
 //! | `dataset`, `split`, `scenes`, `mask_dir` | bop: dataset root, split folder (default `test`), scene ids (default all), masks from files instead of the ground truth ([`Masks::Files`]) |
-//! | `models`, `objects`, `scenes`, `frames_per_scene`, `seed`, `occlusion`, `width`, `height` | synthetic: as `poseflow render` |
+//! | `models`, `objects`, `scenes`, `frames_per_scene`, `seed`, `occlusion`, `width`, `height`, `orbit_step_deg` | synthetic: as `poseflow render` |
 //! | `rate_hz` | frames per second (read by the runtime; default as fast as the output accepts) |
 //!
 //! `ingest` ([`IngestStage`]) turns each detection of a Frame into an
@@ -19,6 +19,7 @@ use std::path::PathBuf;
 use poseflow_contracts::{FrameHeader, MessageHeader, ObservationHeader, Stage};
 use poseflow_geometry::sampling::{SeededRng, seeded_rng};
 use poseflow_runtime::{Emitter, Input, Source, SourceStep, Transform};
+use poseflow_scene::camera_path::CameraPath;
 use poseflow_scene::dataset::{RenderSpec, lmo_camera};
 use poseflow_scene::scene::{Occlusion, ViewRange};
 use poseflow_scene::{DepthNoise, ModelLibrary};
@@ -56,6 +57,9 @@ enum SourceParams {
         width: u32,
         #[serde(default = "default_height")]
         height: u32,
+        /// Degrees of azimuth per image of an orbiting camera (a video);
+        /// absent: independent random views.
+        orbit_step_deg: Option<f64>,
     },
 }
 
@@ -100,7 +104,17 @@ pub fn frame_source(value: &serde_json::Value) -> Result<Box<dyn FrameSource>, I
             let masks = mask_dir.map_or(Masks::GroundTruth, Masks::Files);
             Box::new(BopFrames::open(&dataset, &split, &scenes, masks)?)
         }
-        SourceParams::Synthetic { models, objects, scenes, frames_per_scene, seed, occlusion, width, height } => {
+        SourceParams::Synthetic {
+            models,
+            objects,
+            scenes,
+            frames_per_scene,
+            seed,
+            occlusion,
+            width,
+            height,
+            orbit_step_deg,
+        } => {
             let library = ModelLibrary::load(&models, &objects)?;
             let spec = RenderSpec {
                 split: String::new(),
@@ -115,6 +129,7 @@ pub fn frame_source(value: &serde_json::Value) -> Result<Box<dyn FrameSource>, I
                 },
                 camera: lmo_camera(width, height),
                 views: ViewRange::default(),
+                path: orbit_step_deg.map_or(CameraPath::Random, |step_deg| CameraPath::Orbit { step_deg }),
                 depth_noise: Some(DepthNoise::default()),
                 rgb_noise: 2.0,
             };

@@ -11,6 +11,7 @@ use poseflow_ingest::sources::{BopFrames, FrameSource, Masks, mask_file};
 use poseflow_ingest::{IngestParams, check_frame, prepare};
 use poseflow_scene::ModelLibrary;
 use poseflow_scene::bop::{self, ByImage, GtEntry, GtInfoEntry, SceneDir};
+use poseflow_scene::camera_path::CameraPath;
 use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset};
 use poseflow_scene::scene::{Occlusion, ViewRange};
 
@@ -36,6 +37,7 @@ fn points_lie_on_the_model_and_tokens_cover_the_projection() {
         occlusion: Occlusion::Medium,
         camera: lmo_camera(640, 480),
         views: ViewRange { distance: (0.4, 1.0), ..ViewRange::default() },
+        path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
     };
@@ -131,6 +133,7 @@ fn mask_files_replace_the_ground_truth() {
         occlusion: Occlusion::Low,
         camera: lmo_camera(160, 120),
         views: ViewRange::default(),
+        path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
     };
@@ -175,6 +178,7 @@ fn test_targets_restrict_only_the_test_split() {
         occlusion: Occlusion::Low,
         camera: lmo_camera(160, 120),
         views: ViewRange::default(),
+        path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
     };

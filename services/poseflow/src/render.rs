@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
+use poseflow_scene::camera_path::CameraPath;
 use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset};
 use poseflow_scene::scene::{Occlusion, ViewRange};
 use poseflow_scene::{DepthNoise, ModelLibrary};
@@ -15,12 +16,16 @@ use crate::timing::Timing;
 
 /// Largest image side accepted: beyond it a typo, not a camera.
 const MAX_IMAGE_SIDE: u32 = 8192;
+/// Largest orbit step: beyond it consecutive images are not a video.
+const MAX_ORBIT_STEP_DEG: f64 = 90.0;
 /// Per-channel RGB noise of the default (realistic) render, 8-bit levels.
 const RGB_NOISE: f64 = 2.0;
 
 #[derive(Debug, Args)]
 #[command(after_help = "Example:\n  poseflow render --models objects/lmo --out data/lmo-synth --scenes 20 \
-    --frames-per-scene 50 --seed 1 --occlusion high\n\n\
+    --frames-per-scene 50 --seed 1 --occlusion high\n  \
+    poseflow render --models objects/lmo --out data/lmo-orbit --split test --frames-per-scene 120 \
+    --orbit-step-deg 1   (a 120-image video for tracking)\n\n\
     Writes <out>/camera.json, <out>/models/, <out>/poseflow_render.json and <out>/<split>/<scene:06>/ with \
     scene_camera.json, scene_gt.json, scene_gt_info.json, rgb/, depth/ (16-bit, depth_scale 0.1 mm), mask/, \
     mask_visib/. The same arguments give the same files, bit for bit.")]
@@ -58,6 +63,10 @@ pub struct RenderArgs {
     /// Id of the first scene (to add scenes to an existing dataset).
     #[arg(long, default_value_t = 0)]
     pub first_scene: u32,
+    /// Render each scene as a video: the camera orbits the scene centre by this many degrees of azimuth per
+    /// image (elevation, distance and roll drift smoothly; one light per scene). Default: independent views.
+    #[arg(long, value_name = "DEG")]
+    pub orbit_step_deg: Option<f64>,
     /// Write noiseless depth and colour (default: depth-sensor and RGB noise).
     #[arg(long)]
     pub clean: bool,
@@ -107,6 +116,11 @@ fn check(args: &RenderArgs) -> anyhow::Result<()> {
     if args.scenes == 0 || args.frames_per_scene == 0 {
         bail!("--scenes {} --frames-per-scene {}: expected at least 1 of each", args.scenes, args.frames_per_scene);
     }
+    if let Some(step) = args.orbit_step_deg
+        && !(step.is_finite() && step.abs() <= MAX_ORBIT_STEP_DEG)
+    {
+        bail!("--orbit-step-deg {step}: expected degrees per image within ±{MAX_ORBIT_STEP_DEG}");
+    }
     if args.split.is_empty() || args.split.contains(['/', '\\']) || args.split.starts_with('.') {
         bail!("--split {:?}: expected a plain folder name such as train, val or test", args.split);
     }
@@ -126,6 +140,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         occlusion: args.occlusion.into(),
         camera: lmo_camera(args.width, args.height),
         views: ViewRange::default(),
+        path: args.orbit_step_deg.map_or(CameraPath::Random, |step_deg| CameraPath::Orbit { step_deg }),
         depth_noise: (!args.clean).then(DepthNoise::default),
         rgb_noise: if args.clean { 0.0 } else { RGB_NOISE },
     };

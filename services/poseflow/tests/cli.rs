@@ -82,6 +82,44 @@ fn the_demo_runs_the_estimation_graph_and_draws_its_pictures() {
     assert_eq!((mollweide.width(), mollweide.height()), (480, 3 * 240));
 }
 
+/// The tracking demo, small: a rendered video of the vendored objects
+/// through deploy/tracking.toml as processes, every image estimated and
+/// later images started from earlier estimates.
+#[test]
+fn the_tracking_demo_follows_every_object_through_the_video() {
+    let out_dir = scratch("track");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let frames: u64 = 10;
+    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(["--log-format", "json", "demo", "--track", "--json", "--samples", "12", "--steps", "3"])
+        .args(["--frames", &frames.to_string(), "--rate-hz", "2", "--out"])
+        .arg(&out_dir)
+        .current_dir(&root)
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["frames"], frames, "{report}");
+    let objects = report["objects"].as_array().unwrap();
+    assert_eq!(objects.len(), 3, "{report}");
+    for o in objects {
+        // Every image estimated: nothing dropped on the way.
+        assert_eq!((o["frames"].as_u64(), o["estimated"].as_u64()), (Some(frames), Some(frames)), "{o}");
+        // The first image has nothing to start from; later ones do.
+        let tracked = o["tracked"].as_u64().unwrap();
+        assert!((1..frames).contains(&tracked), "{o}");
+        for key in ["acc_5deg_5cm", "acc_10deg_5cm"] {
+            assert!((0.0..=100.0).contains(&o[key].as_f64().unwrap()), "{key}: {o}");
+        }
+        assert!(o["latency"]["p50_ms"].as_f64().unwrap() > 0.0, "{o}");
+    }
+    let plot = image::open(out_dir.join("tracking.png")).unwrap();
+    assert_eq!((plot.width(), plot.height()), (720, 240));
+    // The rendered video is a BOP dataset of `frames` images.
+    assert!(out_dir.join(format!("scene/test/000000/rgb/{:06}.png", frames - 1)).is_file());
+}
+
 #[test]
 fn unknown_log_format_is_rejected_with_the_choices() {
     let out = poseflow(&["--log-format", "xml", "demo"]);

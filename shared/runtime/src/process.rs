@@ -77,9 +77,14 @@ impl StageProcess {
     /// The output edge, once its readers are connected (or the start-up
     /// timeout passed).
     fn output<H: MessageHeader>(&self) -> Result<Publisher<H>, RuntimeError> {
+        self.output_serving(&mut || {})
+    }
+
+    /// As [`Self::output`], calling `meanwhile` while it waits for the readers.
+    fn output_serving<H: MessageHeader>(&self, meanwhile: &mut dyn FnMut()) -> Result<Publisher<H>, RuntimeError> {
         let edge = &self.wiring.outputs[0];
         let publisher = Publisher::create(&self.node, &edge.service, &edge.options())?;
-        let connected = publisher.wait_for_receivers(edge.readers, READERS_TIMEOUT)?;
+        let connected = publisher.wait_for_receivers_serving(edge.readers, READERS_TIMEOUT, meanwhile)?;
         if connected < edge.readers {
             tracing::warn!(edge = %edge.edge, connected, expected = edge.readers, "starting before every reader connected");
         }
@@ -234,7 +239,10 @@ pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, 
         let output = process.output::<T::Out>()?;
         tracing::info!(input = input.name(), output = output.name(), "running");
         let liveness = &process.liveness;
-        let end = process.event_loop(&input, |message| transform_one(&mut stage, message, &output, liveness))?;
+        let end = process.event_loop(&input, |message| {
+            let mut emitter = IpcEmitter { publisher: &output, slot: T::SLOT, liveness };
+            transform_one(&mut stage, message, &mut emitter, liveness)
+        })?;
         finish_transform(process, &input, &output, end, || Ok(()))
     })())
 }
@@ -243,11 +251,10 @@ pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, 
 fn transform_one<T: Transform>(
     stage: &mut T,
     message: Input<'_, T::In>,
-    output: &Publisher<T::Out>,
+    emitter: &mut dyn Emitter<T::Out>,
     liveness: &Liveness,
 ) {
-    let mut emitter = IpcEmitter { publisher: output, slot: T::SLOT, liveness };
-    if let Err(err) = stage.process(message, &mut emitter) {
+    if let Err(err) = stage.process(message, emitter) {
         liveness.count_error();
         tracing::warn!(%err, "process failed; frame skipped");
     }
@@ -270,6 +277,44 @@ fn finish_transform<I: MessageHeader, O: MessageHeader>(
     }
     process.finish();
     Ok(())
+}
+
+/// A [`Server`]'s outputs, copied out of the stage so they can be published
+/// once it has returned (they are small: handles to what requests fetch).
+struct HeldOutputs<H> {
+    outputs: Vec<(H, Vec<f32>)>,
+    slot: Option<Stage>,
+}
+
+impl<H: MessageHeader> Emitter<H> for HeldOutputs<H> {
+    fn emit(&mut self, mut header: H, len: usize, fill: &mut dyn FnMut(&mut [f32])) -> Result<(), EmitError> {
+        if let Some(slot) = self.slot {
+            header.header_mut().stamps.stamp(slot);
+        }
+        let mut payload = vec![0.0; len];
+        fill(&mut payload);
+        self.outputs.push((header, payload));
+        Ok(())
+    }
+}
+
+impl<H: MessageHeader> HeldOutputs<H> {
+    /// Publishes the held outputs in order, calling `meanwhile` while a
+    /// full queue holds a send back.
+    fn publish(&mut self, output: &Publisher<H>, liveness: &Liveness, meanwhile: &mut dyn FnMut()) {
+        for (header, payload) in self.outputs.drain(..) {
+            liveness.send_started();
+            let sent = output.publish_serving(header, payload.len(), |out| out.copy_from_slice(&payload), meanwhile);
+            liveness.send_finished();
+            match sent {
+                Ok(_) => liveness.count_sent(),
+                Err(err) => {
+                    liveness.count_error();
+                    tracing::warn!(%err, "output not sent; frame skipped");
+                }
+            }
+        }
+    }
 }
 
 /// Sends a [`Server`]'s reply into the response's loaned shared memory.
@@ -314,7 +359,7 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
         // The stage is used by both handlers, never at the same time: the
         // WaitSet calls one callback at a time.
         let stage = std::cell::RefCell::new(&mut stage);
-        let mut on_requests = || -> Result<(), TransportError> {
+        let on_requests = || -> Result<(), TransportError> {
             server.serve(|header, payload, responder| {
                 let frame = header.header().frame_id;
                 let _span = tracing::debug_span!("request", frame).entered();
@@ -344,10 +389,22 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
             })?;
             Ok(())
         };
-        let requests = Attachment { source: &server, on_event: &mut on_requests };
+        let mut on_request_event = || on_requests();
+        let requests = Attachment { source: &server, on_event: &mut on_request_event };
+        // Outputs are held until the stage has returned, then published while
+        // requests keep being answered: the reader of a full output queue may
+        // be waiting for an answer before it reads again.
+        let mut held = HeldOutputs { outputs: Vec::new(), slot: S::SLOT };
         let end = process.event_loop_also(
             &input,
-            |message| transform_one(&mut **stage.borrow_mut(), message, &output, liveness),
+            |message| {
+                transform_one(&mut **stage.borrow_mut(), message, &mut held, liveness);
+                held.publish(&output, liveness, &mut || {
+                    if let Err(err) = on_requests() {
+                        tracing::warn!(%err, "requests not served while the output was full");
+                    }
+                });
+            },
             Some(requests),
         )?;
         // The readers of the handles may still be asking for velocities.
@@ -375,7 +432,14 @@ pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String
         let side = EdgeSubscriber::<J::Side>::create(&process.node, &side_edge.service, &side_edge.options())?;
         let mut stage = build(wiring, make)?;
         let _span = tracing::info_span!("stage", name = %wiring.stage).entered();
-        let output = process.output::<J::Out>()?;
+        // In a loop the side input's writer may be this output's reader,
+        // waiting on its own output's readers (this stage): answer its
+        // handshake meanwhile, remembering an end of stream seen on the way.
+        let side_ended_early = std::cell::Cell::new(false);
+        let output = process.output_serving::<J::Out>(&mut || match side.take_events() {
+            Ok(ended) => side_ended_early.set(side_ended_early.get() | ended),
+            Err(err) => tracing::warn!(%err, "side input's handshake not answered"),
+        })?;
         tracing::info!(input = input.name(), side = side.name(), output = output.name(), "running");
         let liveness = process.liveness.clone();
         let liveness = &*liveness;
@@ -386,7 +450,7 @@ pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String
         // Also called while the output drains at the end: a side input that
         // closes a loop ends only after this stage's output has.
         let mut on_side = || -> Result<(), TransportError> {
-            let ended = side.take_events()?;
+            let ended = side.take_events()? | side_ended_early.replace(false);
             drain_side(&side, &mut **stage.borrow_mut(), liveness)?;
             if ended && !side_ended {
                 side_ended = true;
@@ -402,10 +466,16 @@ pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String
                 if let Err(err) = drain_side(&side, &mut **stage, liveness) {
                     tracing::warn!(%err, "side input not read");
                 }
-                transform_one(&mut **stage, message, &output, liveness)
+                let mut emitter = IpcEmitter { publisher: &output, slot: J::SLOT, liveness };
+                transform_one(&mut **stage, message, &mut emitter, liveness)
             },
             Some(attachment),
         )?;
+        // A side input that has already ended (one that closes no loop) is
+        // acknowledged even when the output has no reader to wait for.
+        if let Err(err) = on_side() {
+            tracing::warn!(%err, "side input not read");
+        }
         finish_transform(process, &input, &output, end, on_side)
     })())
 }

@@ -25,6 +25,7 @@ use crate::bop::{
     ByImage, CameraEntry, DatasetCamera, GtEntry, GtInfoEntry, SceneDir, write_by_image, write_depth_png, write_json,
     write_mask_png, write_rgb_png,
 };
+use crate::camera_path::{CameraPath, Orbit};
 use crate::scene::{Occlusion, Scene, View, ViewRange, compose_scene, random_light, render_view};
 use crate::{Camera, DepthNoise, ModelLibrary, SceneError, model_file_name};
 
@@ -48,6 +49,8 @@ pub struct RenderSpec {
     pub occlusion: Occlusion,
     pub camera: Camera,
     pub views: ViewRange,
+    /// How the camera moves from image to image within a scene.
+    pub path: CameraPath,
     /// `None` writes the ray-cast depth as is.
     pub depth_noise: Option<DepthNoise>,
     /// Standard deviation of per-channel RGB noise, 8-bit levels.
@@ -80,6 +83,8 @@ struct Provenance<'a> {
     frames_per_scene: u32,
     seed: u64,
     occlusion: String,
+    /// `random`, or `orbit <step>°/image`.
+    camera_path: String,
     objects: Vec<u32>,
     depth_noise: bool,
     rgb_noise: f64,
@@ -151,12 +156,21 @@ pub struct RenderedFrame {
     pub depth: Vec<f32>,
 }
 
-/// Renders image `im_id` of `scene` (scene `scene_id`): a random camera
-/// on the view hemisphere, a random light, sensor noise.
+/// Renders image `im_id` of `scene` (scene `scene_id`): the camera and
+/// light of `spec.path`, sensor noise.
 pub fn frame(library: &ModelLibrary, spec: &RenderSpec, scene: &Scene, scene_id: u32, im_id: u32) -> RenderedFrame {
     let mut rng = seeded_rng(stream_seed(&[spec.seed, scene_id.into(), 1 + u64::from(im_id)]));
-    let camera_from_world = spec.views.sample(scene, &mut rng);
-    let light = random_light(&mut rng);
+    let (camera_from_world, light) = match spec.path {
+        CameraPath::Random => {
+            let camera_from_world = spec.views.sample(scene, &mut rng);
+            (camera_from_world, random_light(&mut rng))
+        }
+        CameraPath::Orbit { step_deg } => {
+            // Stream 0 of the scene: the same orbit for all of its images.
+            let orbit = Orbit::draw(&spec.views, &mut seeded_rng(stream_seed(&[spec.seed, scene_id.into(), 0])));
+            (orbit.camera_from_world(&scene.centre, step_deg * f64::from(im_id)), orbit.light)
+        }
+    };
     let mut view = render_view(library, scene, &spec.camera, &camera_from_world, &light);
     let depth = match &spec.depth_noise {
         Some(noise) => noise.apply(&view.frame.depth, spec.camera.width as usize, &mut rng),
@@ -189,6 +203,10 @@ pub fn write_dataset(
             frames_per_scene: spec.frames_per_scene,
             seed: spec.seed,
             occlusion: format!("{:?}", spec.occlusion).to_lowercase(),
+            camera_path: match spec.path {
+                CameraPath::Random => "random".into(),
+                CameraPath::Orbit { step_deg } => format!("orbit {step_deg}°/image"),
+            },
             objects: library.objects.iter().map(|o| o.obj_id).collect(),
             depth_noise: spec.depth_noise.is_some(),
             rgb_noise: spec.rgb_noise,

@@ -8,6 +8,7 @@
 //! and cameras are `f64`, metres, OpenCV camera axes.
 
 pub mod bop;
+pub mod camera_path;
 pub mod dataset;
 mod error;
 pub mod import;

@@ -8,6 +8,7 @@ use nalgebra::Point3;
 use parry3d::query::PointQuery;
 use poseflow_geometry::Pose;
 use poseflow_scene::bop::{self, ByImage, CameraEntry, DatasetCamera, GtEntry, GtInfoEntry, SceneDir};
+use poseflow_scene::camera_path::CameraPath;
 use poseflow_scene::dataset::{RenderSpec, frame, lmo_camera, scene, write_dataset};
 use poseflow_scene::scene::{Occlusion, ViewRange};
 use poseflow_scene::{Camera, ModelLibrary, ObjectMesh};
@@ -28,6 +29,7 @@ fn clean_spec() -> RenderSpec {
         occlusion: Occlusion::Low,
         camera: lmo_camera(320, 240),
         views: ViewRange { distance: (0.35, 0.8), ..ViewRange::default() },
+        path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
     }

@@ -7,6 +7,7 @@
 //! `poseflow/<graph instance>/<edge>`, so graphs with different instance
 //! names never see each other's traffic.
 
+mod blocked;
 mod cleanup;
 mod error;
 mod naming;

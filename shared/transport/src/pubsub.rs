@@ -21,7 +21,7 @@ use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
 use poseflow_contracts::{ContractError, MessageHeader};
 
-use crate::{Ipc, Node, TransportError};
+use crate::{Ipc, Node, TransportError, blocked};
 
 /// Event ids. Each edge has two event services: `<edge>` (publisher →
 /// receivers) and `<edge>/ack` (receivers → publisher).
@@ -179,13 +179,15 @@ impl<H: MessageHeader> Publisher<H> {
             Overflow::Block => BackpressureStrategy::RetryUntilDelivered,
         };
         let max_payload_len = options.max_payload_len.max(1);
-        let publisher = service
+        let mut builder = service
             .publisher_builder()
             .initial_max_slice_len(max_payload_len)
             .allocation_strategy(AllocationStrategy::Static)
-            .backpressure_strategy(backpressure)
-            .create()
-            .map_err(|e| TransportError::iceoryx("create publisher on", name, e))?;
+            .backpressure_strategy(backpressure);
+        if options.overflow == Overflow::Block {
+            builder = builder.set_backpressure_handler(blocked::on_backpressure);
+        }
+        let publisher = builder.create().map_err(|e| TransportError::iceoryx("create publisher on", name, e))?;
         // The ack listener exists before the notifier announces this publisher,
         // so no READY is missed.
         let acks = listener(node, &ack_name(name))?;
@@ -204,6 +206,20 @@ impl<H: MessageHeader> Publisher<H> {
     /// The loaned memory is not cleared: until `fill` writes it, it holds an
     /// earlier sample's values, so `fill` must write every element.
     pub fn publish(&self, header: H, len: usize, fill: impl FnOnce(&mut [f32])) -> Result<usize, TransportError> {
+        self.publish_serving(header, len, fill, &mut || {})
+    }
+
+    /// As [`Self::publish`]; while the send waits on a full queue (`block`
+    /// overflow), calls `meanwhile` between retries. A stage that answers
+    /// requests passes its request handler, so its readers' calls are
+    /// answered while it waits for them to read.
+    pub fn publish_serving(
+        &self,
+        header: H,
+        len: usize,
+        fill: impl FnOnce(&mut [f32]),
+        meanwhile: &mut dyn FnMut(),
+    ) -> Result<usize, TransportError> {
         let expected = header.payload_len()?;
         if expected != len {
             return Err(ContractError::PayloadLength { message: H::NAME, expected, actual: len }.into());
@@ -227,7 +243,8 @@ impl<H: MessageHeader> Publisher<H> {
         fill(floats);
         // SAFETY: as above, the memory holds initialised f32 values.
         let sample = unsafe { sample.assume_init() };
-        let receivers = sample.send().map_err(|e| TransportError::iceoryx("send on", &self.name, e))?;
+        let receivers = blocked::while_blocked(meanwhile, || sample.send())
+            .map_err(|e| TransportError::iceoryx("send on", &self.name, e))?;
         notify(&self.notifier, events::DATA, "notify on", &self.name)?;
         Ok(receivers)
     }
@@ -240,8 +257,20 @@ impl<H: MessageHeader> Publisher<H> {
     /// so a fast source must not start before its readers answer. Returns
     /// how many answered.
     pub fn wait_for_receivers(&self, count: usize, timeout: Duration) -> Result<usize, TransportError> {
+        self.wait_for_receivers_serving(count, timeout, &mut || {})
+    }
+
+    /// As [`Self::wait_for_receivers`], calling `meanwhile` every few
+    /// milliseconds: a stage whose reader is also its writer (a loop) keeps
+    /// answering that reader's own handshake while it waits.
+    pub fn wait_for_receivers_serving(
+        &self,
+        count: usize,
+        timeout: Duration,
+        meanwhile: &mut dyn FnMut(),
+    ) -> Result<usize, TransportError> {
         self.connect()?;
-        let ready = self.wait_for_acks(events::READY, count, timeout)?;
+        let ready = self.wait_for_acks(events::READY, count, timeout, meanwhile)?;
         self.connect()?;
         Ok(ready)
     }
@@ -274,8 +303,12 @@ impl<H: MessageHeader> Publisher<H> {
                 break;
             }
             meanwhile()?;
-            acknowledged +=
-                self.wait_for_acks(events::END_ACKNOWLEDGED, receivers - acknowledged, left.min(SERVE_SLICE))?;
+            acknowledged += self.wait_for_acks(
+                events::END_ACKNOWLEDGED,
+                receivers - acknowledged,
+                left.min(SERVE_SLICE),
+                &mut || {},
+            )?;
         }
         if acknowledged < receivers {
             tracing::warn!(edge = %self.name, receivers, acknowledged, "end-of-stream not acknowledged by every receiver in time");
@@ -289,7 +322,13 @@ impl<H: MessageHeader> Publisher<H> {
 
     /// Counts `id` notifications on the ack service until `count` arrived,
     /// `timeout` passed or SIGINT/SIGTERM arrived; other ids are discarded.
-    fn wait_for_acks(&self, id: EventId, count: usize, timeout: Duration) -> Result<usize, TransportError> {
+    fn wait_for_acks(
+        &self,
+        id: EventId,
+        count: usize,
+        timeout: Duration,
+        meanwhile: &mut dyn FnMut(),
+    ) -> Result<usize, TransportError> {
         // Short slices, so a termination request is noticed promptly.
         const SLICE: Duration = Duration::from_millis(50);
         let deadline = Instant::now() + timeout;
@@ -299,6 +338,7 @@ impl<H: MessageHeader> Publisher<H> {
             if left.is_zero() || termination_requested() {
                 break;
             }
+            meanwhile();
             self.acks
                 .timed_wait(
                     |activation| {

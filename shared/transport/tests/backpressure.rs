@@ -45,3 +45,51 @@ fn block_overflow_loses_nothing() {
     sender.join().unwrap();
     assert_eq!(frames, (0..200).collect::<Vec<_>>());
 }
+
+/// A publisher waiting on a full queue runs its `meanwhile` between retries:
+/// the receiver here reads only once it has seen that happen, as a client
+/// reads its inputs only once the server it waits on has answered.
+#[test]
+fn a_blocked_publish_keeps_serving_until_the_queue_drains() {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    let name = edge_service_name(&format!("test-serving-{}", std::process::id()), "handles").unwrap();
+    let options = EdgeOptions { queue: 1, overflow: Overflow::Block, max_payload_len: 64 };
+    let node = create_node("serving-receiver").unwrap();
+    let subscriber = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    let served = Arc::new(AtomicUsize::new(0));
+    let sender = std::thread::spawn({
+        let (name, served) = (name.clone(), served.clone());
+        move || {
+            let node = create_node("serving-sender").unwrap();
+            let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+            assert_eq!(publisher.wait_for_receivers(1, Duration::from_secs(10)).unwrap(), 1);
+            for frame in 0..3u64 {
+                let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 };
+                let mut meanwhile = || {
+                    served.fetch_add(1, Ordering::SeqCst);
+                };
+                publisher.publish_serving(header, POSE_LEN, |p| p.fill(frame as f32), &mut meanwhile).unwrap();
+            }
+            publisher.end_of_stream(Duration::from_secs(10)).unwrap()
+        }
+    });
+    let mut frames = Vec::new();
+    let started = std::time::Instant::now();
+    while frames.len() < 3 {
+        subscriber.take_events().unwrap();
+        // Read only after the sender, stuck on the full queue, has served.
+        if served.load(Ordering::SeqCst) > 0 || sender.is_finished() {
+            while let Some(message) = subscriber.receive().unwrap() {
+                frames.push(message.header().header.frame_id);
+            }
+        }
+        assert!(started.elapsed() < Duration::from_secs(20), "the blocked publisher never served; got {frames:?}");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    subscriber.acknowledge_end().unwrap();
+    sender.join().unwrap();
+    assert_eq!(frames, vec![0, 1, 2]);
+    assert!(served.load(Ordering::SeqCst) > 0);
+}

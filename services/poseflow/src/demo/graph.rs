@@ -1,6 +1,6 @@
-//! The demo's graph: `deploy/estimation.toml` itself, with the frame source
-//! pointed at the rendered scene and the paths made absolute (the copy
-//! lives in the output folder).
+//! The demo's graph: `deploy/estimation.toml` (or `deploy/tracking.toml`)
+//! itself, with the frame source pointed at the rendered scene and the
+//! paths made absolute (the copy lives in the output folder).
 
 use std::path::Path;
 
@@ -15,6 +15,8 @@ pub struct Overrides<'a> {
     pub refine: bool,
     pub samples: usize,
     pub steps: usize,
+    /// The frame source's pace (a video), or as fast as the graph takes.
+    pub rate_hz: Option<f64>,
 }
 
 fn absolute(path: &Path) -> anyhow::Result<String> {
@@ -22,11 +24,10 @@ fn absolute(path: &Path) -> anyhow::Result<String> {
     Ok(path.display().to_string())
 }
 
-/// The estimation graph with `overrides`, as TOML text.
-pub fn estimation_graph(graph_file: &Path, overrides: &Overrides<'_>) -> anyhow::Result<String> {
-    let text = std::fs::read_to_string(graph_file).with_context(|| {
-        format!("{}: cannot read the estimation graph (run from the repository root)", graph_file.display())
-    })?;
+/// The graph of `graph_file` with `overrides`, as TOML text.
+pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> anyhow::Result<String> {
+    let text = std::fs::read_to_string(graph_file)
+        .with_context(|| format!("{}: cannot read the graph (run from the repository root)", graph_file.display()))?;
     let mut graph: toml::Table = text.parse().with_context(|| format!("{}: not TOML", graph_file.display()))?;
     let graph_dir = graph_file.parent().unwrap_or(Path::new("."));
     let Some(stages) = graph.get_mut("stages").and_then(|s| s.as_table_mut()) else {
@@ -52,6 +53,9 @@ pub fn estimation_graph(graph_file: &Path, overrides: &Overrides<'_>) -> anyhow:
                 params.insert("source".into(), "bop".into());
                 params.insert("dataset".into(), absolute(overrides.dataset)?.into());
                 params.insert("split".into(), "test".into());
+                if let Some(rate_hz) = overrides.rate_hz {
+                    params.insert("rate_hz".into(), rate_hz.into());
+                }
             }
             "inference" => {
                 params.insert("model".into(), absolute(overrides.model)?.into());

@@ -4,7 +4,9 @@
 
 mod graph;
 mod pictures;
+mod tracking;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -14,12 +16,13 @@ use poseflow_contracts::{EstimateHeader, HypothesesHeader, POSE_LEN};
 use poseflow_geometry::{Pose, SymmetrySet};
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 use poseflow_scene::bop::{CameraEntry, GtEntry, SceneDir, read_json, read_rgb_png};
+use poseflow_scene::camera_path::CameraPath;
 use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset};
 use poseflow_scene::scene::{Occlusion, ViewRange};
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
 
-use self::graph::{Overrides, estimation_graph};
+use self::graph::{Overrides, graph_with_overrides};
 use self::pictures::{Outlined, mollweide_panels, overlay};
 
 /// Rotation steps of continuous symmetries in the reported errors (BOP's
@@ -66,9 +69,9 @@ pub struct DemoArgs {
     /// BOP models directory of the objects to render and score.
     #[arg(long, default_value = "objects/lmo")]
     pub objects: PathBuf,
-    /// The estimation graph to run.
-    #[arg(long, default_value = "deploy/estimation.toml")]
-    pub graph: PathBuf,
+    /// The graph to run [default: deploy/estimation.toml, with --track deploy/tracking.toml].
+    #[arg(long)]
+    pub graph: Option<PathBuf>,
     /// How the selector chooses the pose.
     #[arg(long, value_enum, default_value_t = SelectionArg::Sdf)]
     pub selection: SelectionArg,
@@ -81,6 +84,20 @@ pub struct DemoArgs {
     /// Euler steps.
     #[arg(long, default_value_t = 5)]
     pub steps: usize,
+    /// Tracking: render a video (the camera orbits the scene) and run the tracking graph over it, each
+    /// estimate seeding the next frame; reports accuracy over the sequence.
+    #[arg(long)]
+    pub track: bool,
+    /// With --track: images in the video.
+    #[arg(long, default_value_t = 120)]
+    pub frames: u32,
+    /// With --track: degrees of camera azimuth per image.
+    #[arg(long, default_value_t = 1.0)]
+    pub orbit_step_deg: f64,
+    /// With --track: frames per second the frame source plays the video at (a camera's pace; a faster pace than
+    /// the graph keeps up with shows as growing latency).
+    #[arg(long, default_value_t = 5.0)]
+    pub rate_hz: f64,
     /// Print one JSON object instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -115,10 +132,10 @@ struct Report {
     mollweide: PathBuf,
 }
 
-/// What the graph recorded for one object.
-struct Recorded {
-    estimate: EstimateHeader,
-    hypotheses: Vec<Pose>,
+/// What the graph recorded for one object in one frame.
+pub(crate) struct Recorded {
+    pub estimate: EstimateHeader,
+    pub hypotheses: Vec<Pose>,
 }
 
 fn poses(payload: &[f32], stride: usize) -> anyhow::Result<Vec<Pose>> {
@@ -128,9 +145,13 @@ fn poses(payload: &[f32], stride: usize) -> anyhow::Result<Vec<Pose>> {
         .collect()
 }
 
-fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
+/// The estimates of a recording in the order they were recorded, each with
+/// the hypotheses of its frame and object (empty when they were not
+/// recorded).
+pub(crate) fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
     let mut reader = RecordingReader::open(path).with_context(|| format!("{}", path.display()))?;
-    let (mut estimates, mut hypotheses) = (Vec::new(), Vec::new());
+    let mut estimates = Vec::new();
+    let mut hypotheses = std::collections::HashMap::new();
     while let Some(message) = reader.next_message()? {
         match message.edge.as_str() {
             "estimates" => {
@@ -139,49 +160,60 @@ fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
             }
             "hypotheses" => {
                 let header: HypothesesHeader = header_from_bytes(&message.header).context("hypotheses header")?;
-                hypotheses.push((header.header.object_id, poses(&message.payload, POSE_LEN)?));
+                let key = (header.header.frame_id, header.header.object_id);
+                hypotheses.insert(key, poses(&message.payload, POSE_LEN)?);
             }
             _ => {}
         }
     }
-    estimates
+    Ok(estimates
         .into_iter()
         .map(|estimate| {
-            let object = estimate.header.object_id;
-            let samples = hypotheses.iter().find(|(o, _)| *o == object).map(|(_, p)| p.clone()).unwrap_or_default();
-            Ok(Recorded { estimate, hypotheses: samples })
+            let key = (estimate.header.frame_id, estimate.header.object_id);
+            Recorded { hypotheses: hypotheses.remove(&key).unwrap_or_default(), estimate }
         })
-        .collect()
+        .collect())
 }
 
-fn render_scene(library: &ModelLibrary, seed: u64, out: &Path) -> anyhow::Result<()> {
+/// Renders one scene of `frames` images (independent views, or an orbit of
+/// `orbit_step_deg` per image) as the `test` split of a BOP dataset.
+pub(crate) fn render_scene(
+    library: &ModelLibrary,
+    seed: u64,
+    frames: u32,
+    path: CameraPath,
+    out: &Path,
+) -> anyhow::Result<()> {
     let spec = RenderSpec {
         split: "test".into(),
         first_scene: 0,
         scenes: 1,
-        frames_per_scene: 1,
+        frames_per_scene: frames,
         seed,
         occlusion: Occlusion::Medium,
         camera: lmo_camera(640, 480),
         views: ViewRange::default(),
+        path,
         depth_noise: Some(DepthNoise::default()),
         rgb_noise: 2.0,
     };
     write_dataset(library, &spec, out, |_| {}).with_context(|| format!("{}: cannot write the scene", out.display()))
 }
 
-fn run_graph(graph: &Path, recording: &Path) -> anyhow::Result<()> {
+/// Runs `graph` as processes, recording `edges` to `recording`.
+pub(crate) fn run_graph(graph: &Path, recording: &Path, edges: &str) -> anyhow::Result<()> {
     let exe = std::env::current_exe().context("cannot find the poseflow executable")?;
     let output = Command::new(&exe)
         .args(["run", "--status-ms", "0", "--json", "--record"])
         .arg(recording)
-        .args(["--record-edges", "hypotheses,estimates", "--graph"])
+        .args(["--record-edges", edges, "--graph"])
         .arg(graph)
         .output()
         .with_context(|| format!("cannot start {}", exe.display()))?;
     if !output.status.success() {
         bail!(
-            "the estimation graph failed ({}); its log:\n{}\n(build every stage first: cargo build --release --workspace)",
+            "the graph {} failed ({}); its log:\n{}\n(build every stage first: cargo build --release --workspace)",
+            graph.display(),
             output.status,
             String::from_utf8_lossy(&output.stderr)
         );
@@ -189,15 +221,41 @@ fn run_graph(graph: &Path, recording: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
-    if args.samples == 0 || args.steps == 0 {
-        bail!("--samples {} --steps {}: expected at least 1 of each", args.samples, args.steps);
-    }
-    let library = ModelLibrary::load(&args.objects, &[])
-        .with_context(|| format!("--objects {}: cannot load the object models", args.objects.display()))?;
+/// The ground-truth `camera_from_object` poses of every image of scene 0 of
+/// the rendered `test` split, by image id.
+pub(crate) fn ground_truth(dataset: &Path) -> anyhow::Result<BTreeMap<u32, Vec<(u32, Pose)>>> {
+    let scene = SceneDir::new(&dataset.join("test"), 0);
+    let gt: BTreeMap<u32, Vec<GtEntry>> = read_json(&scene.scene_gt())?;
+    gt.into_iter()
+        .map(|(im_id, entries)| {
+            let poses = entries
+                .iter()
+                .enumerate()
+                .map(|(i, entry)| Ok((entry.obj_id, entry.pose(&scene.scene_gt(), im_id, i)?)))
+                .collect::<anyhow::Result<_>>()?;
+            Ok((im_id, poses))
+        })
+        .collect()
+}
+
+/// The symmetries of `obj_id` in `library`, as the reported errors use them.
+pub(crate) fn symmetries(library: &ModelLibrary, obj_id: u32) -> anyhow::Result<SymmetrySet> {
+    let object = library.objects.iter().find(|o| o.obj_id == obj_id).context("an object of the scene")?;
+    Ok(SymmetrySet::from_model_info(&object.info, SYMMETRY_STEP_DEG.to_radians()))
+}
+
+/// Renders the scene, writes the graph with the demo's overrides and runs
+/// it: the shared first half of both demos. Returns the recording's path.
+fn render_and_run(
+    args: &DemoArgs,
+    library: &ModelLibrary,
+    scene: (u32, CameraPath),
+    graph_file: &Path,
+    edges: &str,
+) -> anyhow::Result<PathBuf> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
     let dataset = args.out.join("scene");
-    render_scene(&library, args.seed, &dataset)?;
+    render_scene(library, args.seed, scene.0, scene.1, &dataset)?;
     let overrides = Overrides {
         dataset: &dataset,
         model: &args.model,
@@ -206,22 +264,53 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         refine: !args.no_refine,
         samples: args.samples,
         steps: args.steps,
+        rate_hz: args.track.then_some(args.rate_hz),
     };
-    let graph = args.out.join("estimation.toml");
-    std::fs::write(&graph, estimation_graph(&args.graph, &overrides)?)
+    let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
+    let graph = args.out.join(name);
+    std::fs::write(&graph, graph_with_overrides(graph_file, &overrides)?)
         .with_context(|| format!("{}", graph.display()))?;
-    let recording = args.out.join("estimation.rec");
-    run_graph(&graph, &recording)?;
+    let recording = graph.with_extension("rec");
+    run_graph(&graph, &recording, edges)?;
+    Ok(recording)
+}
+
+fn check(args: &DemoArgs) -> anyhow::Result<()> {
+    if args.samples == 0 || args.steps == 0 {
+        bail!("--samples {} --steps {}: expected at least 1 of each", args.samples, args.steps);
+    }
+    if args.track {
+        if args.frames < 2 {
+            bail!("--frames {}: expected at least 2 images to track over", args.frames);
+        }
+        if !(args.orbit_step_deg.is_finite() && args.orbit_step_deg.abs() <= 90.0) {
+            bail!("--orbit-step-deg {}: expected degrees per image within ±90", args.orbit_step_deg);
+        }
+        if !(args.rate_hz.is_finite() && args.rate_hz > 0.0) {
+            bail!("--rate-hz {}: expected frames per second > 0", args.rate_hz);
+        }
+    }
+    Ok(())
+}
+
+pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
+    check(args)?;
+    let library = ModelLibrary::load(&args.objects, &[])
+        .with_context(|| format!("--objects {}: cannot load the object models", args.objects.display()))?;
+    if args.track {
+        let graph = args.graph.clone().unwrap_or_else(|| PathBuf::from("deploy/tracking.toml"));
+        let path = CameraPath::Orbit { step_deg: args.orbit_step_deg };
+        let recording = render_and_run(args, &library, (args.frames, path), &graph, "estimates")?;
+        return tracking::report(args, &library, &recording);
+    }
+    let graph = args.graph.clone().unwrap_or_else(|| PathBuf::from("deploy/estimation.toml"));
+    let recording = render_and_run(args, &library, (1, CameraPath::Random), &graph, "hypotheses,estimates")?;
     let recorded = read_recording(&recording)?;
 
+    let dataset = args.out.join("scene");
     let scene = SceneDir::new(&dataset.join("test"), 0);
-    let gt: std::collections::BTreeMap<String, Vec<GtEntry>> = read_json(&scene.scene_gt())?;
-    let cameras: std::collections::BTreeMap<String, CameraEntry> = read_json(&scene.scene_camera())?;
-    let truths: Vec<(u32, Pose)> = gt["0"]
-        .iter()
-        .enumerate()
-        .map(|(i, entry)| Ok((entry.obj_id, entry.pose(&scene.scene_gt(), 0, i)?)))
-        .collect::<anyhow::Result<_>>()?;
+    let truths = ground_truth(&dataset)?.remove(&0).unwrap_or_default();
+    let cameras: BTreeMap<String, CameraEntry> = read_json(&scene.scene_camera())?;
     let rgb = read_rgb_png(&scene.rgb(0))?;
     let camera = cameras["0"].camera(rgb.width, rgb.height, &scene.scene_camera(), 0)?;
 
@@ -233,7 +322,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         let obj_id = estimate.header.object_id;
         let Some((_, truth)) = truths.iter().find(|(id, _)| *id == obj_id) else { continue };
         let object = library.objects.iter().find(|o| o.obj_id == obj_id).context("an object of the scene")?;
-        let symmetries = SymmetrySet::from_model_info(&object.info, SYMMETRY_STEP_DEG.to_radians());
+        let symmetries = symmetries(&library, obj_id)?;
         let best = Pose::from_f32_row_major(&estimate.best)?;
         let error = symmetries.pose_error(&best, truth);
         let within = entry

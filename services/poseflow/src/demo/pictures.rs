@@ -165,6 +165,46 @@ pub fn mollweide_panels(panels: &[(Vec<Pose>, Pose)], path: &Path) -> anyhow::Re
     image.save(path).with_context(|| format!("{}: cannot write the Mollweide plot", path.display()))
 }
 
+/// Top of the error plot's y axis, degrees: larger errors are drawn at the top.
+const PLOT_MAX_DEG: f64 = 20.0;
+
+/// Draws a straight segment of one-pixel dots between two points.
+fn segment(image: &mut RgbImage, from: (f64, f64), to: (f64, f64), colour: Rgb<u8>) {
+    let steps = (to.0 - from.0).abs().max((to.1 - from.1).abs()).ceil().max(1.0) as u32;
+    for i in 0..=steps {
+        let t = f64::from(i) / f64::from(steps);
+        let (x, y) = (from.0 + (to.0 - from.0) * t, from.1 + (to.1 - from.1) * t);
+        if x >= 0.0 && y >= 0.0 && x < f64::from(image.width()) && y < f64::from(image.height()) {
+            image.put_pixel(x as u32, y as u32, colour);
+        }
+    }
+}
+
+/// Rotation error per image, one polyline per object (`(image, degrees)`
+/// points in image order), x from image 0 to `frames`, y from 0 to 20°
+/// (clipped), grey lines at 5° and 10°.
+pub fn error_plot(series: &[Vec<(u32, f64)>], frames: u32, path: &Path) -> anyhow::Result<()> {
+    let (w, h, margin) = (720u32, 240u32, 10.0);
+    let mut image = RgbImage::from_pixel(w, h, Rgb([255, 255, 255]));
+    let x = |im_id: u32| margin + f64::from(im_id) / f64::from(frames.max(2) - 1) * (f64::from(w) - 2.0 * margin);
+    let y = |degrees: f64| {
+        f64::from(h) - margin - degrees.clamp(0.0, PLOT_MAX_DEG) / PLOT_MAX_DEG * (f64::from(h) - 2.0 * margin)
+    };
+    for (degrees, grey) in [(0.0, 90), (5.0, 170), (10.0, 170)] {
+        segment(&mut image, (x(0), y(degrees)), (x(frames.max(2) - 1), y(degrees)), Rgb([grey; 3]));
+    }
+    for (k, points) in series.iter().enumerate() {
+        let colour = hue(k as f64 / series.len() as f64);
+        for pair in points.windows(2) {
+            segment(&mut image, (x(pair[0].0), y(pair[0].1)), (x(pair[1].0), y(pair[1].1)), colour);
+        }
+        if let [(im_id, degrees)] = points.as_slice() {
+            segment(&mut image, (x(*im_id), y(*degrees)), (x(*im_id) + 1.0, y(*degrees)), colour);
+        }
+    }
+    image.save(path).with_context(|| format!("{}: cannot write the error plot", path.display()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

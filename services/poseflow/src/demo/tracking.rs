@@ -1,0 +1,187 @@
+//! `poseflow demo --track`: the tracking graph over a rendered video,
+//! scored frame by frame against the ground truth.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::bail;
+use poseflow_contracts::{Stage, flags};
+use poseflow_geometry::Pose;
+use poseflow_scene::ModelLibrary;
+use serde::Serialize;
+
+use super::pictures::error_plot;
+use super::{DemoArgs, ground_truth, read_recording, symmetries};
+use crate::timing::Timing;
+
+/// Accuracy thresholds of the report: (degrees, metres).
+const TIGHT: (f64, f64) = (5.0, 0.05);
+const LOOSE: (f64, f64) = (10.0, 0.05);
+
+/// One object over the video.
+#[derive(Debug, Serialize)]
+struct TrackedObject {
+    obj_id: u32,
+    /// Images the object is annotated in, and those with an estimate.
+    frames: u32,
+    estimated: u32,
+    /// Estimates whose samples started from the previous estimate.
+    tracked: u32,
+    /// Percent of the annotated images whose estimate is within 5°/5 cm
+    /// (resp. 10°/5 cm) of the truth; an image without an estimate counts
+    /// as a miss.
+    acc_5deg_5cm: f64,
+    acc_10deg_5cm: f64,
+    median_rotation_error_deg: f64,
+    max_rotation_error_deg: f64,
+    median_translation_error_cm: f64,
+    /// From the frame source's stamp to the selector's.
+    latency: Timing,
+}
+
+#[derive(Debug, Serialize)]
+struct TrackingReport {
+    out: PathBuf,
+    frames: u32,
+    orbit_step_deg: f64,
+    rate_hz: f64,
+    /// Over every object and image.
+    acc_5deg_5cm: f64,
+    acc_10deg_5cm: f64,
+    objects: Vec<TrackedObject>,
+    plot: PathBuf,
+}
+
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values.get(values.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+fn percent(count: usize, of: usize) -> f64 {
+    100.0 * count as f64 / of.max(1) as f64
+}
+
+fn within((degrees, metres): (f64, f64), (rotation_deg, translation_m): (f64, f64)) -> bool {
+    rotation_deg < degrees && translation_m < metres
+}
+
+/// Scores the recorded estimates of the video against its ground truth,
+/// prints the report and draws the error plot.
+pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyhow::Result<()> {
+    let truths = ground_truth(&args.out.join("scene"))?;
+    // One scene whose every image is a target: frame k is image k.
+    let mut by_object: BTreeMap<u32, Vec<(u32, f64, f64)>> = BTreeMap::new();
+    let mut latencies: BTreeMap<u32, Vec<Duration>> = BTreeMap::new();
+    let mut tracked: BTreeMap<u32, u32> = BTreeMap::new();
+    for entry in read_recording(recording)? {
+        let header = &entry.estimate.header;
+        let Ok(im_id) = u32::try_from(header.frame_id) else { continue };
+        let Some(truth) = truths.get(&im_id).and_then(|t| t.iter().find(|(id, _)| *id == header.object_id)) else {
+            continue;
+        };
+        let best = Pose::from_f32_row_major(&entry.estimate.best)?;
+        let error = symmetries(library, header.object_id)?.pose_error(&best, &truth.1);
+        by_object.entry(header.object_id).or_default().push((im_id, error.rotation.to_degrees(), error.translation));
+        if let Some(ns) = header.stamps.elapsed_ns(Stage::Source, Stage::Selector) {
+            latencies.entry(header.object_id).or_default().push(Duration::from_nanos(ns));
+        }
+        if header.flags & flags::TRACKING != 0 {
+            *tracked.entry(header.object_id).or_default() += 1;
+        }
+    }
+    if by_object.is_empty() {
+        bail!("the tracking graph produced no estimate for the video's objects (see {})", recording.display());
+    }
+    let mut annotated: BTreeMap<u32, u32> = BTreeMap::new();
+    for (obj_id, _) in truths.values().flatten() {
+        *annotated.entry(*obj_id).or_default() += 1;
+    }
+    let (mut tight_all, mut loose_all, mut frames_all) = (0, 0, 0);
+    let mut objects = Vec::new();
+    for (obj_id, frames) in &annotated {
+        let errors = by_object.remove(obj_id).unwrap_or_default();
+        let tight = errors.iter().filter(|e| within(TIGHT, (e.1, e.2))).count();
+        let loose = errors.iter().filter(|e| within(LOOSE, (e.1, e.2))).count();
+        (tight_all, loose_all, frames_all) = (tight_all + tight, loose_all + loose, frames_all + *frames as usize);
+        objects.push(TrackedObject {
+            obj_id: *obj_id,
+            frames: *frames,
+            estimated: errors.len() as u32,
+            tracked: tracked.get(obj_id).copied().unwrap_or(0),
+            acc_5deg_5cm: percent(tight, *frames as usize),
+            acc_10deg_5cm: percent(loose, *frames as usize),
+            median_rotation_error_deg: median(errors.iter().map(|e| e.1).collect()),
+            max_rotation_error_deg: errors.iter().map(|e| e.1).fold(0.0, f64::max),
+            median_translation_error_cm: median(errors.iter().map(|e| e.2 * 100.0).collect()),
+            latency: Timing::of(latencies.remove(obj_id).unwrap_or_default()),
+        });
+        by_object.insert(*obj_id, errors);
+    }
+    let plot = args.out.join("tracking.png");
+    let series: Vec<Vec<(u32, f64)>> =
+        by_object.values().map(|errors| errors.iter().map(|e| (e.0, e.1)).collect()).collect();
+    error_plot(&series, args.frames, &plot)?;
+    let report = TrackingReport {
+        out: args.out.clone(),
+        frames: args.frames,
+        orbit_step_deg: args.orbit_step_deg,
+        rate_hz: args.rate_hz,
+        acc_5deg_5cm: percent(tight_all, frames_all),
+        acc_10deg_5cm: percent(loose_all, frames_all),
+        objects,
+        plot,
+    };
+    if args.json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        print_table(&report);
+    }
+    Ok(())
+}
+
+fn print_table(report: &TrackingReport) {
+    println!(
+        "tracking over {} images (camera orbit {}°/image at {} Hz): 5°5cm {:.1} %, 10°5cm {:.1} % of object-images",
+        report.frames, report.orbit_step_deg, report.rate_hz, report.acc_5deg_5cm, report.acc_10deg_5cm
+    );
+    println!(
+        "object  estimated  tracked  5°5cm %  10°5cm %  median rot °  max rot °  median trans cm  latency p50/p99 ms"
+    );
+    for o in &report.objects {
+        println!(
+            "{:>6}  {:>4}/{:<4}  {:>7}  {:>7.1}  {:>8.1}  {:>12.2}  {:>9.1}  {:>15.2}  {:>8.1}/{:.1}",
+            o.obj_id,
+            o.estimated,
+            o.frames,
+            o.tracked,
+            o.acc_5deg_5cm,
+            o.acc_10deg_5cm,
+            o.median_rotation_error_deg,
+            o.max_rotation_error_deg,
+            o.median_translation_error_cm,
+            o.latency.p50_ms,
+            o.latency.p99_ms
+        );
+    }
+    println!(
+        "plot: {} (rotation error per image, one colour per object; grey lines at 5° and 10°)",
+        report.plot.display()
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn thresholds_are_strict_and_misses_count_against_accuracy() {
+        assert!(within(TIGHT, (4.99, 0.049)));
+        assert!(!within(TIGHT, (5.0, 0.01)));
+        assert!(!within(LOOSE, (1.0, 0.05)));
+        assert_eq!(percent(3, 4), 75.0);
+        assert_eq!(percent(0, 0), 0.0);
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert!(median(Vec::new()).is_nan());
+    }
+}
