@@ -46,21 +46,28 @@ fn json_logs_are_one_object_per_line() {
     assert_eq!(value["fields"]["subcommand"], "eval");
 }
 
+/// `poseflow demo --json` with 12 samples × 3 steps and `extra` arguments,
+/// run from the repository root; its report.
+fn demo_report(out_dir: &Path, extra: &[&str]) -> serde_json::Value {
+    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(["--log-format", "json", "demo", "--json", "--samples", "12", "--steps", "3"])
+        .args(extra)
+        .arg("--out")
+        .arg(out_dir)
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join("../.."))
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
 /// The README's first command, small: the estimation graph as processes on
 /// a rendered scene of the vendored objects, with the default model.
 #[test]
 fn the_demo_runs_the_estimation_graph_and_draws_its_pictures() {
     let out_dir = scratch("demo");
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
-        .args(["--log-format", "json", "demo", "--json", "--samples", "12", "--steps", "3", "--out"])
-        .arg(&out_dir)
-        .current_dir(&root)
-        .env_remove("RUST_LOG")
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let report = demo_report(&out_dir, &[]);
     let objects = report["objects"].as_array().unwrap();
     let ids: Vec<u64> = objects.iter().map(|o| o["obj_id"].as_u64().unwrap()).collect();
     assert_eq!(ids.len(), 3, "{report}");
@@ -88,18 +95,8 @@ fn the_demo_runs_the_estimation_graph_and_draws_its_pictures() {
 #[test]
 fn the_tracking_demo_follows_every_object_through_the_video() {
     let out_dir = scratch("track");
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let frames: u64 = 10;
-    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
-        .args(["--log-format", "json", "demo", "--track", "--json", "--samples", "12", "--steps", "3"])
-        .args(["--frames", &frames.to_string(), "--rate-hz", "2", "--out"])
-        .arg(&out_dir)
-        .current_dir(&root)
-        .env_remove("RUST_LOG")
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let report = demo_report(&out_dir, &["--track", "--frames", &frames.to_string(), "--rate-hz", "2"]);
     assert_eq!(report["frames"], frames, "{report}");
     let objects = report["objects"].as_array().unwrap();
     assert_eq!(objects.len(), 3, "{report}");
@@ -199,6 +196,32 @@ fn render_is_reproducible_from_the_seed() {
     }
 }
 
+/// `--orbit-step-deg`: the images of a scene are a video, the camera
+/// turning a little from one to the next around a fixed point.
+#[test]
+fn render_orbit_gives_a_camera_moving_smoothly_from_image_to_image() {
+    let dataset = scratch("render-orbit");
+    let args = ["render", "--models", MODELS, "--out", dataset.to_str().unwrap(), "--frames-per-scene", "4"];
+    let out = poseflow(&[&args[..], &["--orbit-step-deg", "2", "--width", "80", "--height", "60", "--json"]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let provenance: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dataset.join("poseflow_render.json")).unwrap()).unwrap();
+    assert_eq!(provenance["camera_path"], "orbit 2°/image");
+    let cameras: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dataset.join("train/000000/scene_camera.json")).unwrap()).unwrap();
+    let rotation = |im: usize| -> Vec<f64> {
+        cameras[im.to_string()]["cam_R_w2c"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect()
+    };
+    for im in 1..4 {
+        let (a, b) = (rotation(im - 1), rotation(im));
+        // trace(Aᵀ B) = 1 + 2 cos(angle between the two camera orientations).
+        let trace: f64 = (0..9).map(|k| a[k] * b[k]).sum();
+        let angle = ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees();
+        assert!(angle > 0.1 && angle < 6.0, "images {} and {im}: {angle}°", im - 1);
+    }
+    std::fs::remove_dir_all(dataset).unwrap();
+}
+
 #[test]
 fn preview_puts_rgb_depth_and_masks_side_by_side() {
     let dataset = scratch("preview");
@@ -227,6 +250,7 @@ fn render_rejects_bad_arguments_with_what_was_expected() {
         (vec!["--models", MODELS, "--out", out, "--width", "0"], "--width 0: expected 1 to 8192 pixels"),
         (vec!["--models", MODELS, "--out", out, "--split", "../x"], "expected a plain folder name"),
         (vec!["--models", MODELS, "--out", out, "--scenes", "0"], "expected at least 1 of each"),
+        (vec!["--models", MODELS, "--out", out, "--orbit-step-deg", "120"], "--orbit-step-deg 120: expected"),
     ] {
         let result = poseflow(&[&["render"][..], &args].concat());
         assert_eq!(result.status.code(), Some(1), "{args:?}");

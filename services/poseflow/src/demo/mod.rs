@@ -371,10 +371,15 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         overlay: overlay_path,
         mollweide: mollweide_path,
     };
-    if args.json {
-        println!("{}", serde_json::to_string(&report)?);
+    print_report(&report, args.json, print_table)
+}
+
+/// Prints `report` as one JSON object, or as the text `table` writes.
+pub(crate) fn print_report<R: Serialize>(report: &R, json: bool, table: impl Fn(&R)) -> anyhow::Result<()> {
+    if json {
+        println!("{}", serde_json::to_string(report)?);
     } else {
-        print_table(&report);
+        table(report);
     }
     Ok(())
 }

@@ -12,7 +12,7 @@ use poseflow_scene::ModelLibrary;
 use serde::Serialize;
 
 use super::pictures::error_plot;
-use super::{DemoArgs, ground_truth, read_recording, symmetries};
+use super::{DemoArgs, ground_truth, print_report, read_recording, symmetries};
 use crate::timing::Timing;
 
 /// Accuracy thresholds of the report: (degrees, metres).
@@ -132,12 +132,7 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         objects,
         plot,
     };
-    if args.json {
-        println!("{}", serde_json::to_string(&report)?);
-    } else {
-        print_table(&report);
-    }
-    Ok(())
+    print_report(&report, args.json, print_table)
 }
 
 fn print_table(report: &TrackingReport) {
