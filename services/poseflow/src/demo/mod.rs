@@ -55,7 +55,11 @@ impl SelectionArg {
     separate executables). Writes <out>/scene (the rendered BOP scene), <out>/estimation.toml (the graph run), \
     <out>/estimation.rec (its hypotheses and estimates), <out>/overlay.png (outlines: green = selected pose, \
     orange = hypotheses) and <out>/mollweide.png (one panel per object, top to bottom in the table's order: \
-    rotation samples coloured by tilt, the ground truth as a ring).")]
+    rotation samples coloured by tilt, the ground truth as a ring).\n\n\
+    With --track: <out>/scene (the rendered video), <out>/tracking.toml, <out>/tracking.rec (its estimates) and \
+    <out>/tracking.png (rotation error per image, 0–20°, one colour per object, grey lines at 5° and 10°).\n\n\
+    Examples:\n  poseflow demo\n  poseflow demo --track\n  poseflow demo --track --graph deploy/estimation.toml \
+    --out target/demo-per-image   (the same video estimated image by image)")]
 pub struct DemoArgs {
     /// Output folder.
     #[arg(long, default_value = "target/demo")]
