@@ -21,6 +21,7 @@ pub mod eigen;
 mod error;
 pub mod flow;
 pub mod mean;
+pub mod metrics;
 pub mod models_info;
 pub mod pose;
 pub mod sampling;
