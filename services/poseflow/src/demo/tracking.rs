@@ -74,6 +74,8 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
     let mut by_object: BTreeMap<u32, Vec<(u32, f64, f64)>> = BTreeMap::new();
     let mut latencies: BTreeMap<u32, Vec<Duration>> = BTreeMap::new();
     let mut tracked: BTreeMap<u32, u32> = BTreeMap::new();
+    // Built once per object: a continuous symmetry is hundreds of transforms.
+    let mut symmetry_sets = BTreeMap::new();
     for entry in read_recording(recording)? {
         let header = &entry.estimate.header;
         let Ok(im_id) = u32::try_from(header.frame_id) else { continue };
@@ -81,7 +83,11 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
             continue;
         };
         let best = Pose::from_f32_row_major(&entry.estimate.best)?;
-        let error = symmetries(library, header.object_id)?.pose_error(&best, &truth.1);
+        let symmetries = match symmetry_sets.entry(header.object_id) {
+            std::collections::btree_map::Entry::Occupied(set) => set.into_mut(),
+            std::collections::btree_map::Entry::Vacant(slot) => slot.insert(symmetries(library, header.object_id)?),
+        };
+        let error = symmetries.pose_error(&best, &truth.1);
         by_object.entry(header.object_id).or_default().push((im_id, error.rotation.to_degrees(), error.translation));
         if let Some(ns) = header.stamps.elapsed_ns(Stage::Source, Stage::Selector) {
             latencies.entry(header.object_id).or_default().push(Duration::from_nanos(ns));
@@ -100,7 +106,7 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
     let (mut tight_all, mut loose_all, mut frames_all) = (0, 0, 0);
     let mut objects = Vec::new();
     for (obj_id, frames) in &annotated {
-        let errors = by_object.remove(obj_id).unwrap_or_default();
+        let errors = by_object.get(obj_id).map_or(&[][..], Vec::as_slice);
         let tight = errors.iter().filter(|e| within(TIGHT, (e.1, e.2))).count();
         let loose = errors.iter().filter(|e| within(LOOSE, (e.1, e.2))).count();
         (tight_all, loose_all, frames_all) = (tight_all + tight, loose_all + loose, frames_all + *frames as usize);
@@ -116,7 +122,6 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
             median_translation_error_cm: median(errors.iter().map(|e| e.2 * 100.0).collect()),
             latency: Timing::of(latencies.remove(obj_id).unwrap_or_default()),
         });
-        by_object.insert(*obj_id, errors);
     }
     let plot = args.out.join("tracking.png");
     let series: Vec<Vec<(u32, f64)>> =
