@@ -64,7 +64,8 @@ pub fn mask_file(dir: &Path, scene_id: u32, im_id: u32, obj_id: u32) -> PathBuf 
 
 /// Frames of a BOP dataset split with their object masks, in scene and
 /// image order; a test split (`test`, `test_primesense`, ...) is restricted to
-/// the targets of `test_targets_bop19.json` when the dataset root has one.
+/// the targets of `test_targets_bop19.json` when the dataset root has one
+/// (or of the targets file given to [`BopFrames::open`]).
 #[derive(Debug)]
 pub struct BopFrames {
     split_dir: PathBuf,
@@ -98,14 +99,25 @@ fn scene_ids(split_dir: &Path) -> Result<Vec<u32>, IngestError> {
 }
 
 impl BopFrames {
-    /// `scenes` restricts the scenes (all when empty).
-    pub fn open(root: &Path, split: &str, scenes: &[u32], masks: Masks) -> Result<Self, IngestError> {
+    /// `scenes` restricts the scenes (all when empty); `targets_file`, a
+    /// BOP19 targets file, replaces the dataset's own for any split.
+    pub fn open(
+        root: &Path,
+        split: &str,
+        scenes: &[u32],
+        targets_file: Option<&Path>,
+        masks: Masks,
+    ) -> Result<Self, IngestError> {
         let split_dir = root.join(split);
         let wanted = |scene_id: u32| scenes.is_empty() || scenes.contains(&scene_id);
-        let targets_file = root.join("test_targets_bop19.json");
         // BOP's targets name test images; training splits beside a test
         // split in the same root use all of their images.
-        let targets = if split.starts_with("test") && targets_file.is_file() {
+        let dataset_targets = root.join("test_targets_bop19.json");
+        let targets_file = match targets_file {
+            Some(file) => Some(file.to_path_buf()),
+            None => (split.starts_with("test") && dataset_targets.is_file()).then_some(dataset_targets),
+        };
+        let targets = if let Some(targets_file) = targets_file {
             let entries: Vec<TargetEntry> = bop::read_json(&targets_file)?;
             let mut targets: Vec<Target> = Vec::new();
             for entry in entries.into_iter().filter(|e| wanted(e.scene_id)) {
@@ -135,6 +147,13 @@ impl BopFrames {
             });
         }
         Ok(Self { split_dir, masks, targets, next: 0, loaded: None })
+    }
+
+    /// `(scene_id, im_id, obj_ids)` of every image the stream will
+    /// deliver, in order (the frame id of an image is its position here);
+    /// `obj_ids` are the targeted objects, empty for every annotated one.
+    pub fn images(&self) -> impl Iterator<Item = (u32, u32, &[u32])> + '_ {
+        self.targets.iter().map(|t| (t.scene_id, t.im_id, t.obj_ids.as_slice()))
     }
 
     /// Number of images the stream will deliver.

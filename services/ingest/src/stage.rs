@@ -7,7 +7,7 @@
 //! | key | meaning |
 //! |---|---|
 //! | `source` | `"bop"` (a dataset directory) or `"synthetic"` (the renderer) |
-//! | `dataset`, `split`, `scenes`, `mask_dir` | bop: dataset root, split folder (default `test`), scene ids (default all), masks from files instead of the ground truth ([`Masks::Files`]) |
+//! | `dataset`, `split`, `scenes`, `mask_dir`, `targets` | bop: dataset root, split folder (default `test`), scene ids (default all), masks from files instead of the ground truth ([`Masks::Files`]), a BOP19 targets file instead of the dataset's `test_targets_bop19.json` |
 //! | `models`, `objects`, `scenes`, `frames_per_scene`, `seed`, `occlusion`, `width`, `height`, `orbit_step_deg` | synthetic: as `poseflow render` |
 //! | `rate_hz` | frames per second (read by the runtime; default as fast as the output accepts) |
 //!
@@ -40,6 +40,8 @@ enum SourceParams {
         /// Masks from files (`<dir>/<scene:06>/<im:06>_obj<obj:06>.png`)
         /// instead of the ground truth.
         mask_dir: Option<PathBuf>,
+        /// A BOP19 targets file instead of the dataset's own.
+        targets: Option<PathBuf>,
     },
     Synthetic {
         models: PathBuf,
@@ -100,9 +102,9 @@ pub fn frame_source(value: &serde_json::Value) -> Result<Box<dyn FrameSource>, I
         table.remove("rate_hz");
     }
     Ok(match serde_json::from_value(value).map_err(params_error)? {
-        SourceParams::Bop { dataset, split, scenes, mask_dir } => {
+        SourceParams::Bop { dataset, split, scenes, mask_dir, targets } => {
             let masks = mask_dir.map_or(Masks::GroundTruth, Masks::Files);
-            Box::new(BopFrames::open(&dataset, &split, &scenes, masks)?)
+            Box::new(BopFrames::open(&dataset, &split, &scenes, targets.as_deref(), masks)?)
         }
         SourceParams::Synthetic {
             models,

@@ -15,7 +15,7 @@ fn corpus() -> PathBuf {
 
 /// What became of each frame: the observations made, or the errors.
 fn outcomes() -> Vec<(usize, Vec<String>)> {
-    let mut frames = BopFrames::open(&corpus(), "test", &[], Masks::GroundTruth).unwrap();
+    let mut frames = BopFrames::open(&corpus(), "test", &[], None, Masks::GroundTruth).unwrap();
     let params = IngestParams { image_size: 56, patch_grid: 4, point_count: 64, ..IngestParams::default() };
     let mut outcomes = Vec::new();
     while let Some(loaded) = frames.next_frame() {

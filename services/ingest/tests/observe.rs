@@ -45,7 +45,7 @@ fn points_lie_on_the_model_and_tokens_cover_the_projection() {
     write_dataset(&library, &spec, &root, |_| {}).unwrap();
     let params = IngestParams { image_size: 112, patch_grid: 8, ..IngestParams::default() };
     let trimeshes: Vec<_> = library.objects.iter().map(|o| (o.obj_id, o.model.mesh.to_trimesh().unwrap())).collect();
-    let mut frames = BopFrames::open(&root, "test", &[], Masks::GroundTruth).unwrap();
+    let mut frames = BopFrames::open(&root, "test", &[], None, Masks::GroundTruth).unwrap();
     assert_eq!(frames.len(), 6);
     let (mut observed, mut covered_objects) = (0, 0);
     let mut rng = seeded_rng(1);
@@ -148,7 +148,7 @@ fn mask_files_replace_the_ground_truth() {
         std::fs::copy(scene.mask_visib(1, k), mask_file(&masks, 0, 1, gt.obj_id)).unwrap();
     }
     std::fs::remove_file(scene.scene_gt()).unwrap();
-    let mut frames = BopFrames::open(&root, "val", &[], Masks::Files(masks.clone())).unwrap();
+    let mut frames = BopFrames::open(&root, "val", &[], None, Masks::Files(masks.clone())).unwrap();
     let first = frames.next_frame().unwrap().unwrap();
     assert!(first.objects.is_empty() && first.skipped.is_empty(), "image 0 has no mask files");
     let second = frames.next_frame().unwrap().unwrap();
@@ -156,7 +156,7 @@ fn mask_files_replace_the_ground_truth() {
     assert_eq!(found, [(1, 0), (11, 1)]);
     let expected = bop::read_mask_png(&scene.mask_visib(1, 0)).unwrap();
     assert_eq!(second.objects[0].mask, expected);
-    let err = BopFrames::open(&root, "val", &[], Masks::Files(root.join("nowhere")))
+    let err = BopFrames::open(&root, "val", &[], None, Masks::Files(root.join("nowhere")))
         .unwrap()
         .next_frame()
         .unwrap()
@@ -187,7 +187,16 @@ fn test_targets_restrict_only_the_test_split() {
     write_dataset(&library, &spec("train", 0, 3), &root, |_| {}).unwrap();
     assert!(root.join("test_targets_bop19.json").is_file());
     // The targets name scene 7 only; the train split's scene 0 is still read.
-    assert_eq!(BopFrames::open(&root, "test", &[], Masks::GroundTruth).unwrap().len(), 2);
-    assert_eq!(BopFrames::open(&root, "train", &[], Masks::GroundTruth).unwrap().len(), 3);
+    assert_eq!(BopFrames::open(&root, "test", &[], None, Masks::GroundTruth).unwrap().len(), 2);
+    assert_eq!(BopFrames::open(&root, "train", &[], None, Masks::GroundTruth).unwrap().len(), 3);
+    // A targets file of the caller's replaces the dataset's, for any split,
+    // and the frame ids follow its order.
+    let own = root.join("own_targets.json");
+    std::fs::write(&own, r#"[{"scene_id": 0, "im_id": 2, "obj_id": 1, "inst_count": 1}]"#).unwrap();
+    let frames = BopFrames::open(&root, "train", &[], Some(&own), Masks::GroundTruth).unwrap();
+    assert_eq!(frames.images().collect::<Vec<_>>(), [(0, 2, &[1][..])]);
+    let test = BopFrames::open(&root, "test", &[], None, Masks::GroundTruth).unwrap();
+    let images: Vec<(u32, u32)> = test.images().map(|(scene, im, _)| (scene, im)).collect();
+    assert_eq!(images, [(7, 0), (7, 1)]);
     std::fs::remove_dir_all(&root).unwrap();
 }

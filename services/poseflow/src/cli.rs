@@ -6,9 +6,6 @@ use clap::{Parser, Subcommand};
 
 use crate::logging::LogFormat;
 
-/// Exit code of a subcommand that this build does not provide yet.
-const NOT_AVAILABLE: u8 = 2;
-
 #[derive(Debug, Parser)]
 #[command(
     name = "poseflow",
@@ -43,24 +40,9 @@ pub enum Command {
     /// Write a BOP dataset's observations and ground truth as a training shard.
     Observe(crate::observe::ObserveArgs),
     /// Evaluate on a BOP-format dataset: accuracy, ADD(-S), calibration, runtime.
-    Eval,
+    Eval(crate::eval::EvalArgs),
     /// Benchmark transport latency and end-to-end throughput.
     Bench(crate::bench::BenchArgs),
-}
-
-impl Command {
-    fn name(&self) -> &'static str {
-        match self {
-            Command::Demo(_) => "demo",
-            Command::Run(_) => "run",
-            Command::Render(_) => "render",
-            Command::ImportModel(_) => "import-model",
-            Command::Preview(_) => "preview",
-            Command::Observe(_) => "observe",
-            Command::Eval => "eval",
-            Command::Bench(_) => "bench",
-        }
-    }
 }
 
 fn report(result: anyhow::Result<ExitCode>) -> ExitCode {
@@ -71,22 +53,15 @@ fn report(result: anyhow::Result<ExitCode>) -> ExitCode {
 }
 
 pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
-    // What has to land before a subcommand works.
-    let missing = match command {
-        Command::Run(args) => return report(crate::run::run(args, log_format)),
-        Command::Demo(args) => return report(crate::demo::run(&args).map(|()| ExitCode::SUCCESS)),
-        Command::Bench(args) => return report(crate::bench::run(args)),
-        Command::Render(args) => return report(crate::render::run(&args).map(|()| ExitCode::SUCCESS)),
-        Command::ImportModel(args) => return report(crate::import_model::run(&args).map(|()| ExitCode::SUCCESS)),
-        Command::Preview(args) => return report(crate::preview::run(&args).map(|()| ExitCode::SUCCESS)),
-        Command::Observe(args) => return report(crate::observe::run(&args).map(|()| ExitCode::SUCCESS)),
-        Command::Eval => "it needs the estimation graph and the BOP benchmark runner",
-    };
-    tracing::error!(
-        subcommand = command.name(),
-        "`poseflow {}` is not available yet in this build: {}",
-        command.name(),
-        missing
-    );
-    ExitCode::from(NOT_AVAILABLE)
+    let done = |result: anyhow::Result<()>| report(result.map(|()| ExitCode::SUCCESS));
+    match command {
+        Command::Run(args) => report(crate::run::run(args, log_format)),
+        Command::Bench(args) => report(crate::bench::run(args)),
+        Command::Demo(args) => done(crate::demo::run(&args)),
+        Command::Render(args) => done(crate::render::run(&args)),
+        Command::ImportModel(args) => done(crate::import_model::run(&args)),
+        Command::Preview(args) => done(crate::preview::run(&args)),
+        Command::Observe(args) => done(crate::observe::run(&args)),
+        Command::Eval(args) => done(crate::eval::run(&args)),
+    }
 }

@@ -3,6 +3,7 @@
 mod bench;
 mod cli;
 mod demo;
+mod eval;
 mod import_model;
 mod logging;
 mod observe;

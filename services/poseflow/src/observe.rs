@@ -59,7 +59,7 @@ pub fn run(args: &ObserveArgs) -> anyhow::Result<()> {
     params.point_count = args.points.unwrap_or(params.point_count);
     params.max_filter_points = params.max_filter_points.max(params.point_count);
     params.validate()?;
-    let mut frames = BopFrames::open(&args.dataset, &args.split, &[], Masks::GroundTruth)
+    let mut frames = BopFrames::open(&args.dataset, &args.split, &[], None, Masks::GroundTruth)
         .with_context(|| format!("--dataset {}", args.dataset.display()))?;
     let info = ShardInfo {
         image_size: params.image_size,

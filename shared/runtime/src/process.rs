@@ -18,8 +18,9 @@ use crate::{RuntimeError, init_logging};
 /// How long a finished stage waits for its receivers to drain before exiting
 /// anyway.
 const END_OF_STREAM_TIMEOUT: Duration = Duration::from_secs(30);
-/// How long a stage waits at start-up for the stages reading its output.
-const READERS_TIMEOUT: Duration = Duration::from_secs(10);
+/// How often a stage waiting at start-up for the stages reading its output
+/// says so (it waits until they connect or it is stopped).
+const READERS_WARN_EVERY: Duration = Duration::from_secs(10);
 
 fn waitset_error(err: impl std::fmt::Debug) -> RuntimeError {
     RuntimeError::WaitSet(format!("{err:?}"))
@@ -74,8 +75,8 @@ impl StageProcess {
         Ok(EdgeSubscriber::create(&self.node, &edge.service, &edge.options())?)
     }
 
-    /// The output edge, once its readers are connected (or the start-up
-    /// timeout passed).
+    /// The output edge, once its readers are connected (or the stage was
+    /// told to stop).
     fn output<H: MessageHeader>(&self) -> Result<Publisher<H>, RuntimeError> {
         self.output_serving(&mut || {})
     }
@@ -84,9 +85,9 @@ impl StageProcess {
     fn output_serving<H: MessageHeader>(&self, meanwhile: &mut dyn FnMut()) -> Result<Publisher<H>, RuntimeError> {
         let edge = &self.wiring.outputs[0];
         let publisher = Publisher::create(&self.node, &edge.service, &edge.options())?;
-        let connected = publisher.wait_for_receivers_serving(edge.readers, READERS_TIMEOUT, meanwhile)?;
+        let connected = publisher.wait_for_all_receivers_serving(edge.readers, READERS_WARN_EVERY, meanwhile)?;
         if connected < edge.readers {
-            tracing::warn!(edge = %edge.edge, connected, expected = edge.readers, "starting before every reader connected");
+            tracing::warn!(edge = %edge.edge, connected, expected = edge.readers, "stopped before every reader connected");
         }
         Ok(publisher)
     }

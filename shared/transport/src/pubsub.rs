@@ -275,6 +275,28 @@ impl<H: MessageHeader> Publisher<H> {
         Ok(ready)
     }
 
+    /// As [`Self::wait_for_receivers_serving`] with no deadline: waits
+    /// until all `count` receivers said READY or SIGINT/SIGTERM arrived,
+    /// warning every `warn_every` meanwhile. A graph stage uses it: its
+    /// readers may take long to start (a selector precomputing distance
+    /// grids), and a publisher that went ahead without them would send into
+    /// half-made connections, which iceoryx2 drops without a trace.
+    pub fn wait_for_all_receivers_serving(
+        &self,
+        count: usize,
+        warn_every: Duration,
+        meanwhile: &mut dyn FnMut(),
+    ) -> Result<usize, TransportError> {
+        let mut ready = 0;
+        loop {
+            ready += self.wait_for_receivers_serving(count - ready, warn_every, meanwhile)?;
+            if ready >= count || termination_requested() {
+                return Ok(ready);
+            }
+            tracing::warn!(edge = %self.name, ready, expected = count, "still waiting for every reader to connect");
+        }
+    }
+
     /// Tells receivers that no more samples follow and waits (up to
     /// `timeout`) until each has drained the edge and acknowledged.
     ///

@@ -93,3 +93,48 @@ fn a_blocked_publish_keeps_serving_until_the_queue_drains() {
     assert_eq!(frames, vec![0, 1, 2]);
     assert!(served.load(Ordering::SeqCst) > 0);
 }
+
+/// A reader that subscribed before the publisher existed and is busy for a
+/// while (a selector building its distance grids) answers READY only when
+/// it next touches its port. The publisher must wait for it however long
+/// that takes: sending earlier goes into a half-made connection, where
+/// iceoryx2 keeps the first queue-full and silently drops the rest (seen:
+/// 8 of 20 estimates).
+#[test]
+fn a_publisher_waits_for_a_reader_that_is_slow_to_answer() {
+    let name = edge_service_name(&format!("test-slow-reader-{}", std::process::id()), "poses").unwrap();
+    let options = EdgeOptions { queue: 4, overflow: Overflow::Block, max_payload_len: 64 };
+    let node = create_node("slow-receiver").unwrap();
+    let subscriber = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    let sender = std::thread::spawn({
+        let name = name.clone();
+        move || {
+            let node = create_node("eager-sender").unwrap();
+            let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+            // Warned about every 50 ms, never given up on.
+            let ready = publisher.wait_for_all_receivers_serving(1, Duration::from_millis(50), &mut || {}).unwrap();
+            for frame in 0..20u64 {
+                let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 };
+                publisher.publish(header, POSE_LEN, |p| p.fill(frame as f32)).unwrap();
+            }
+            publisher.end_of_stream(Duration::from_secs(10)).unwrap();
+            ready
+        }
+    });
+    // Busy for many warning periods before touching the port.
+    std::thread::sleep(Duration::from_millis(600));
+    let mut frames = Vec::new();
+    loop {
+        let ended = subscriber.take_events().unwrap();
+        while let Some(message) = subscriber.receive().unwrap() {
+            frames.push(message.header().header.frame_id);
+        }
+        if ended {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    subscriber.acknowledge_end().unwrap();
+    assert_eq!(sender.join().unwrap(), 1);
+    assert_eq!(frames, (0..20).collect::<Vec<_>>());
+}

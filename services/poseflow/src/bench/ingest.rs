@@ -61,7 +61,7 @@ pub fn run(args: &IngestArgs) -> anyhow::Result<()> {
     };
     params.validate()?;
     let started = Instant::now();
-    let mut source = BopFrames::open(&args.dataset, &args.split, &[], Masks::GroundTruth)
+    let mut source = BopFrames::open(&args.dataset, &args.split, &[], None, Masks::GroundTruth)
         .with_context(|| format!("--dataset {}", args.dataset.display()))?;
     let mut frames = Vec::new();
     while let Some(loaded) = source.next_frame() {

@@ -1,5 +1,5 @@
-//! The demo's graph: `deploy/estimation.toml` (or `deploy/tracking.toml`)
-//! itself, with the frame source pointed at the rendered scene and the
+//! The demo's and the evaluation's graph: `deploy/estimation.toml` (or
+//! `deploy/tracking.toml`) itself, with the frame source pointed at the dataset and the
 //! paths made absolute (the copy lives in the output folder).
 
 use std::path::Path;
@@ -9,6 +9,9 @@ use anyhow::{Context, bail};
 /// Per-stage inline parameters the demo sets on top of the graph file's.
 pub struct Overrides<'a> {
     pub dataset: &'a Path,
+    pub split: &'a str,
+    /// A BOP19 targets file instead of the dataset's own.
+    pub targets: Option<&'a Path>,
     pub model: &'a Path,
     pub object_models: &'a Path,
     pub selection: &'a str,
@@ -52,7 +55,10 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
                 params.clear();
                 params.insert("source".into(), "bop".into());
                 params.insert("dataset".into(), absolute(overrides.dataset)?.into());
-                params.insert("split".into(), "test".into());
+                params.insert("split".into(), overrides.split.into());
+                if let Some(targets) = overrides.targets {
+                    params.insert("targets".into(), absolute(targets)?.into());
+                }
                 if let Some(rate_hz) = overrides.rate_hz {
                     params.insert("rate_hz".into(), rate_hz.into());
                 }

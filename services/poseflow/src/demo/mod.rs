@@ -2,13 +2,14 @@
 //! estimation graph on it as processes, and reports each object's selected
 //! pose against the ground truth, with pictures.
 
-mod graph;
+pub(crate) mod graph;
 mod pictures;
 mod tracking;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
@@ -40,7 +41,7 @@ pub enum SelectionArg {
 }
 
 impl SelectionArg {
-    fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Self::None => "none",
             Self::ModelFree => "model-free",
@@ -204,22 +205,38 @@ pub(crate) fn render_scene(
     write_dataset(library, &spec, out, |_| {}).with_context(|| format!("{}: cannot write the scene", out.display()))
 }
 
-/// Runs `graph` as processes, recording `edges` to `recording`.
-pub(crate) fn run_graph(graph: &Path, recording: &Path, edges: &str) -> anyhow::Result<()> {
+/// Runs `graph` as processes, recording `edges` to `recording`; the
+/// stages' log goes to `graph.log` beside the recording, and `waiting` is
+/// called every few hundred milliseconds while the graph runs.
+pub(crate) fn run_graph(graph: &Path, recording: &Path, edges: &str, mut waiting: impl FnMut()) -> anyhow::Result<()> {
     let exe = std::env::current_exe().context("cannot find the poseflow executable")?;
-    let output = Command::new(&exe)
+    let log_path = recording.with_file_name("graph.log");
+    let log = std::fs::File::create(&log_path).with_context(|| format!("{}", log_path.display()))?;
+    let mut child = Command::new(&exe)
         .args(["run", "--status-ms", "0", "--json", "--record"])
         .arg(recording)
         .args(["--record-edges", edges, "--graph"])
         .arg(graph)
-        .output()
+        .stdout(Stdio::null())
+        .stderr(log)
+        .spawn()
         .with_context(|| format!("cannot start {}", exe.display()))?;
-    if !output.status.success() {
+    let status = loop {
+        if let Some(status) = child.try_wait().context("waiting for the graph")? {
+            break status;
+        }
+        waiting();
+        std::thread::sleep(Duration::from_millis(250));
+    };
+    if !status.success() {
+        const TAIL_LINES: usize = 30;
+        let log = std::fs::read_to_string(&log_path).unwrap_or_default();
+        let lines: Vec<&str> = log.lines().collect();
+        let tail = lines[lines.len().saturating_sub(TAIL_LINES)..].join("\n");
         bail!(
-            "the graph {} failed ({}); its log:\n{}\n(build every stage first: cargo build --release --workspace)",
+            "the graph {} failed ({status}); the end of its log ({}):\n{tail}\n(build every stage first: cargo build --release --workspace)",
             graph.display(),
-            output.status,
-            String::from_utf8_lossy(&output.stderr)
+            log_path.display(),
         );
     }
     Ok(())
@@ -262,6 +279,8 @@ fn render_and_run(
     render_scene(library, args.seed, scene.0, scene.1, &dataset)?;
     let overrides = Overrides {
         dataset: &dataset,
+        split: "test",
+        targets: None,
         model: &args.model,
         object_models: &args.objects,
         selection: args.selection.name(),
@@ -275,7 +294,7 @@ fn render_and_run(
     std::fs::write(&graph, graph_with_overrides(graph_file, &overrides)?)
         .with_context(|| format!("{}", graph.display()))?;
     let recording = graph.with_extension("rec");
-    run_graph(&graph, &recording, edges)?;
+    run_graph(&graph, &recording, edges, || {})?;
     Ok(recording)
 }
 

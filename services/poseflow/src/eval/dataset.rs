@@ -1,0 +1,81 @@
+//! The ground truth an evaluation scores against: per image of the frame
+//! source's stream, its camera and the targeted object instances.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::Context;
+use poseflow_geometry::Pose;
+use poseflow_geometry::metrics::Pinhole;
+use poseflow_ingest::sources::BopFrames;
+use poseflow_scene::bop::{ByImage, CameraEntry, GtEntry, GtInfoEntry, SceneDir, read_json};
+
+use super::score::ImageCamera;
+
+/// BOP19 scores only instances with at least this much of their silhouette
+/// visible.
+pub const MIN_VISIB_FRACT: f64 = 0.1;
+
+#[derive(Debug, Clone)]
+pub struct TruthInstance {
+    pub obj_id: u32,
+    pub pose: Pose,
+    /// Below [`MIN_VISIB_FRACT`] the instance is not scored (an estimate of
+    /// it is neither a hit nor a miss).
+    pub scored: bool,
+}
+
+#[derive(Debug, Clone)]
+pub struct TruthImage {
+    pub scene_id: u32,
+    pub im_id: u32,
+    pub camera: ImageCamera,
+    /// The targeted instances (every annotated one without targets).
+    pub instances: Vec<TruthInstance>,
+}
+
+struct SceneFiles {
+    cameras: ByImage<CameraEntry>,
+    gts: ByImage<Vec<GtEntry>>,
+    infos: Option<ByImage<Vec<GtInfoEntry>>>,
+}
+
+fn read_scene(dir: &SceneDir) -> anyhow::Result<SceneFiles> {
+    let infos = dir.scene_gt_info().is_file().then(|| read_json(&dir.scene_gt_info())).transpose()?;
+    Ok(SceneFiles { cameras: read_json(&dir.scene_camera())?, gts: read_json(&dir.scene_gt())?, infos })
+}
+
+/// The truth of every image `frames` will deliver, in frame-id order.
+pub fn read_truth(split_dir: &Path, frames: &BopFrames) -> anyhow::Result<Vec<TruthImage>> {
+    let mut scenes: BTreeMap<u32, SceneFiles> = BTreeMap::new();
+    let mut images = Vec::with_capacity(frames.len());
+    for (scene_id, im_id, wanted) in frames.images() {
+        let dir = SceneDir::new(split_dir, scene_id);
+        let files = match scenes.entry(scene_id) {
+            std::collections::btree_map::Entry::Occupied(entry) => entry.into_mut(),
+            std::collections::btree_map::Entry::Vacant(entry) => entry.insert(read_scene(&dir)?),
+        };
+        let missing = |file: &Path| format!("{}: no entry for image {im_id}", file.display());
+        let entry = files.cameras.get(&im_id).with_context(|| missing(&dir.scene_camera()))?;
+        let (width, _) = image::image_dimensions(dir.rgb(im_id))
+            .with_context(|| format!("{}: cannot read the image size", dir.rgb(im_id).display()))?;
+        let k = &entry.cam_k;
+        let camera = ImageCamera { pinhole: Pinhole { fx: k[0], fy: k[4], cx: k[2], cy: k[5] }, width };
+        let gts = files.gts.get(&im_id).with_context(|| missing(&dir.scene_gt()))?;
+        let infos = files.infos.as_ref().and_then(|infos| infos.get(&im_id));
+        let mut instances = Vec::new();
+        for (index, gt) in gts.iter().enumerate() {
+            if !wanted.is_empty() && !wanted.contains(&gt.obj_id) {
+                continue;
+            }
+            let visib_fract = infos.and_then(|infos| infos.get(index)).map_or(1.0, |info| info.visib_fract);
+            instances.push(TruthInstance {
+                obj_id: gt.obj_id,
+                pose: gt.pose(&dir.scene_gt(), im_id, index)?,
+                scored: visib_fract >= MIN_VISIB_FRACT,
+            });
+        }
+        images.push(TruthImage { scene_id, im_id, camera, instances });
+    }
+    Ok(images)
+}

@@ -1,0 +1,481 @@
+//! `poseflow eval`: runs the estimation graph over a BOP-format dataset and
+//! scores every targeted instance: n°m cm accuracy, ADD(-S), MSSD/MSPD
+//! recall, mode recall, calibration and runtime; writes the estimates in
+//! the BOP19 CSV format.
+
+mod bop_csv;
+mod dataset;
+mod score;
+mod summary;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use nalgebra::Point3;
+use poseflow_contracts::{EstimateHeader, Stage, WEIGHTED_POSE_LEN};
+use poseflow_geometry::symmetry::BOP_MAX_SYMMETRY_STEP;
+use poseflow_geometry::{Pose, SymmetrySet};
+use poseflow_ingest::farthest_point_indices;
+use poseflow_ingest::sources::{BopFrames, Masks};
+use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+use poseflow_scene::ModelLibrary;
+use serde::Serialize;
+
+use self::bop_csv::{BopRow, to_csv};
+use self::dataset::{TruthImage, read_truth};
+use self::score::{EstimatedInstance, ScoredObject, score_instance};
+use self::summary::{InstanceOutcome, Summary, instances_csv, summarise};
+use crate::demo::SelectionArg;
+use crate::demo::graph::{Overrides, graph_with_overrides};
+use crate::demo::{print_report, run_graph};
+use crate::progress::Progress;
+
+/// Model points the metrics use per object (farthest-point subsample of
+/// the mesh vertices: ADD-S is quadratic in it).
+const METRIC_POINTS: usize = 500;
+
+#[derive(Debug, Args)]
+#[command(after_help = "Run from the repository root after `cargo build --release --workspace` (the stages are \
+    separate executables). Writes <out>/<graph>.toml (the graph run, with the frame source on the dataset), \
+    <out>/<graph>.rec (its estimates), <out>/graph.log (the stages' log), \
+    <out>/poseflow_<dataset>-<split>.csv (BOP19 results: scene_id,im_id,obj_id,score,R,t,time; t in mm, time = \
+    seconds the graph spent on the image), <out>/instances.csv (per scored instance: the selected pose's errors and \
+    reported spread) and <out>/summary.json.\n\n\
+    Scored instances: the targets of test_targets_bop19.json (or --targets) with at least 10 % of their silhouette \
+    visible (scene_gt_info.json), as BOP19; an instance without an estimate counts as a miss. Symmetric objects \
+    (models_info.json) are scored against the closest symmetric twin, continuous symmetries discretised as the \
+    BOP toolkit does. With --selection none every hypothesis is scored and the accuracies are averaged over \
+    them (the accuracy of one random sample).\n\n\
+    Runtime: ms/object is the interval between consecutive estimates leaving the selector while the graph is \
+    kept busy (the cost of one more object; the CSV's time is their sum over an image); latency is from the \
+    frame source reading an image to each estimate, queueing included (--rate-hz below the graph's pace \
+    measures an idle graph).\n\n\
+    --results FILE scores another method's BOP19 results file on the same instances instead of running the \
+    graph (its time per image is shared evenly by the image's estimates).\n\n\
+    Examples:\n  poseflow render --objects objects/lmo --out target/heldout --scenes 4 --frames-per-scene 10 --seed 77\n  \
+    poseflow eval --dataset target/heldout --objects objects/lmo --json\n  \
+    poseflow eval --dataset target/heldout --objects objects/lmo --selection none --out target/eval-none\n  \
+    poseflow eval --dataset target/heldout --objects objects/lmo --results baseline_heldout-test.csv")]
+pub struct EvalArgs {
+    /// BOP dataset root (split folders, optionally test_targets_bop19.json and models/).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Split folder.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// BOP19 targets file [default: <dataset>/test_targets_bop19.json for a test split, else every annotated
+    /// instance].
+    #[arg(long)]
+    pub targets: Option<PathBuf>,
+    /// BOP models directory (meshes and models_info.json) for selection and metrics [default: <dataset>/models].
+    #[arg(long)]
+    pub objects: Option<PathBuf>,
+    /// The graph to run.
+    #[arg(long, default_value = "deploy/estimation.toml")]
+    pub graph: PathBuf,
+    /// Model directory (encoder.onnx, velocity.onnx).
+    #[arg(long, default_value = "models/poseflow-lmo10")]
+    pub model: PathBuf,
+    /// How the selector chooses the pose (`none`: score every hypothesis).
+    #[arg(long, value_enum, default_value_t = SelectionArg::Sdf)]
+    pub selection: SelectionArg,
+    /// Refine the kept hypotheses against the observed points.
+    #[arg(long)]
+    pub refine: bool,
+    /// Pose samples per object.
+    #[arg(long, default_value_t = 50)]
+    pub samples: usize,
+    /// Euler steps.
+    #[arg(long, default_value_t = 5)]
+    pub steps: usize,
+    /// Frames per second the frame source reads at [default: as fast as the graph takes them].
+    #[arg(long)]
+    pub rate_hz: Option<f64>,
+    /// Output folder.
+    #[arg(long, default_value = "target/eval")]
+    pub out: PathBuf,
+    /// Score this BOP19 results file (another method's, e.g. evaluation/baseline) instead of running the graph.
+    #[arg(long)]
+    pub results: Option<PathBuf>,
+    /// Print one JSON object instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What produced the scored estimates.
+#[derive(Debug, Serialize)]
+#[serde(tag = "method", rename_all = "snake_case")]
+enum Method {
+    Graph { graph: PathBuf, model: PathBuf, selection: &'static str, refine: bool, samples: usize, steps: usize },
+    Results { results: PathBuf },
+}
+
+#[derive(Debug, Serialize)]
+struct EvalReport {
+    dataset: PathBuf,
+    split: String,
+    #[serde(flatten)]
+    method: Method,
+    /// Estimates that match no scored instance (an object not in the image,
+    /// a hidden instance, an image not targeted).
+    unmatched_estimates: usize,
+    /// The estimates in BOP19 format.
+    csv: PathBuf,
+    #[serde(flatten)]
+    summary: Summary,
+}
+
+fn check(args: &EvalArgs) -> anyhow::Result<()> {
+    if args.samples == 0 || args.steps == 0 {
+        bail!("--samples {} --steps {}: expected at least 1 of each", args.samples, args.steps);
+    }
+    if let Some(rate) = args.rate_hz
+        && !(rate.is_finite() && rate > 0.0)
+    {
+        bail!("--rate-hz {rate}: expected frames per second > 0");
+    }
+    Ok(())
+}
+
+/// The metrics' view of every object of the library.
+fn scored_objects(library: &ModelLibrary) -> BTreeMap<u32, ScoredObject> {
+    library
+        .objects
+        .iter()
+        .map(|object| {
+            let vertices = &object.model.mesh.vertices;
+            let points = farthest_point_indices(vertices, METRIC_POINTS)
+                .into_iter()
+                .map(|i| vertices[i].cast::<f64>())
+                .collect::<Vec<Point3<f64>>>();
+            let symmetries = SymmetrySet::from_model_info(&object.info, BOP_MAX_SYMMETRY_STEP);
+            (object.obj_id, ScoredObject { points, diameter: object.info.diameter, symmetries })
+        })
+        .collect()
+}
+
+/// One estimate of one object in one image, from the graph or a results
+/// file.
+struct Estimated {
+    scene_id: u32,
+    im_id: u32,
+    obj_id: u32,
+    selected: Pose,
+    score: f64,
+    /// Every scored hypothesis, best first (none from a results file).
+    hypotheses: Vec<Pose>,
+    /// Trace of the rotational covariance, rad², when reported.
+    rotation_trace: Option<f64>,
+    /// The method's time on this object.
+    service_time: Option<Duration>,
+    /// From reading the image to the estimate.
+    latency: Option<Duration>,
+}
+
+/// The graph's estimates in a recording, placed in their images (the frame
+/// id is the image's position in the frame source's stream). The service
+/// time of an estimate is the interval since the previous one left the
+/// selector: the graph is kept saturated, so this is the cost of one more
+/// object (its mean is the inverse of the throughput); the first estimate,
+/// which also waited for the graph to start, has none.
+fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<Estimated>> {
+    let mut reader = RecordingReader::open(path).with_context(|| format!("{}", path.display()))?;
+    let mut estimates = Vec::new();
+    while let Some(message) = reader.next_message()? {
+        if message.edge != "estimates" {
+            continue;
+        }
+        let header: EstimateHeader = header_from_bytes(&message.header).context("estimate header")?;
+        let view = header.view(&message.payload).context("estimate payload")?;
+        let scored = view
+            .hypotheses
+            .chunks_exact(WEIGHTED_POSE_LEN)
+            .map(|c| Ok((Pose::from_f32_row_major(c[..12].try_into().expect("12 values"))?, f64::from(c[12]))))
+            .collect::<anyhow::Result<Vec<(Pose, f64)>>>()?;
+        let frame = header.header.frame_id;
+        let image = usize::try_from(frame).ok().and_then(|i| images.get(i)).with_context(|| {
+            format!("{}: an estimate of frame {frame}, but the dataset has {} images", path.display(), images.len())
+        })?;
+        estimates.push((
+            header.header.stamps.get(Stage::Selector),
+            Estimated {
+                scene_id: image.scene_id,
+                im_id: image.im_id,
+                obj_id: header.header.object_id,
+                selected: Pose::from_f32_row_major(&header.best)?,
+                score: scored.first().map_or(0.0, |h| h.1),
+                hypotheses: scored.into_iter().map(|h| h.0).collect(),
+                rotation_trace: Some(f64::from(header.rotation_trace)),
+                service_time: None,
+                latency: header.header.stamps.elapsed_ns(Stage::Source, Stage::Selector).map(Duration::from_nanos),
+            },
+        ));
+    }
+    estimates.sort_by_key(|(departure, _)| *departure);
+    for i in 1..estimates.len() {
+        if let (Some(previous), Some(departure)) = (estimates[i - 1].0, estimates[i].0) {
+            estimates[i].1.service_time = Some(Duration::from_nanos(departure.saturating_sub(previous)));
+        }
+    }
+    Ok(estimates.into_iter().map(|(_, estimate)| estimate).collect())
+}
+
+/// Estimates counted so far in a recording being written (a partly
+/// written last message ends the count).
+fn count_estimates(path: &Path) -> u64 {
+    let Ok(mut reader) = RecordingReader::open(path) else { return 0 };
+    let mut count = 0;
+    while let Ok(Some(message)) = reader.next_message() {
+        count += u64::from(message.edge == "estimates");
+    }
+    count
+}
+
+/// Another method's estimates from a BOP19 results file; its time per
+/// image is shared evenly by the image's estimates.
+fn read_results(path: &Path) -> anyhow::Result<Vec<Estimated>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("--results {}", path.display()))?;
+    let rows = bop_csv::parse(&text, path)?;
+    let mut per_image: BTreeMap<(u32, u32), u32> = BTreeMap::new();
+    for row in &rows {
+        *per_image.entry((row.scene_id, row.im_id)).or_default() += 1;
+    }
+    Ok(rows
+        .iter()
+        .map(|row| Estimated {
+            scene_id: row.scene_id,
+            im_id: row.im_id,
+            obj_id: row.obj_id,
+            selected: row.pose,
+            score: row.score,
+            hypotheses: Vec::new(),
+            rotation_trace: None,
+            service_time: row
+                .time_s
+                .map(|s| Duration::from_secs_f64(s / f64::from(per_image[&(row.scene_id, row.im_id)]))),
+            latency: row.time_s.map(Duration::from_secs_f64),
+        })
+        .collect())
+}
+
+/// Scores every scored instance of `images` against the estimates
+/// (matched within an image by object, nearest translation first).
+/// Returns the outcomes and how many estimates matched no scored instance.
+fn evaluate(
+    images: &[TruthImage],
+    estimates: &[Estimated],
+    objects: &BTreeMap<u32, ScoredObject>,
+    every_hypothesis: bool,
+) -> anyhow::Result<(Vec<InstanceOutcome>, usize)> {
+    let mut by_image: BTreeMap<(u32, u32), Vec<&Estimated>> = BTreeMap::new();
+    for estimate in estimates {
+        by_image.entry((estimate.scene_id, estimate.im_id)).or_default().push(estimate);
+    }
+    let (mut outcomes, mut unmatched) = (Vec::new(), 0);
+    for image in images {
+        let image_estimates = by_image.remove(&(image.scene_id, image.im_id)).unwrap_or_default();
+        let mut matched: Vec<Option<&Estimated>> = vec![None; image.instances.len()];
+        for estimate in image_estimates {
+            let nearest = image
+                .instances
+                .iter()
+                .enumerate()
+                .filter(|(i, truth)| truth.obj_id == estimate.obj_id && matched[*i].is_none())
+                .min_by(|(_, a), (_, b)| {
+                    let distance = |p: &Pose| (p.translation - estimate.selected.translation).norm();
+                    distance(&a.pose).total_cmp(&distance(&b.pose))
+                });
+            match nearest {
+                Some((i, truth)) => {
+                    matched[i] = Some(estimate);
+                    unmatched += usize::from(!truth.scored);
+                }
+                None => unmatched += 1,
+            }
+        }
+        for (truth, estimate) in image.instances.iter().zip(matched) {
+            if !truth.scored {
+                continue;
+            }
+            let object = objects.get(&truth.obj_id).with_context(|| {
+                format!(
+                    "scene {} image {}: object {} has no model in --objects",
+                    image.scene_id, image.im_id, truth.obj_id
+                )
+            })?;
+            let score = estimate.map(|e| {
+                let estimated = EstimatedInstance {
+                    selected: e.selected,
+                    hypotheses: &e.hypotheses,
+                    rotation_trace: e.rotation_trace,
+                    score_every_hypothesis: every_hypothesis,
+                };
+                score_instance(&estimated, &truth.pose, object, &image.camera)
+            });
+            outcomes.push(InstanceOutcome {
+                scene_id: image.scene_id,
+                im_id: image.im_id,
+                obj_id: truth.obj_id,
+                score,
+                service_time: estimate.and_then(|e| e.service_time),
+                latency: estimate.and_then(|e| e.latency),
+            });
+        }
+    }
+    // Estimates of images the dataset's targets do not name.
+    unmatched += by_image.values().map(Vec::len).sum::<usize>();
+    Ok((outcomes, unmatched))
+}
+
+/// The graph's estimates as BOP19 rows; an image's time is what the graph
+/// spent on its objects.
+fn bop_rows(estimates: &[Estimated]) -> Vec<BopRow> {
+    let mut image_time: BTreeMap<(u32, u32), Option<Duration>> = BTreeMap::new();
+    for e in estimates {
+        let time = image_time.entry((e.scene_id, e.im_id)).or_insert(Some(Duration::ZERO));
+        *time = time.zip(e.service_time).map(|(a, b)| a + b);
+    }
+    estimates
+        .iter()
+        .map(|e| BopRow {
+            scene_id: e.scene_id,
+            im_id: e.im_id,
+            obj_id: e.obj_id,
+            score: e.score,
+            pose: e.selected,
+            time_s: image_time[&(e.scene_id, e.im_id)].map(|d| d.as_secs_f64()),
+        })
+        .collect()
+}
+
+/// Runs the graph over the dataset; its estimates and the results file
+/// written from them.
+fn run_graph_on(
+    args: &EvalArgs,
+    images: &[TruthImage],
+    objects_dir: &Path,
+) -> anyhow::Result<(Vec<Estimated>, PathBuf, Method)> {
+    let overrides = Overrides {
+        dataset: &args.dataset,
+        split: &args.split,
+        targets: args.targets.as_deref(),
+        model: &args.model,
+        object_models: objects_dir,
+        selection: args.selection.name(),
+        refine: args.refine,
+        samples: args.samples,
+        steps: args.steps,
+        rate_hz: args.rate_hz,
+    };
+    let name = args.graph.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
+    let graph = args.out.join(name);
+    std::fs::write(&graph, graph_with_overrides(&args.graph, &overrides)?)
+        .with_context(|| format!("{}", graph.display()))?;
+    let recording = graph.with_extension("rec");
+    let detections: usize = images.iter().map(|image| image.instances.len()).sum();
+    let mut progress = Progress::new("eval", detections as u64);
+    run_graph(&graph, &recording, "estimates", || progress.update(count_estimates(&recording), "estimates"))?;
+    progress.update(detections as u64, "estimates");
+    let estimates = read_recording(&recording, images)?;
+    let dataset_name = args.dataset.file_name().map_or("dataset".into(), |n| n.to_string_lossy().into_owned());
+    let csv = args.out.join(format!("poseflow_{dataset_name}-{}.csv", args.split));
+    std::fs::write(&csv, to_csv(&bop_rows(&estimates))).with_context(|| format!("{}", csv.display()))?;
+    let method = Method::Graph {
+        graph: args.graph.clone(),
+        model: args.model.clone(),
+        selection: args.selection.name(),
+        refine: args.refine,
+        samples: args.samples,
+        steps: args.steps,
+    };
+    Ok((estimates, csv, method))
+}
+
+pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    check(args)?;
+    let frames = BopFrames::open(&args.dataset, &args.split, &[], args.targets.as_deref(), Masks::GroundTruth)
+        .with_context(|| format!("--dataset {} --split {}", args.dataset.display(), args.split))?;
+    let images = read_truth(&args.dataset.join(&args.split), &frames)?;
+    let objects_dir = args.objects.clone().unwrap_or_else(|| args.dataset.join("models"));
+    let library = ModelLibrary::load(&objects_dir, &[])
+        .with_context(|| format!("--objects {}: cannot load the object models", objects_dir.display()))?;
+    let objects = scored_objects(&library);
+    std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
+
+    let (estimates, csv, method) = match &args.results {
+        Some(results) => (read_results(results)?, results.clone(), Method::Results { results: results.clone() }),
+        None => run_graph_on(args, &images, &objects_dir)?,
+    };
+    let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
+    let (outcomes, unmatched_estimates) = evaluate(&images, &estimates, &objects, every_hypothesis)?;
+    let report = EvalReport {
+        dataset: args.dataset.clone(),
+        split: args.split.clone(),
+        method,
+        unmatched_estimates,
+        csv,
+        summary: summarise(&outcomes),
+    };
+    let instances_path = args.out.join("instances.csv");
+    std::fs::write(&instances_path, instances_csv(&outcomes))
+        .with_context(|| format!("{}", instances_path.display()))?;
+    let summary_path = args.out.join("summary.json");
+    std::fs::write(&summary_path, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("{}", summary_path.display()))?;
+    print_report(&report, args.json, print_table)
+}
+
+fn optional(value: Option<f64>, precision: usize) -> String {
+    value.map_or("-".into(), |v| format!("{v:.precision$}"))
+}
+
+fn print_table(report: &EvalReport) {
+    let s = &report.summary;
+    let method = match &report.method {
+        Method::Graph { selection, refine, samples, steps, .. } => format!(
+            "selection {selection}{}, {samples} samples, {steps} steps; accuracies in % of instances{}",
+            if *refine { " + refinement" } else { "" },
+            if *selection == "none" { ", averaged over the samples" } else { "" }
+        ),
+        Method::Results { results } => format!("{}; accuracies in % of instances", results.display()),
+    };
+    println!("{} ({}): {method}", report.dataset.display(), report.split);
+    println!(
+        "object  instances  estimated  5°2cm  5°5cm  10°2cm  10°5cm  ADD(-S)  MSSD  MSPD  modes  med rot °  ms/object p50/p99"
+    );
+    let row = |label: String, a: &summary::Accuracies, latency: (f64, f64)| {
+        println!(
+            "{label:>6}  {:>9}  {:>9}  {:>5.1}  {:>5.1}  {:>6.1}  {:>6.1}  {:>7.1}  {:>4.1}  {:>4.1}  {:>5}  {:>9}  {:>8.0}/{:.0}",
+            a.instances,
+            a.estimated,
+            a.acc_5deg_2cm,
+            a.acc_5deg_5cm,
+            a.acc_10deg_2cm,
+            a.acc_10deg_5cm,
+            a.add_s,
+            a.mssd_recall,
+            a.mspd_recall,
+            optional(a.mode_recall, 0),
+            optional(a.median_rotation_error_deg, 1),
+            latency.0,
+            latency.1
+        );
+    };
+    for (obj_id, object) in &s.per_object {
+        row(obj_id.to_string(), &object.accuracies, (object.ms_per_object.p50_ms, object.ms_per_object.p99_ms));
+    }
+    row("all".into(), &s.overall, (s.ms_per_object_p50, s.ms_per_object_p99));
+    println!(
+        "calibration: Spearman(rotational spread, rotation error) = {}; latency image read → estimate p50/p99 {:.0}/{:.0} ms (queueing included); unmatched estimates: {}",
+        optional(s.spread_error_spearman, 2),
+        s.latency.p50_ms,
+        s.latency.p99_ms,
+        report.unmatched_estimates
+    );
+    if let Method::Graph { .. } = report.method {
+        println!("BOP19 results: {}", report.csv.display());
+    }
+}

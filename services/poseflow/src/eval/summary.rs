@@ -1,0 +1,270 @@
+//! The evaluation summary: instance scores averaged overall and per
+//! object, calibration, runtime.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use serde::Serialize;
+
+use super::score::InstanceScore;
+use crate::timing::Timing;
+
+/// One ground-truth instance's outcome: its scores, or none when the graph
+/// gave no estimate for it (a miss: 0 on every accuracy).
+#[derive(Debug, Clone)]
+pub struct InstanceOutcome {
+    pub scene_id: u32,
+    pub im_id: u32,
+    pub obj_id: u32,
+    pub score: Option<InstanceScore>,
+    /// The graph's time on this object (the interval since the previous
+    /// estimate left the selector).
+    pub service_time: Option<Duration>,
+    /// From the frame source reading the image to the selector's estimate.
+    pub latency: Option<Duration>,
+}
+
+/// Accuracies in percent over a set of instances.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Accuracies {
+    pub instances: usize,
+    pub estimated: usize,
+    pub acc_5deg_2cm: f64,
+    pub acc_5deg_5cm: f64,
+    pub acc_10deg_2cm: f64,
+    pub acc_10deg_5cm: f64,
+    /// ADD (ADD-S for symmetric objects) below 0.1 × diameter.
+    pub add_s: f64,
+    pub mssd_recall: f64,
+    pub mspd_recall: f64,
+    /// Over the symmetric objects' instances with an estimate; `None` when
+    /// there are none.
+    pub mode_recall: Option<f64>,
+    /// Of the selected pose, over the estimated instances.
+    pub median_rotation_error_deg: Option<f64>,
+    pub median_translation_error_cm: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    #[serde(flatten)]
+    pub overall: Accuracies,
+    /// Spearman correlation between the reported rotational spread and the
+    /// selected pose's rotation error; `None` below 3 estimated instances
+    /// or when either is constant.
+    pub spread_error_spearman: Option<f64>,
+    /// Over the service times: the graph's cost per object.
+    pub ms_per_object_mean: f64,
+    pub ms_per_object_p50: f64,
+    pub ms_per_object_p99: f64,
+    /// Frame source to estimate, queueing included.
+    pub latency: Timing,
+    pub per_object: BTreeMap<u32, ObjectSummary>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ObjectSummary {
+    #[serde(flatten)]
+    pub accuracies: Accuracies,
+    /// Of the service times.
+    pub ms_per_object: Timing,
+}
+
+fn percent(sum: f64, count: usize) -> f64 {
+    if count == 0 { 0.0 } else { 100.0 * sum / count as f64 }
+}
+
+fn median(mut values: Vec<f64>) -> Option<f64> {
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    match n {
+        0 => None,
+        _ if n % 2 == 1 => Some(values[n / 2]),
+        _ => Some(0.5 * (values[n / 2 - 1] + values[n / 2])),
+    }
+}
+
+fn accuracies<'a>(outcomes: impl Iterator<Item = &'a InstanceOutcome>) -> Accuracies {
+    let outcomes: Vec<&InstanceOutcome> = outcomes.collect();
+    let scores: Vec<&InstanceScore> = outcomes.iter().filter_map(|o| o.score.as_ref()).collect();
+    let n = outcomes.len();
+    // fold from +0.0: an empty f64 sum is -0.0, printed as "-0.0".
+    let sum = |f: &dyn Fn(&InstanceScore) -> f64| scores.iter().fold(0.0, |total, s| total + f(s));
+    let modes: Vec<f64> = scores.iter().filter_map(|s| s.mode_recall).collect();
+    Accuracies {
+        instances: n,
+        estimated: scores.len(),
+        acc_5deg_2cm: percent(sum(&|s| s.accuracy[0]), n),
+        acc_5deg_5cm: percent(sum(&|s| s.accuracy[1]), n),
+        acc_10deg_2cm: percent(sum(&|s| s.accuracy[2]), n),
+        acc_10deg_5cm: percent(sum(&|s| s.accuracy[3]), n),
+        add_s: percent(sum(&|s| s.add_s), n),
+        mssd_recall: percent(sum(&|s| s.mssd_recall), n),
+        mspd_recall: percent(sum(&|s| s.mspd_recall), n),
+        mode_recall: (!modes.is_empty()).then(|| percent(modes.iter().fold(0.0, |a, b| a + b), modes.len())),
+        median_rotation_error_deg: median(scores.iter().map(|s| s.rotation_error_deg).collect()),
+        median_translation_error_cm: median(scores.iter().map(|s| s.translation_error_cm).collect()),
+    }
+}
+
+/// Ranks from 1, ties sharing their mean rank.
+fn ranks(values: &[f64]) -> Vec<f64> {
+    let mut order: Vec<usize> = (0..values.len()).collect();
+    order.sort_by(|&a, &b| values[a].total_cmp(&values[b]));
+    let mut ranks = vec![0.0; values.len()];
+    let mut start = 0;
+    while start < order.len() {
+        let mut end = start + 1;
+        while end < order.len() && values[order[end]] == values[order[start]] {
+            end += 1;
+        }
+        let mean_rank = (start + end + 1) as f64 / 2.0;
+        for &i in &order[start..end] {
+            ranks[i] = mean_rank;
+        }
+        start = end;
+    }
+    ranks
+}
+
+/// Spearman's rank correlation (Pearson on tie-averaged ranks); `None` for
+/// fewer than 3 pairs or a constant side.
+pub fn spearman(a: &[f64], b: &[f64]) -> Option<f64> {
+    if a.len() != b.len() || a.len() < 3 {
+        return None;
+    }
+    let (ra, rb) = (ranks(a), ranks(b));
+    let mean = (a.len() as f64 + 1.0) / 2.0;
+    let (mut cov, mut va, mut vb) = (0.0, 0.0, 0.0);
+    for (x, y) in ra.iter().zip(&rb) {
+        cov += (x - mean) * (y - mean);
+        va += (x - mean).powi(2);
+        vb += (y - mean).powi(2);
+    }
+    (va > 0.0 && vb > 0.0).then(|| cov / (va * vb).sqrt())
+}
+
+/// One line per instance (for plots of accuracy against thresholds):
+/// `scene_id,im_id,obj_id,estimated,rotation_error_deg,translation_error_cm,rotation_spread_deg`,
+/// errors of the selected pose, empty fields when unknown.
+pub fn instances_csv(outcomes: &[InstanceOutcome]) -> String {
+    let mut out =
+        String::from("scene_id,im_id,obj_id,estimated,rotation_error_deg,translation_error_cm,rotation_spread_deg\n");
+    for o in outcomes {
+        let field = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.4}"));
+        let score = o.score.as_ref();
+        out.push_str(&format!(
+            "{},{},{},{},{},{},{}\n",
+            o.scene_id,
+            o.im_id,
+            o.obj_id,
+            u8::from(score.is_some()),
+            field(score.map(|s| s.rotation_error_deg)),
+            field(score.map(|s| s.translation_error_cm)),
+            field(score.and_then(|s| s.rotation_spread_deg)),
+        ));
+    }
+    out
+}
+
+pub fn summarise(outcomes: &[InstanceOutcome]) -> Summary {
+    let scores: Vec<&InstanceScore> = outcomes.iter().filter_map(|o| o.score.as_ref()).collect();
+    let (spreads, errors): (Vec<f64>, Vec<f64>) =
+        scores.iter().filter_map(|s| Some((s.rotation_spread_deg?, s.rotation_error_deg))).unzip();
+    let service_times = |obj: Option<u32>| -> Vec<Duration> {
+        outcomes.iter().filter(|o| obj.is_none_or(|id| o.obj_id == id)).filter_map(|o| o.service_time).collect()
+    };
+    let per_object_time = Timing::of(service_times(None));
+    let mut ids: Vec<u32> = outcomes.iter().map(|o| o.obj_id).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    let per_object = ids
+        .into_iter()
+        .map(|id| {
+            let summary = ObjectSummary {
+                accuracies: accuracies(outcomes.iter().filter(|o| o.obj_id == id)),
+                ms_per_object: Timing::of(service_times(Some(id))),
+            };
+            (id, summary)
+        })
+        .collect();
+    Summary {
+        overall: accuracies(outcomes.iter()),
+        spread_error_spearman: spearman(&spreads, &errors),
+        ms_per_object_mean: per_object_time.mean_ms,
+        ms_per_object_p50: per_object_time.p50_ms,
+        ms_per_object_p99: per_object_time.p99_ms,
+        latency: Timing::of(outcomes.iter().filter_map(|o| o.latency).collect()),
+        per_object,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn outcome(obj_id: u32, accuracy: [f64; 4], rotation_error_deg: f64, spread: f64) -> InstanceOutcome {
+        InstanceOutcome {
+            scene_id: 0,
+            im_id: 0,
+            obj_id,
+            score: Some(InstanceScore {
+                rotation_error_deg,
+                translation_error_cm: 1.0,
+                accuracy,
+                add_s: accuracy[3],
+                mssd_recall: 0.5,
+                mspd_recall: 0.25,
+                mode_recall: (obj_id == 10).then_some(0.5),
+                rotation_spread_deg: Some(spread),
+            }),
+            service_time: Some(Duration::from_millis(u64::from(obj_id) * 10)),
+            latency: Some(Duration::from_millis(500)),
+        }
+    }
+
+    #[test]
+    fn a_missed_instance_counts_as_a_failure() {
+        let outcomes = [
+            outcome(1, [1.0; 4], 2.0, 1.0),
+            InstanceOutcome { scene_id: 0, im_id: 1, obj_id: 1, score: None, service_time: None, latency: None },
+            outcome(10, [0.0, 0.0, 1.0, 1.0], 8.0, 3.0),
+            outcome(10, [0.0; 4], 90.0, 9.0),
+        ];
+        let summary = summarise(&outcomes);
+        assert_eq!((summary.overall.instances, summary.overall.estimated), (4, 3));
+        assert_eq!(summary.overall.acc_5deg_2cm, 25.0);
+        assert_eq!(summary.overall.acc_10deg_5cm, 50.0);
+        assert_eq!(summary.overall.add_s, 50.0);
+        assert_eq!(summary.overall.mssd_recall, 37.5);
+        assert_eq!(summary.overall.mode_recall, Some(50.0));
+        assert_eq!(summary.overall.median_rotation_error_deg, Some(8.0));
+        assert_eq!(summary.per_object[&1].accuracies.acc_10deg_5cm, 50.0);
+        assert_eq!(summary.per_object[&10].accuracies.acc_10deg_2cm, 50.0);
+        assert_eq!(summary.per_object[&1].accuracies.mode_recall, None);
+        assert_eq!(summary.per_object[&10].ms_per_object.p50_ms, 100.0);
+        assert_eq!(summary.ms_per_object_p50, 100.0);
+        assert_eq!(summary.latency.p50_ms, 500.0);
+        // Spread grows with error here: a perfect rank correlation.
+        assert_eq!(summary.spread_error_spearman, Some(1.0));
+        let csv = instances_csv(&outcomes);
+        let lines: Vec<&str> = csv.lines().collect();
+        assert_eq!(lines.len(), 5);
+        assert_eq!(lines[1], "0,0,1,1,2.0000,1.0000,1.0000");
+        assert_eq!(lines[2], "0,1,1,0,,,");
+    }
+
+    #[test]
+    fn spearman_matches_closed_forms() {
+        assert_eq!(spearman(&[1.0, 2.0, 3.0, 4.0], &[10.0, 20.0, 30.0, 40.0]), Some(1.0));
+        assert_eq!(spearman(&[1.0, 2.0, 3.0, 4.0], &[4.0, 3.0, 2.0, 1.0]), Some(-1.0));
+        // Monotone but not linear: still 1.
+        assert_eq!(spearman(&[1.0, 2.0, 3.0], &[1.0, 100.0, 1000.0]), Some(1.0));
+        // Ranks [1,2,3,4] against [1,3,2,4]: 1 - 6·2/(4·15) = 0.8.
+        assert!((spearman(&[1.0, 2.0, 3.0, 4.0], &[1.0, 3.0, 2.0, 4.0]).unwrap() - 0.8).abs() < 1e-12);
+        // Ties share the mean rank.
+        assert_eq!(ranks(&[5.0, 1.0, 5.0]), [2.5, 1.0, 2.5]);
+        assert_eq!(spearman(&[1.0, 1.0, 1.0], &[1.0, 2.0, 3.0]), None);
+        assert_eq!(spearman(&[1.0, 2.0], &[1.0, 2.0]), None);
+    }
+}
