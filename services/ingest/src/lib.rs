@@ -20,6 +20,7 @@ mod points;
 pub mod shard;
 pub mod sources;
 pub mod stage;
+pub mod truth_prior;
 
 pub use crop::{CropBox, Normalisation, write_crop, write_token_mask};
 pub use error::IngestError;

@@ -116,6 +116,29 @@ fn the_tracking_demo_follows_every_object_through_the_video() {
     assert!(out_dir.join(format!("scene/test/000000/rgb/{:06}.png", frames - 1)).is_file());
 }
 
+/// A BOP test split of two rendered images of the vendored objects.
+fn render_eval_dataset(dir: &Path) -> PathBuf {
+    let dataset = dir.join("dataset");
+    let out = dataset.to_str().unwrap();
+    let args =
+        ["render", "--models", MODELS, "--out", out, "--split", "test", "--scenes", "1", "--frames-per-scene", "2"];
+    let rendered = poseflow(&[&args[..], &["--seed", "5", "--width", "320", "--height", "240"]].concat());
+    assert!(rendered.status.success(), "{}", String::from_utf8_lossy(&rendered.stderr));
+    dataset
+}
+
+/// `poseflow eval --json` with 12 samples × 3 steps and `args`, from the
+/// repository root.
+fn eval(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(["--log-format", "json", "eval", "--json", "--samples", "12", "--steps", "3", "--objects", MODELS])
+        .args(args)
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join("../.."))
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap()
+}
+
 /// `poseflow eval` end to end, small: a rendered dataset of the vendored
 /// objects through the estimation graph as processes, every instance
 /// scored and written as BOP19 CSV. (The metrics themselves are checked on
@@ -123,37 +146,20 @@ fn the_tracking_demo_follows_every_object_through_the_video() {
 #[test]
 fn eval_scores_a_rendered_dataset_and_writes_bop19_results() {
     let dir = scratch("eval");
-    let dataset = dir.join("dataset");
+    let dataset = render_eval_dataset(&dir);
     let dataset_arg = dataset.to_str().unwrap();
-    let args = [
-        "render",
-        "--models",
-        MODELS,
-        "--out",
-        dataset_arg,
-        "--split",
-        "test",
-        "--scenes",
-        "1",
-        "--frames-per-scene",
-        "2",
-    ];
-    let rendered = poseflow(&[&args[..], &["--seed", "5", "--width", "320", "--height", "240"]].concat());
-    assert!(rendered.status.success(), "{}", String::from_utf8_lossy(&rendered.stderr));
     let out_dir = dir.join("eval");
-    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
-        .args(["--log-format", "json", "eval", "--json", "--samples", "12", "--steps", "3", "--objects", MODELS])
-        .args(["--dataset", dataset_arg, "--out", out_dir.to_str().unwrap()])
-        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join("../.."))
-        .env_remove("RUST_LOG")
-        .output()
-        .unwrap();
+    let out = eval(&["--dataset", dataset_arg, "--out", out_dir.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     // Three objects in each of two images; a hidden one is not scored.
     let instances = summary["instances"].as_u64().unwrap();
     assert!((4..=6).contains(&instances), "{summary}");
     assert_eq!(summary["estimated"], instances, "every scored instance estimated: {summary}");
+    // The graph's own counts: every observation became an estimate.
+    let stages = &summary["stages"];
+    assert_eq!(stages["ingest"]["frames_out"], stages["selector"]["frames_out"], "{summary}");
+    assert_eq!(stages["selector"]["dropped"], 0, "{summary}");
     for key in ["acc_5deg_2cm", "acc_5deg_5cm", "acc_10deg_2cm", "acc_10deg_5cm", "add_s", "mssd_recall", "mspd_recall"]
     {
         assert!((0.0..=100.0).contains(&summary[key].as_f64().unwrap()), "{key}: {summary}");
@@ -204,6 +210,29 @@ fn eval_scores_a_rendered_dataset_and_writes_bop19_results() {
     assert_eq!(out.status.code(), Some(1));
     let stderr = String::from_utf8(out.stderr).unwrap();
     assert!(stderr.contains("/nowhere/targets.json"), "{stderr}");
+}
+
+/// The tracking ablation's graph as processes: every frame's samples start
+/// from its own perturbed ground truth (`truth-prior`), one Euler step.
+#[test]
+fn eval_tracks_from_a_perturbed_ground_truth() {
+    let dir = scratch("eval-truth");
+    let dataset = render_eval_dataset(&dir);
+    let graph = "evaluation/graphs/tracking-from-truth.toml";
+    let out_dir = dir.join("eval");
+    let args = ["--dataset", dataset.to_str().unwrap(), "--out", out_dir.to_str().unwrap(), "--graph", graph];
+    let out = eval(&[&args[..], &["--tracking-steps", "1"]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let estimated = summary["estimated"].as_u64().unwrap();
+    assert!(estimated >= 4 && summary["instances"].as_u64() == Some(estimated), "{summary}");
+    // A prior that loses the race with its frame's condition is not used:
+    // most must win it.
+    let tracked = summary["tracked"].as_u64().unwrap();
+    assert!(2 * tracked > estimated, "{tracked} of {estimated} tracked: {summary}");
+    let stages = &summary["stages"];
+    assert_eq!(stages["priors"]["frames_out"], stages["ingest"]["frames_out"], "{summary}");
+    assert_eq!(summary["tracking_steps"], 1, "{summary}");
 }
 
 #[test]

@@ -30,7 +30,8 @@ pub struct SamplerParams {
 }
 
 /// Tracking mode: a frame whose object has an estimate from an earlier frame
-/// starts from that estimate instead of the uniform prior.
+/// (or of this very frame, from a stage that knows it beforehand such as
+/// `truth-prior`) starts from that estimate instead of the uniform prior.
 ///
 /// | key | meaning | default |
 /// |---|---|---|

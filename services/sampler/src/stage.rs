@@ -1,7 +1,7 @@
 //! The sampler stage: Condition handle in, Hypotheses out; velocities from
 //! a [`VelocityField`] (over request-response in a process).
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::time::Duration;
 
 use poseflow_contracts::{
@@ -60,20 +60,17 @@ impl VelocityField for RemoteField {
     }
 }
 
-/// The last estimate of one object, to seed tracking.
-#[derive(Debug, Clone, Copy)]
-struct Previous {
-    frame_id: u64,
-    pose: Pose,
-}
+/// Estimates kept per object: a side input may run ahead of the frames
+/// (priors of later frames arriving before this frame is sampled).
+const KEPT_ESTIMATES: usize = 32;
 
 /// The stage: the sampler, its velocity field and, in tracking mode, the
-/// last estimate per object.
+/// latest estimates per object by frame id.
 #[derive(Debug)]
 pub struct SamplerStage<F> {
     sampler: FlowSampler,
     field: F,
-    previous: HashMap<u32, Previous>,
+    previous: HashMap<u32, BTreeMap<u64, Pose>>,
 }
 
 impl<F: VelocityField> SamplerStage<F> {
@@ -84,18 +81,26 @@ impl<F: VelocityField> SamplerStage<F> {
     /// Records an estimate (camera frame) that later frames of the object
     /// start from in tracking mode.
     pub fn remember(&mut self, frame_id: u64, object_id: u32, pose: Pose) {
-        self.previous.insert(object_id, Previous { frame_id, pose });
+        let estimates = self.previous.entry(object_id).or_default();
+        estimates.insert(frame_id, pose);
+        while estimates.len() > KEPT_ESTIMATES {
+            estimates.pop_first();
+        }
     }
 
-    /// Where the handle's frame starts: the object's previous estimate when
-    /// tracking and recent enough, else the prior.
+    /// Where the handle's frame starts: the object's latest estimate when
+    /// tracking and recent enough (an earlier frame's, or one of this frame
+    /// that arrived first), else the prior.
     pub fn start_for(&self, handle: &ConditionHandle) -> Start {
         let tracking = &self.sampler.params().tracking;
-        let recent = self.previous.get(&handle.header.object_id).filter(|p| {
-            p.frame_id < handle.header.frame_id && handle.header.frame_id - p.frame_id <= tracking.max_age_frames
-        });
+        let frame = handle.header.frame_id;
+        let recent = self
+            .previous
+            .get(&handle.header.object_id)
+            .and_then(|estimates| estimates.range(..=frame).next_back())
+            .filter(|&(&estimated, _)| frame - estimated <= tracking.max_age_frames);
         match recent {
-            Some(previous) if tracking.enabled => Start::Track(previous.pose),
+            Some((_, &pose)) if tracking.enabled => Start::Track(pose),
             _ => Start::Prior,
         }
     }

@@ -106,6 +106,16 @@ fn tracking_starts_from_the_previous_estimate_late_in_the_flow() {
         assert_near_target(poses, 1e-3, 1e-5);
         // Too old an estimate is not used.
         assert_eq!(stage.start_for(&handle(17)), Start::Prior);
+        // An estimate of the frame itself (a prior from elsewhere) is; one of
+        // a later frame is not.
+        let other = Pose::new(target().rotation, target().translation + Vector3::new(0.0, 0.0, 0.1));
+        stage.remember(17, 5, other);
+        assert_eq!(stage.start_for(&handle(17)), Start::Track(other));
+        assert_eq!(stage.start_for(&handle(16)), Start::Prior);
+        // A side input running ahead (frame 19's estimate already in) does
+        // not hide frame 17's from frame 18.
+        stage.remember(19, 5, target());
+        assert_eq!(stage.start_for(&handle(18)), Start::Track(other));
     }
     assert_eq!(times.len(), 2);
     assert!((times[0] - 0.8).abs() < 1e-6 && (times[1] - 0.9).abs() < 1e-6, "{times:?}");

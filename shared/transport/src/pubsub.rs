@@ -169,6 +169,18 @@ pub struct Publisher<H: MessageHeader> {
     notifier: Notifier<Ipc>,
     acks: Listener<Ipc>,
     max_payload_len: usize,
+    /// READY notifications seen so far. A receiver may say READY more than
+    /// once (at creation and on seeing this publisher appear), so receivers
+    /// count as ready only up to the number of subscribers.
+    ready_acks: std::cell::Cell<usize>,
+}
+
+/// How long a start-up wait may last.
+enum Patience {
+    /// Give up at this instant.
+    Until(Instant),
+    /// Never give up; warn this often.
+    Forever { warn_every: Duration },
 }
 
 impl<H: MessageHeader> Publisher<H> {
@@ -192,7 +204,15 @@ impl<H: MessageHeader> Publisher<H> {
         // so no READY is missed.
         let acks = listener(node, &ack_name(name))?;
         let notifier = notifier(node, name)?;
-        Ok(Self { name: name.to_string(), service, publisher, notifier, acks, max_payload_len })
+        Ok(Self {
+            name: name.to_string(),
+            service,
+            publisher,
+            notifier,
+            acks,
+            max_payload_len,
+            ready_acks: std::cell::Cell::new(0),
+        })
     }
 
     pub fn name(&self) -> &str {
@@ -269,14 +289,11 @@ impl<H: MessageHeader> Publisher<H> {
         timeout: Duration,
         meanwhile: &mut dyn FnMut(),
     ) -> Result<usize, TransportError> {
-        self.connect()?;
-        let ready = self.wait_for_acks(events::READY, count, timeout, meanwhile)?;
-        self.connect()?;
-        Ok(ready)
+        self.wait_ready(count, Patience::Until(Instant::now() + timeout), meanwhile)
     }
 
     /// As [`Self::wait_for_receivers_serving`] with no deadline: waits
-    /// until all `count` receivers said READY or SIGINT/SIGTERM arrived,
+    /// until all `count` receivers are ready or SIGINT/SIGTERM arrived,
     /// warning every `warn_every` meanwhile. A graph stage uses it: its
     /// readers may take long to start (a selector precomputing distance
     /// grids), and a publisher that went ahead without them would send into
@@ -287,13 +304,40 @@ impl<H: MessageHeader> Publisher<H> {
         warn_every: Duration,
         meanwhile: &mut dyn FnMut(),
     ) -> Result<usize, TransportError> {
-        let mut ready = 0;
+        self.wait_ready(count, Patience::Forever { warn_every }, meanwhile)
+    }
+
+    /// Receivers that said READY, at most one per subscriber connected now.
+    fn ready_receivers(&self) -> usize {
+        self.ready_acks.get().min(self.service.dynamic_config().number_of_subscribers())
+    }
+
+    fn wait_ready(
+        &self,
+        count: usize,
+        patience: Patience,
+        meanwhile: &mut dyn FnMut(),
+    ) -> Result<usize, TransportError> {
+        self.connect()?;
+        let mut last_warning = Instant::now();
         loop {
-            ready += self.wait_for_receivers_serving(count - ready, warn_every, meanwhile)?;
-            if ready >= count || termination_requested() {
+            let ready = self.ready_receivers();
+            let out_of_time = match patience {
+                Patience::Until(deadline) => Instant::now() >= deadline,
+                Patience::Forever { warn_every } => {
+                    if last_warning.elapsed() >= warn_every {
+                        tracing::warn!(edge = %self.name, ready, expected = count, "still waiting for every reader to connect");
+                        last_warning = Instant::now();
+                    }
+                    false
+                }
+            };
+            if ready >= count || out_of_time || termination_requested() {
+                self.connect()?;
                 return Ok(ready);
             }
-            tracing::warn!(edge = %self.name, ready, expected = count, "still waiting for every reader to connect");
+            let seen = self.wait_for_acks(events::READY, 1, SERVE_SLICE * 10, meanwhile)?;
+            self.ready_acks.set(self.ready_acks.get() + seen);
         }
     }
 

@@ -6,43 +6,61 @@ use std::time::Duration;
 use poseflow_contracts::{Header, HypothesesHeader, POSE_LEN};
 use poseflow_transport::{EdgeOptions, EdgeSubscriber, Overflow, Publisher, create_node, edge_service_name};
 
+/// A thread that publishes frames `0..count` on `name` once `wait` (given
+/// its publisher) returns, then ends the stream; joins to what `wait`
+/// returned.
+fn spawn_sender(
+    name: &str,
+    options: EdgeOptions,
+    count: u64,
+    wait: impl FnOnce(&Publisher<HypothesesHeader>) -> usize + Send + 'static,
+) -> std::thread::JoinHandle<usize> {
+    let name = name.to_string();
+    std::thread::spawn(move || {
+        let node = create_node("test-sender").unwrap();
+        let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+        let ready = wait(&publisher);
+        for frame in 0..count {
+            let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 };
+            publisher.publish(header, POSE_LEN, |p| p.fill(frame as f32)).unwrap();
+        }
+        publisher.end_of_stream(Duration::from_secs(10)).unwrap();
+        ready
+    })
+}
+
+/// The frame ids received until the end of the stream, reading every
+/// `pause`; acknowledges the end.
+fn receive_until_end(subscriber: &EdgeSubscriber<HypothesesHeader>, pause: Duration) -> Vec<u64> {
+    let mut frames = Vec::new();
+    loop {
+        // Events carry the READY handshake with a new publisher and the end
+        // of the stream, which follows the last sample.
+        let ended = subscriber.take_events().unwrap();
+        while let Some(message) = subscriber.receive().unwrap() {
+            frames.push(message.header().header.frame_id);
+        }
+        if ended {
+            break;
+        }
+        std::thread::sleep(pause);
+    }
+    subscriber.acknowledge_end().unwrap();
+    frames
+}
+
 #[test]
 fn block_overflow_loses_nothing() {
     let name = edge_service_name(&format!("test-block-{}", std::process::id()), "poses").unwrap();
     let options = EdgeOptions { queue: 16, overflow: Overflow::Block, max_payload_len: 4096 };
     let node = create_node("block-receiver").unwrap();
     let subscriber = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
-    let sender = std::thread::spawn({
-        let name = name.clone();
-        move || {
-            let node = create_node("block-sender").unwrap();
-            let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
-            assert_eq!(publisher.wait_for_receivers(1, Duration::from_secs(10)).unwrap(), 1);
-            for frame in 0..200u64 {
-                let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 };
-                publisher.publish(header, POSE_LEN, |p| p.fill(frame as f32)).unwrap();
-            }
-            publisher.end_of_stream(Duration::from_secs(10)).unwrap()
-        }
+    let sender = spawn_sender(&name, options, 200, |publisher| {
+        publisher.wait_for_receivers(1, Duration::from_secs(10)).unwrap()
     });
-    let mut frames = Vec::new();
-    while frames.len() < 200 {
-        // A slow receiver: the sender must wait for it, not drop.
-        std::thread::sleep(Duration::from_millis(5));
-        // Events carry the READY handshake with a new publisher.
-        subscriber.take_events().unwrap();
-        while let Some(message) = subscriber.receive().unwrap() {
-            frames.push(message.header().header.frame_id);
-        }
-        if sender.is_finished() {
-            break;
-        }
-    }
-    while let Some(message) = subscriber.receive().unwrap() {
-        frames.push(message.header().header.frame_id);
-    }
-    subscriber.acknowledge_end().unwrap();
-    sender.join().unwrap();
+    // A slow receiver: the sender must wait for it, not drop.
+    let frames = receive_until_end(&subscriber, Duration::from_millis(5));
+    assert_eq!(sender.join().unwrap(), 1);
     assert_eq!(frames, (0..200).collect::<Vec<_>>());
 }
 
@@ -106,35 +124,34 @@ fn a_publisher_waits_for_a_reader_that_is_slow_to_answer() {
     let options = EdgeOptions { queue: 4, overflow: Overflow::Block, max_payload_len: 64 };
     let node = create_node("slow-receiver").unwrap();
     let subscriber = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
-    let sender = std::thread::spawn({
-        let name = name.clone();
-        move || {
-            let node = create_node("eager-sender").unwrap();
-            let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
-            // Warned about every 50 ms, never given up on.
-            let ready = publisher.wait_for_all_receivers_serving(1, Duration::from_millis(50), &mut || {}).unwrap();
-            for frame in 0..20u64 {
-                let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 };
-                publisher.publish(header, POSE_LEN, |p| p.fill(frame as f32)).unwrap();
-            }
-            publisher.end_of_stream(Duration::from_secs(10)).unwrap();
-            ready
-        }
+    // Warned about every 50 ms, never given up on.
+    let sender = spawn_sender(&name, options, 20, |publisher| {
+        publisher.wait_for_all_receivers_serving(1, Duration::from_millis(50), &mut || {}).unwrap()
     });
     // Busy for many warning periods before touching the port.
     std::thread::sleep(Duration::from_millis(600));
-    let mut frames = Vec::new();
-    loop {
-        let ended = subscriber.take_events().unwrap();
-        while let Some(message) = subscriber.receive().unwrap() {
-            frames.push(message.header().header.frame_id);
-        }
-        if ended {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
-    subscriber.acknowledge_end().unwrap();
+    let frames = receive_until_end(&subscriber, Duration::from_millis(5));
     assert_eq!(sender.join().unwrap(), 1);
     assert_eq!(frames, (0..20).collect::<Vec<_>>());
+}
+
+/// READY counts receivers, not notifications: a receiver may say READY
+/// more than once (at creation, and again on seeing the publisher appear),
+/// and one that said it may be gone. Counting notifications let a publisher
+/// waiting for two readers start before the second existed, and its first
+/// messages never reached it (seen: 15 of 424 observations lost by the
+/// inference stage, which subscribes after loading its model).
+#[test]
+fn ready_counts_receivers_not_notifications() {
+    let name = edge_service_name(&format!("test-ready-count-{}", std::process::id()), "poses").unwrap();
+    let options = EdgeOptions { queue: 4, overflow: Overflow::Block, max_payload_len: 64 };
+    let node = create_node("ready-count").unwrap();
+    let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    let _first = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    // Two READY notifications, one receiver left.
+    drop(EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap());
+    assert_eq!(publisher.wait_for_receivers(2, Duration::from_millis(300)).unwrap(), 1);
+    // READY said before an earlier wait still counts in a later one.
+    let _second = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    assert_eq!(publisher.wait_for_receivers(2, Duration::from_secs(10)).unwrap(), 2);
 }

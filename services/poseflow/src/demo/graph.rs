@@ -18,6 +18,9 @@ pub struct Overrides<'a> {
     pub refine: bool,
     pub samples: usize,
     pub steps: usize,
+    /// Euler steps of a tracked frame (the sampler's `tracking.steps`), when
+    /// set.
+    pub tracking_steps: Option<usize>,
     /// The frame source's pace (a video), or as fast as the graph takes.
     pub rate_hz: Option<f64>,
 }
@@ -45,10 +48,21 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
             let resolved = absolute(&graph_dir.join(config))?;
             stage.insert("config".into(), resolved.into());
         }
+        let truth_prior = stage.get("exe").and_then(|e| e.as_str()) == Some("truth-prior");
         let params = stage.entry("params").or_insert_with(|| toml::Table::new().into());
         let Some(params) = params.as_table_mut() else {
             bail!("{}: stages.{name}.params is not a table", graph_file.display())
         };
+        if truth_prior {
+            // The priors name the frame source's images.
+            params.insert("dataset".into(), absolute(overrides.dataset)?.into());
+            params.insert("split".into(), overrides.split.into());
+            match overrides.targets {
+                Some(targets) => params.insert("targets".into(), absolute(targets)?.into()),
+                None => params.remove("targets"),
+            };
+            continue;
+        }
         match name.as_str() {
             "frames" => {
                 // The rendered scene, not the graph's own source settings.
@@ -69,6 +83,13 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
             "sampler" => {
                 params.insert("samples".into(), (overrides.samples as i64).into());
                 params.insert("steps".into(), (overrides.steps as i64).into());
+                if let Some(steps) = overrides.tracking_steps {
+                    let tracking = params.entry("tracking").or_insert_with(|| toml::Table::new().into());
+                    let Some(tracking) = tracking.as_table_mut() else {
+                        bail!("{}: stages.{name}.params.tracking is not a table", graph_file.display())
+                    };
+                    tracking.insert("steps".into(), (steps as i64).into());
+                }
             }
             "selector" => {
                 params.insert("method".into(), overrides.selection.into());

@@ -8,7 +8,7 @@ mod tracking;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 use anyhow::{Context, bail};
@@ -206,18 +206,22 @@ pub(crate) fn render_scene(
 }
 
 /// Runs `graph` as processes, recording `edges` to `recording`; the
-/// stages' log goes to `graph.log` beside the recording, and `waiting` is
-/// called every few hundred milliseconds while the graph runs.
+/// stages' log goes to `graph.log` and the run's report (`poseflow run
+/// --json`: per stage messages in and out, drops, errors) to `run.json`
+/// beside the recording, and `waiting` is called every few hundred
+/// milliseconds while the graph runs.
 pub(crate) fn run_graph(graph: &Path, recording: &Path, edges: &str, mut waiting: impl FnMut()) -> anyhow::Result<()> {
     let exe = std::env::current_exe().context("cannot find the poseflow executable")?;
     let log_path = recording.with_file_name("graph.log");
     let log = std::fs::File::create(&log_path).with_context(|| format!("{}", log_path.display()))?;
+    let report_path = recording.with_file_name("run.json");
+    let report = std::fs::File::create(&report_path).with_context(|| format!("{}", report_path.display()))?;
     let mut child = Command::new(&exe)
         .args(["run", "--status-ms", "0", "--json", "--record"])
         .arg(recording)
         .args(["--record-edges", edges, "--graph"])
         .arg(graph)
-        .stdout(Stdio::null())
+        .stdout(report)
         .stderr(log)
         .spawn()
         .with_context(|| format!("cannot start {}", exe.display()))?;
@@ -287,6 +291,7 @@ fn render_and_run(
         refine: !args.no_refine,
         samples: args.samples,
         steps: args.steps,
+        tracking_steps: None,
         rate_hz: args.track.then_some(args.rate_hz),
     };
     let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());

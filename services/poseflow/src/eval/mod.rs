@@ -5,27 +5,26 @@
 
 mod bop_csv;
 mod dataset;
+mod estimates;
 mod score;
 mod summary;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::Args;
 use nalgebra::Point3;
-use poseflow_contracts::{EstimateHeader, Stage, WEIGHTED_POSE_LEN};
 use poseflow_geometry::symmetry::BOP_MAX_SYMMETRY_STEP;
 use poseflow_geometry::{Pose, SymmetrySet};
 use poseflow_ingest::farthest_point_indices;
 use poseflow_ingest::sources::{BopFrames, Masks};
-use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 use poseflow_scene::ModelLibrary;
 use serde::Serialize;
 
-use self::bop_csv::{BopRow, to_csv};
+use self::bop_csv::to_csv;
 use self::dataset::{TruthImage, read_truth};
+use self::estimates::{Estimated, bop_rows, count_estimates, read_recording, read_results};
 use self::score::{EstimatedInstance, ScoredObject, score_instance};
 use self::summary::{InstanceOutcome, Summary, instances_csv, summarise};
 use crate::demo::SelectionArg;
@@ -40,7 +39,7 @@ const METRIC_POINTS: usize = 500;
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root after `cargo build --release --workspace` (the stages are \
     separate executables). Writes <out>/<graph>.toml (the graph run, with the frame source on the dataset), \
-    <out>/<graph>.rec (its estimates), <out>/graph.log (the stages' log), \
+    <out>/<graph>.rec (its estimates), <out>/graph.log (the stages' log), <out>/run.json (its report), \
     <out>/poseflow_<dataset>-<split>.csv (BOP19 results: scene_id,im_id,obj_id,score,R,t,time; t in mm, time = \
     seconds the graph spent on the image), <out>/instances.csv (per scored instance: the selected pose's errors and \
     reported spread) and <out>/summary.json.\n\n\
@@ -91,6 +90,10 @@ pub struct EvalArgs {
     /// Euler steps.
     #[arg(long, default_value_t = 5)]
     pub steps: usize,
+    /// Euler steps of a frame that starts from an earlier estimate or a prior (tracking graphs, e.g.
+    /// evaluation/graphs/tracking-from-truth.toml) [default: the graph's].
+    #[arg(long)]
+    pub tracking_steps: Option<usize>,
     /// Frames per second the frame source reads at [default: as fast as the graph takes them].
     #[arg(long)]
     pub rate_hz: Option<f64>,
@@ -109,8 +112,19 @@ pub struct EvalArgs {
 #[derive(Debug, Serialize)]
 #[serde(tag = "method", rename_all = "snake_case")]
 enum Method {
-    Graph { graph: PathBuf, model: PathBuf, selection: &'static str, refine: bool, samples: usize, steps: usize },
-    Results { results: PathBuf },
+    Graph {
+        graph: PathBuf,
+        model: PathBuf,
+        selection: &'static str,
+        refine: bool,
+        samples: usize,
+        steps: usize,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        tracking_steps: Option<usize>,
+    },
+    Results {
+        results: PathBuf,
+    },
 }
 
 #[derive(Debug, Serialize)]
@@ -124,13 +138,22 @@ struct EvalReport {
     unmatched_estimates: usize,
     /// The estimates in BOP19 format.
     csv: PathBuf,
+    /// The graph's own counts per stage (from its run report): a frame
+    /// lost on the way shows here as well as in the accuracies.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    stages: Option<serde_json::Value>,
     #[serde(flatten)]
     summary: Summary,
 }
 
 fn check(args: &EvalArgs) -> anyhow::Result<()> {
-    if args.samples == 0 || args.steps == 0 {
-        bail!("--samples {} --steps {}: expected at least 1 of each", args.samples, args.steps);
+    if args.samples == 0 || args.steps == 0 || args.tracking_steps == Some(0) {
+        bail!(
+            "--samples {} --steps {} --tracking-steps {:?}: expected at least 1 of each",
+            args.samples,
+            args.steps,
+            args.tracking_steps
+        );
     }
     if let Some(rate) = args.rate_hz
         && !(rate.is_finite() && rate > 0.0)
@@ -157,108 +180,33 @@ fn scored_objects(library: &ModelLibrary) -> BTreeMap<u32, ScoredObject> {
         .collect()
 }
 
-/// One estimate of one object in one image, from the graph or a results
-/// file.
-struct Estimated {
-    scene_id: u32,
-    im_id: u32,
-    obj_id: u32,
-    selected: Pose,
-    score: f64,
-    /// Every scored hypothesis, best first (none from a results file).
-    hypotheses: Vec<Pose>,
-    /// Trace of the rotational covariance, rad², when reported.
-    rotation_trace: Option<f64>,
-    /// The method's time on this object.
-    service_time: Option<Duration>,
-    /// From reading the image to the estimate.
-    latency: Option<Duration>,
-}
-
-/// The graph's estimates in a recording, placed in their images (the frame
-/// id is the image's position in the frame source's stream). The service
-/// time of an estimate is the interval since the previous one left the
-/// selector: the graph is kept saturated, so this is the cost of one more
-/// object (its mean is the inverse of the throughput); the first estimate,
-/// which also waited for the graph to start, has none.
-fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<Estimated>> {
-    let mut reader = RecordingReader::open(path).with_context(|| format!("{}", path.display()))?;
-    let mut estimates = Vec::new();
-    while let Some(message) = reader.next_message()? {
-        if message.edge != "estimates" {
-            continue;
-        }
-        let header: EstimateHeader = header_from_bytes(&message.header).context("estimate header")?;
-        let view = header.view(&message.payload).context("estimate payload")?;
-        let scored = view
-            .hypotheses
-            .chunks_exact(WEIGHTED_POSE_LEN)
-            .map(|c| Ok((Pose::from_f32_row_major(c[..12].try_into().expect("12 values"))?, f64::from(c[12]))))
-            .collect::<anyhow::Result<Vec<(Pose, f64)>>>()?;
-        let frame = header.header.frame_id;
-        let image = usize::try_from(frame).ok().and_then(|i| images.get(i)).with_context(|| {
-            format!("{}: an estimate of frame {frame}, but the dataset has {} images", path.display(), images.len())
-        })?;
-        estimates.push((
-            header.header.stamps.get(Stage::Selector),
-            Estimated {
-                scene_id: image.scene_id,
-                im_id: image.im_id,
-                obj_id: header.header.object_id,
-                selected: Pose::from_f32_row_major(&header.best)?,
-                score: scored.first().map_or(0.0, |h| h.1),
-                hypotheses: scored.into_iter().map(|h| h.0).collect(),
-                rotation_trace: Some(f64::from(header.rotation_trace)),
-                service_time: None,
-                latency: header.header.stamps.elapsed_ns(Stage::Source, Stage::Selector).map(Duration::from_nanos),
-            },
-        ));
-    }
-    estimates.sort_by_key(|(departure, _)| *departure);
-    for i in 1..estimates.len() {
-        if let (Some(previous), Some(departure)) = (estimates[i - 1].0, estimates[i].0) {
-            estimates[i].1.service_time = Some(Duration::from_nanos(departure.saturating_sub(previous)));
-        }
-    }
-    Ok(estimates.into_iter().map(|(_, estimate)| estimate).collect())
-}
-
-/// Estimates counted so far in a recording being written (a partly
-/// written last message ends the count).
-fn count_estimates(path: &Path) -> u64 {
-    let Ok(mut reader) = RecordingReader::open(path) else { return 0 };
-    let mut count = 0;
-    while let Ok(Some(message)) = reader.next_message() {
-        count += u64::from(message.edge == "estimates");
-    }
-    count
-}
-
-/// Another method's estimates from a BOP19 results file; its time per
-/// image is shared evenly by the image's estimates.
-fn read_results(path: &Path) -> anyhow::Result<Vec<Estimated>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("--results {}", path.display()))?;
-    let rows = bop_csv::parse(&text, path)?;
-    let mut per_image: BTreeMap<(u32, u32), u32> = BTreeMap::new();
-    for row in &rows {
-        *per_image.entry((row.scene_id, row.im_id)).or_default() += 1;
-    }
-    Ok(rows
+/// Messages in and out, drops and errors of every stage, from the run's
+/// report; warns when fewer estimates left the graph than observations
+/// entered it.
+fn stage_counts(report: &Path) -> anyhow::Result<serde_json::Value> {
+    let text = std::fs::read_to_string(report).with_context(|| format!("{}", report.display()))?;
+    let run: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not the JSON report of poseflow run", report.display()))?;
+    let stages = run["stages"].as_object().cloned().unwrap_or_default();
+    let counts: serde_json::Map<String, serde_json::Value> = stages
         .iter()
-        .map(|row| Estimated {
-            scene_id: row.scene_id,
-            im_id: row.im_id,
-            obj_id: row.obj_id,
-            selected: row.pose,
-            score: row.score,
-            hypotheses: Vec::new(),
-            rotation_trace: None,
-            service_time: row
-                .time_s
-                .map(|s| Duration::from_secs_f64(s / f64::from(per_image[&(row.scene_id, row.im_id)]))),
-            latency: row.time_s.map(Duration::from_secs_f64),
+        .map(|(name, stage)| {
+            let keep = ["frames_in", "frames_out", "dropped", "errors", "restarts"];
+            let fields = keep.iter().map(|k| (k.to_string(), stage[*k].clone())).collect();
+            (name.clone(), serde_json::Value::Object(fields))
         })
-        .collect())
+        .collect();
+    let out_of = |stage: &str| stages.get(stage).and_then(|s| s["frames_out"].as_u64());
+    if let (Some(observations), Some(estimates)) = (out_of("ingest"), out_of("selector"))
+        && estimates < observations
+    {
+        tracing::warn!(
+            observations,
+            estimates,
+            "fewer estimates left the graph than observations entered it (see run.json)"
+        );
+    }
+    Ok(serde_json::Value::Object(counts))
 }
 
 /// Scores every scored instance of `images` against the estimates
@@ -322,33 +270,13 @@ fn evaluate(
                 score,
                 service_time: estimate.and_then(|e| e.service_time),
                 latency: estimate.and_then(|e| e.latency),
+                tracked: estimate.is_some_and(|e| e.tracked),
             });
         }
     }
     // Estimates of images the dataset's targets do not name.
     unmatched += by_image.values().map(Vec::len).sum::<usize>();
     Ok((outcomes, unmatched))
-}
-
-/// The graph's estimates as BOP19 rows; an image's time is what the graph
-/// spent on its objects.
-fn bop_rows(estimates: &[Estimated]) -> Vec<BopRow> {
-    let mut image_time: BTreeMap<(u32, u32), Option<Duration>> = BTreeMap::new();
-    for e in estimates {
-        let time = image_time.entry((e.scene_id, e.im_id)).or_insert(Some(Duration::ZERO));
-        *time = time.zip(e.service_time).map(|(a, b)| a + b);
-    }
-    estimates
-        .iter()
-        .map(|e| BopRow {
-            scene_id: e.scene_id,
-            im_id: e.im_id,
-            obj_id: e.obj_id,
-            score: e.score,
-            pose: e.selected,
-            time_s: image_time[&(e.scene_id, e.im_id)].map(|d| d.as_secs_f64()),
-        })
-        .collect()
 }
 
 /// Runs the graph over the dataset; its estimates and the results file
@@ -368,6 +296,7 @@ fn run_graph_on(
         refine: args.refine,
         samples: args.samples,
         steps: args.steps,
+        tracking_steps: args.tracking_steps,
         rate_hz: args.rate_hz,
     };
     let name = args.graph.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
@@ -390,6 +319,7 @@ fn run_graph_on(
         refine: args.refine,
         samples: args.samples,
         steps: args.steps,
+        tracking_steps: args.tracking_steps,
     };
     Ok((estimates, csv, method))
 }
@@ -409,6 +339,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         Some(results) => (read_results(results)?, results.clone(), Method::Results { results: results.clone() }),
         None => run_graph_on(args, &images, &objects_dir)?,
     };
+    let stages = args.results.is_none().then(|| stage_counts(&args.out.join("run.json"))).transpose()?;
     let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
     let (outcomes, unmatched_estimates) = evaluate(&images, &estimates, &objects, every_hypothesis)?;
     let report = EvalReport {
@@ -417,6 +348,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         method,
         unmatched_estimates,
         csv,
+        stages,
         summary: summarise(&outcomes),
     };
     let instances_path = args.out.join("instances.csv");
@@ -435,9 +367,10 @@ fn optional(value: Option<f64>, precision: usize) -> String {
 fn print_table(report: &EvalReport) {
     let s = &report.summary;
     let method = match &report.method {
-        Method::Graph { selection, refine, samples, steps, .. } => format!(
-            "selection {selection}{}, {samples} samples, {steps} steps; accuracies in % of instances{}",
+        Method::Graph { selection, refine, samples, steps, tracking_steps, .. } => format!(
+            "selection {selection}{}, {samples} samples, {steps} steps{}; accuracies in % of instances{}",
             if *refine { " + refinement" } else { "" },
+            tracking_steps.map_or(String::new(), |k| format!(" ({k} when tracked)")),
             if *selection == "none" { ", averaged over the samples" } else { "" }
         ),
         Method::Results { results } => format!("{}; accuracies in % of instances", results.display()),
@@ -468,6 +401,12 @@ fn print_table(report: &EvalReport) {
         row(obj_id.to_string(), &object.accuracies, (object.ms_per_object.p50_ms, object.ms_per_object.p99_ms));
     }
     row("all".into(), &s.overall, (s.ms_per_object_p50, s.ms_per_object_p99));
+    if s.overall.tracked > 0 {
+        println!(
+            "tracked (started from an earlier estimate or a prior): {} of {}",
+            s.overall.tracked, s.overall.estimated
+        );
+    }
     println!(
         "calibration: Spearman(rotational spread, rotation error) = {}; latency image read → estimate p50/p99 {:.0}/{:.0} ms (queueing included); unmatched estimates: {}",
         optional(s.spread_error_spearman, 2),

@@ -22,6 +22,8 @@ pub struct InstanceOutcome {
     pub service_time: Option<Duration>,
     /// From the frame source reading the image to the selector's estimate.
     pub latency: Option<Duration>,
+    /// The estimate's samples started from an earlier estimate or a prior.
+    pub tracked: bool,
 }
 
 /// Accuracies in percent over a set of instances.
@@ -29,6 +31,8 @@ pub struct InstanceOutcome {
 pub struct Accuracies {
     pub instances: usize,
     pub estimated: usize,
+    /// Estimated from an earlier estimate or a prior (tracking graphs).
+    pub tracked: usize,
     pub acc_5deg_2cm: f64,
     pub acc_5deg_5cm: f64,
     pub acc_10deg_2cm: f64,
@@ -94,6 +98,7 @@ fn accuracies<'a>(outcomes: impl Iterator<Item = &'a InstanceOutcome>) -> Accura
     Accuracies {
         instances: n,
         estimated: scores.len(),
+        tracked: outcomes.iter().filter(|o| o.tracked).count(),
         acc_5deg_2cm: percent(sum(&|s| s.accuracy[0]), n),
         acc_5deg_5cm: percent(sum(&|s| s.accuracy[1]), n),
         acc_10deg_2cm: percent(sum(&|s| s.accuracy[2]), n),
@@ -220,6 +225,7 @@ mod tests {
             }),
             service_time: Some(Duration::from_millis(u64::from(obj_id) * 10)),
             latency: Some(Duration::from_millis(500)),
+            tracked: obj_id == 10,
         }
     }
 
@@ -227,12 +233,20 @@ mod tests {
     fn a_missed_instance_counts_as_a_failure() {
         let outcomes = [
             outcome(1, [1.0; 4], 2.0, 1.0),
-            InstanceOutcome { scene_id: 0, im_id: 1, obj_id: 1, score: None, service_time: None, latency: None },
+            InstanceOutcome {
+                scene_id: 0,
+                im_id: 1,
+                obj_id: 1,
+                score: None,
+                service_time: None,
+                latency: None,
+                tracked: false,
+            },
             outcome(10, [0.0, 0.0, 1.0, 1.0], 8.0, 3.0),
             outcome(10, [0.0; 4], 90.0, 9.0),
         ];
         let summary = summarise(&outcomes);
-        assert_eq!((summary.overall.instances, summary.overall.estimated), (4, 3));
+        assert_eq!((summary.overall.instances, summary.overall.estimated, summary.overall.tracked), (4, 3, 2));
         assert_eq!(summary.overall.acc_5deg_2cm, 25.0);
         assert_eq!(summary.overall.acc_10deg_5cm, 50.0);
         assert_eq!(summary.overall.add_s, 50.0);

@@ -1,0 +1,13 @@
+//! The truth-prior stage process: `exe = "truth-prior"` in a graph file;
+//! Observation in, Estimate (the perturbed ground truth) out.
+
+use std::process::ExitCode;
+
+use poseflow_ingest::truth_prior::{TruthPriorParams, TruthPriorStage};
+
+fn main() -> ExitCode {
+    poseflow_runtime::init_logging();
+    poseflow_runtime::run_transform(|wiring| {
+        TruthPriorParams::from_json(&wiring.params).and_then(TruthPriorStage::new).map_err(|e| e.to_string())
+    })
+}

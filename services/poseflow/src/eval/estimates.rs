@@ -1,0 +1,143 @@
+//! The estimates an evaluation scores, whatever produced them: the
+//! graph's recording, or another method's BOP19 results file.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+
+use anyhow::Context;
+use poseflow_contracts::{EstimateHeader, Stage, WEIGHTED_POSE_LEN, flags};
+use poseflow_geometry::Pose;
+use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+
+use super::bop_csv::{self, BopRow};
+use super::dataset::TruthImage;
+
+/// One estimate of one object in one image, from the graph or a results
+/// file.
+pub struct Estimated {
+    pub scene_id: u32,
+    pub im_id: u32,
+    pub obj_id: u32,
+    pub selected: Pose,
+    pub score: f64,
+    /// Every scored hypothesis, best first (none from a results file).
+    pub hypotheses: Vec<Pose>,
+    /// Trace of the rotational covariance, rad², when reported.
+    pub rotation_trace: Option<f64>,
+    /// The method's time on this object.
+    pub service_time: Option<Duration>,
+    /// From reading the image to the estimate.
+    pub latency: Option<Duration>,
+    /// The samples started from an earlier estimate or a prior.
+    pub tracked: bool,
+}
+
+/// The graph's estimates in a recording, placed in their images (the frame
+/// id is the image's position in the frame source's stream). The service
+/// time of an estimate is the interval since the previous one left the
+/// selector: the graph is kept saturated, so this is the cost of one more
+/// object (its mean is the inverse of the throughput); the first estimate,
+/// which also waited for the graph to start, has none.
+pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<Estimated>> {
+    let mut reader = RecordingReader::open(path).with_context(|| format!("{}", path.display()))?;
+    let mut estimates = Vec::new();
+    while let Some(message) = reader.next_message()? {
+        if message.edge != "estimates" {
+            continue;
+        }
+        let header: EstimateHeader = header_from_bytes(&message.header).context("estimate header")?;
+        let view = header.view(&message.payload).context("estimate payload")?;
+        let scored = view
+            .hypotheses
+            .chunks_exact(WEIGHTED_POSE_LEN)
+            .map(|c| Ok((Pose::from_f32_row_major(c[..12].try_into().expect("12 values"))?, f64::from(c[12]))))
+            .collect::<anyhow::Result<Vec<(Pose, f64)>>>()?;
+        let frame = header.header.frame_id;
+        let image = usize::try_from(frame).ok().and_then(|i| images.get(i)).with_context(|| {
+            format!("{}: an estimate of frame {frame}, but the dataset has {} images", path.display(), images.len())
+        })?;
+        estimates.push((
+            header.header.stamps.get(Stage::Selector),
+            Estimated {
+                scene_id: image.scene_id,
+                im_id: image.im_id,
+                obj_id: header.header.object_id,
+                selected: Pose::from_f32_row_major(&header.best)?,
+                score: scored.first().map_or(0.0, |h| h.1),
+                hypotheses: scored.into_iter().map(|h| h.0).collect(),
+                rotation_trace: Some(f64::from(header.rotation_trace)),
+                service_time: None,
+                latency: header.header.stamps.elapsed_ns(Stage::Source, Stage::Selector).map(Duration::from_nanos),
+                tracked: header.header.has_flag(flags::TRACKING),
+            },
+        ));
+    }
+    estimates.sort_by_key(|(departure, _)| *departure);
+    for i in 1..estimates.len() {
+        if let (Some(previous), Some(departure)) = (estimates[i - 1].0, estimates[i].0) {
+            estimates[i].1.service_time = Some(Duration::from_nanos(departure.saturating_sub(previous)));
+        }
+    }
+    Ok(estimates.into_iter().map(|(_, estimate)| estimate).collect())
+}
+
+/// Estimates counted so far in a recording being written (a partly
+/// written last message ends the count).
+pub fn count_estimates(path: &Path) -> u64 {
+    let Ok(mut reader) = RecordingReader::open(path) else { return 0 };
+    let mut count = 0;
+    while let Ok(Some(message)) = reader.next_message() {
+        count += u64::from(message.edge == "estimates");
+    }
+    count
+}
+
+/// Another method's estimates from a BOP19 results file; its time per
+/// image is shared evenly by the image's estimates.
+pub fn read_results(path: &Path) -> anyhow::Result<Vec<Estimated>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("--results {}", path.display()))?;
+    let rows = bop_csv::parse(&text, path)?;
+    let mut per_image: BTreeMap<(u32, u32), u32> = BTreeMap::new();
+    for row in &rows {
+        *per_image.entry((row.scene_id, row.im_id)).or_default() += 1;
+    }
+    Ok(rows
+        .iter()
+        .map(|row| Estimated {
+            scene_id: row.scene_id,
+            im_id: row.im_id,
+            obj_id: row.obj_id,
+            selected: row.pose,
+            score: row.score,
+            hypotheses: Vec::new(),
+            rotation_trace: None,
+            service_time: row
+                .time_s
+                .map(|s| Duration::from_secs_f64(s / f64::from(per_image[&(row.scene_id, row.im_id)]))),
+            latency: row.time_s.map(Duration::from_secs_f64),
+            tracked: false,
+        })
+        .collect())
+}
+
+/// The graph's estimates as BOP19 rows; an image's time is what the graph
+/// spent on its objects.
+pub fn bop_rows(estimates: &[Estimated]) -> Vec<BopRow> {
+    let mut image_time: BTreeMap<(u32, u32), Option<Duration>> = BTreeMap::new();
+    for e in estimates {
+        let time = image_time.entry((e.scene_id, e.im_id)).or_insert(Some(Duration::ZERO));
+        *time = time.zip(e.service_time).map(|(a, b)| a + b);
+    }
+    estimates
+        .iter()
+        .map(|e| BopRow {
+            scene_id: e.scene_id,
+            im_id: e.im_id,
+            obj_id: e.obj_id,
+            score: e.score,
+            pose: e.selected,
+            time_s: image_time[&(e.scene_id, e.im_id)].map(|d| d.as_secs_f64()),
+        })
+        .collect()
+}
