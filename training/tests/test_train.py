@@ -7,7 +7,7 @@ import torch
 
 from poseflow_train import se3
 from poseflow_train.model import ModelConfig
-from poseflow_train.train import correspondence_loss
+from poseflow_train.train import correspondence_loss, flow_batch
 
 
 def test_correspondence_loss_is_zero_at_the_truth_and_at_a_symmetric_twin():
@@ -25,3 +25,26 @@ def test_correspondence_loss_is_zero_at_the_truth_and_at_a_symmetric_twin():
     assert correspondence_loss(twin, batch, table, cfg).item() < 1e-5
     identity_only = (torch.eye(3)[None, None], torch.zeros(1, 1, 3))
     assert correspondence_loss(twin, batch, identity_only, cfg).item() > 0.1
+
+
+def test_hint_paths_end_at_the_coarse_pose_with_the_truth_as_target():
+    cfg = ModelConfig(object_ids=[1])
+    g = torch.Generator().manual_seed(0)
+    truth_r = se3.uniform_rotation((2,), generator=g)
+    hint_r = se3.uniform_rotation((2,), generator=g)
+    batch = {"rotation": truth_r, "translation": torch.zeros(2, 3)}
+    hint = (hint_r, torch.full((2, 3), 0.02))
+    plain = flow_batch(batch, cfg, 64, 5, torch.Generator().manual_seed(1))
+    mixed = flow_batch(batch, cfg, 64, 5, torch.Generator().manual_seed(1), hint, 0.5)
+    always = flow_batch(batch, cfg, 64, 5, torch.Generator().manual_seed(1), hint, 1.0)
+    # The target is the truth either way.
+    for flow in (plain, mixed, always):
+        assert torch.equal(flow["r1"], truth_r.repeat_interleave(64, 0))
+    # Same seed, same starts and times: every path of `always` ends at the
+    # coarse pose (p = 0.02) where `plain`'s ends at the truth (p = 0), so
+    # the states differ by t * 0.02.
+    assert torch.equal(always["t"], plain["t"])
+    assert torch.allclose(always["p_t"] - plain["p_t"], always["t"][:, None] * 0.02 * torch.ones(1, 3), atol=1e-6)
+    # About half of `mixed` ends at the coarse pose: its states differ from `plain`'s.
+    differ = (mixed["p_t"] - plain["p_t"]).abs().sum(-1) > 1e-7
+    assert 0.3 < differ.float().mean().item() < 0.7
