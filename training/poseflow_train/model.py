@@ -16,7 +16,13 @@ the first `correspondence_points` observed points, where it lies on the
 object (object-frame coordinates, trained densely against the ground truth,
 NOCS-style), aligns those to the observed points (Horn's closed form) and
 appends the resulting coarse pose as a last condition token. The velocity
-network predicts the clean pose as a correction of that coarse pose. Dense
+network predicts the clean pose as a correction of that coarse pose. A
+refiner then maps the observed points into the object frame under the
+current coarse pose and predicts their corrected coordinates, aligned again
+by Horn, `refine_iterations` times: a learned ICP whose input is already
+pose-normalised, so it learns local corrections instead of global
+orientation (measured: held-out 10deg5cm of the coarse pose 26 -> 69 % after
+3 iterations, refiner trained alone for 25 minutes). Dense
 per-point supervision teaches orientation an order of magnitude faster than
 a rotation read from a global feature (measured: 10-object held-out rotation
 error below 10 degrees for 8.6 % of observations after 4 minutes, against
@@ -73,6 +79,9 @@ class ModelConfig:
     # Points whose object-frame coordinates the encoder predicts (a prefix of
     # the farthest-point order) for the coarse pose token.
     correspondence_points: int = 256
+    # Refinement iterations of the coarse pose (0: none, as models trained
+    # before the refiner existed).
+    refine_iterations: int = 0
 
     def __post_init__(self):
         if self.image_encoder not in ("scratch", "dinov2"):
@@ -239,6 +248,42 @@ class Correspondences(nn.Module):
         return self.head(torch.cat([local, whole, o], -1)) * self.scale
 
 
+class Refiner(nn.Module):
+    """One refinement of a coarse pose (R, p): the observed points mapped
+    into the object frame by it, R^T (x - p), through a PointNet like
+    `Correspondences` (with a third local layer), which predicts a residual
+    to the object-frame coordinates; Horn aligns the result again. The head
+    starts at zero, so an untrained refiner returns the pose it is given."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.count, self.scale = cfg.correspondence_points, cfg.translation_scale
+        self.objects = nn.Embedding(len(cfg.object_ids), 64)
+        self.local = nn.Sequential(
+            nn.Linear(3, 64), nn.LayerNorm(64), nn.GELU(), nn.Linear(64, 128), nn.LayerNorm(128), nn.GELU(),
+            nn.Linear(128, 128), nn.LayerNorm(128), nn.GELU(),
+        )
+        self.whole = nn.Sequential(nn.Linear(128 + 64, 256), nn.LayerNorm(256), nn.GELU(), nn.Linear(256, 512))
+        self.head = nn.Sequential(
+            nn.Linear(128 + 512 + 64, 256), nn.LayerNorm(256), nn.GELU(), nn.Linear(256, 128), nn.GELU(), nn.Linear(128, 3)
+        )
+        nn.init.zeros_(self.head[-1].weight)
+        nn.init.zeros_(self.head[-1].bias)
+
+    def forward(self, points, object_index, rotation, translation):
+        """(coordinates [B, n, 3] metres, R [B,3,3], p [B,3]): the corrected
+        object-frame coordinates of the first n points and their alignment."""
+        observed = points[:, : self.count]
+        # Rows R^T (x - p), in translation_scale units.
+        canonical = ((observed - translation[:, None]) @ rotation) / self.scale
+        o = self.objects(object_index)[:, None, :].expand(-1, canonical.shape[1], -1)
+        local = self.local(canonical)
+        whole = self.whole(torch.cat([local, o], -1)).amax(1, keepdim=True).expand(-1, canonical.shape[1], -1)
+        coordinates = (canonical + self.head(torch.cat([local, whole, o], -1))) * self.scale
+        rotation, translation = se3.align(coordinates, observed)
+        return coordinates, rotation, translation
+
+
 # Layout of the coarse pose token (the last condition token): R row-major,
 # then p / translation_scale, then zeros.
 HINT_VALUES = 12
@@ -273,20 +318,39 @@ class Encoder(nn.Module):
         self.kind = nn.Parameter(torch.randn(3, cfg.width) * 0.02)
         self.objects = nn.Embedding(len(cfg.object_ids), cfg.width)
         self.correspondences = Correspondences(cfg)
+        if cfg.refine_iterations > 0:
+            self.refiner = Refiner(cfg)
         self.cfg = cfg
 
-    def coarse_pose(self, points, object_index):
+    def first_pose(self, points, object_index):
         """(model-frame coordinates [B, n, 3], R [B,3,3], p [B,3]): the
         predicted coordinates aligned to the observed points. The pose is
-        an input of the velocity network, not trained through (the
-        coordinates have their own loss)."""
+        not trained through (the coordinates have their own loss)."""
         coordinates = self.correspondences(points, object_index)
         observed = points[:, : coordinates.shape[1]]
         rotation, translation = se3.align(coordinates.detach(), observed)
         return coordinates, rotation, translation
 
+    def refine(self, points, object_index, rotation, translation):
+        """The refiner's iterations from (R, p): a list of each iteration's
+        coordinates, and the final pose. Poses are detached between
+        iterations (each iteration's coordinates have their own loss)."""
+        steps = []
+        for _ in range(self.cfg.refine_iterations):
+            coordinates, rotation, translation = self.refiner(points, object_index, rotation.detach(), translation.detach())
+            steps.append(coordinates)
+        return steps, rotation.detach(), translation.detach()
+
+    def coarse_pose(self, points, object_index):
+        """(every set of predicted coordinates, R, p): the first pose and
+        its refinements; the pose is an input of the velocity network."""
+        coordinates, rotation, translation = self.first_pose(points, object_index)
+        refined, rotation, translation = self.refine(points, object_index, rotation, translation)
+        return [coordinates, *refined], rotation, translation
+
     def encode(self, image, token_mask, points, object_index):
-        """(condition, condition_mask, predicted model-frame coordinates)."""
+        """(condition, condition_mask, every set of predicted model-frame
+        coordinates: the first, then one per refinement)."""
         image_tokens = self.image_proj(self.image(image)) + self.kind[0]
         point_tokens = self.point_proj(self.points(points)) + self.kind[1]
         object_token = (self.objects(object_index) + self.kind[2])[:, None, :]

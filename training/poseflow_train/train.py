@@ -15,6 +15,7 @@ cumulative training time.
 import argparse
 import glob
 import json
+import math
 import os
 import signal
 import time
@@ -141,6 +142,37 @@ def correspondence_loss(coordinates, batch, table, cfg):
     return error.amin(1).mean()
 
 
+def perturbed(rotation, translation, max_deg, max_cm, generator):
+    """Each pose turned by a uniform angle up to `max_deg` about a uniform
+    axis and moved by up to `max_cm` in a uniform direction."""
+    b = rotation.shape[0]
+    axis = torch.randn(b, 3, generator=generator)
+    angle = torch.rand(b, 1, generator=generator) * math.radians(max_deg)
+    shift = torch.randn(b, 3, generator=generator)
+    length = torch.rand(b, 1, generator=generator) * max_cm / 100.0
+    turned = rotation @ se3.so3_exp(axis / axis.norm(dim=-1, keepdim=True) * angle)
+    return turned, translation + shift / shift.norm(dim=-1, keepdim=True) * length
+
+
+def correspondence_losses(encoder, batch, table, cfg, config, generator):
+    """Mean correspondence loss of the first coordinates and of each
+    refinement. The refiner starts half the time from the first pose (what
+    it meets at inference) and half from the truth perturbed by up to
+    `refine_perturbation` [degrees, cm] (a wider basin than the first
+    pose's errors alone would teach)."""
+    coordinates, rotation, translation = encoder.first_pose(batch["points"], batch["object_index"])
+    losses = [correspondence_loss(coordinates, batch, table, cfg)]
+    if cfg.refine_iterations > 0:
+        max_deg, max_cm = config.get("refine_perturbation", [40.0, 2.0])
+        r, p = perturbed(batch["rotation"], batch["translation"], max_deg, max_cm, generator)
+        from_first = torch.rand(r.shape[0], generator=generator) < 0.5
+        rotation = torch.where(from_first[:, None, None], rotation, r)
+        translation = torch.where(from_first[:, None], translation, p)
+        refined, _, _ = encoder.refine(batch["points"], batch["object_index"], rotation, translation)
+        losses += [correspondence_loss(c, batch, table, cfg) for c in refined]
+    return sum(losses) / len(losses)
+
+
 def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
     """Everything a later run needs to continue, written atomically."""
     saved = {name: module.state_dict() for name, module in modules.items()}
@@ -185,6 +217,19 @@ def main():
         generator.set_state(saved["generator"])
         rng.bit_generator.state = saved["rng"]
         print(f"resumed at step {state['step']} after {state['train_s'] / 60:.1f} min of training", flush=True)
+    elif config.get("init_from"):
+        # A new run continuing an earlier one with a grown model: its weights
+        # (modules it lacks start fresh), step and training time (so the
+        # learning curve stays cumulative); a fresh optimiser.
+        saved = torch.load(config["init_from"], weights_only=False)
+        for name, module in modules.items():
+            missing, unexpected = module.load_state_dict(saved[name], strict=False)
+            if unexpected:
+                raise SystemExit(f"config: init_from {config['init_from']}: {name} has no {unexpected[0]!r}")
+            if missing:
+                print(f"init_from: {name}: {len(missing)} new tensors ({missing[0]}, ...) start fresh", flush=True)
+        state = dict(saved["state"], initialised_at_s=saved["state"]["train_s"])
+        print(f"initialised from {config['init_from']} (step {state['step']}, {state['train_s'] / 60:.1f} min)", flush=True)
     log = open(out / "log.jsonl", "a")
     batch_size, samples, steps = config.get("batch", 16), config.get("samples_per_observation", 16), config.get("steps", 5)
     lam = config.get("lambda_pos", 10.0)
@@ -200,23 +245,30 @@ def main():
             break
         started = time.monotonic()
         batch = train.batch(rng.integers(0, len(train), batch_size))
-        if state["train_s"] < config.get("correspondence_warmup_s", 0):
-            # Warm-up: the correspondence network alone, many times faster
-            # per observation than the whole model.
-            coordinates = encoder.correspondences(batch["points"], batch["object_index"])
+        # Warm-ups: the correspondence network (and refiner) alone, many
+        # times faster per observation than the whole model: for the first
+        # `correspondence_warmup_s` of training, and for the first
+        # `refine_warmup_s` after `init_from` (a refiner added to a trained
+        # model gives the velocity network a useful coarse pose only once
+        # it has learnt something).
+        refine_warmup_end = state.get("initialised_at_s", 0.0) + config.get("refine_warmup_s", 0)
+        warming_up = state["train_s"] < max(config.get("correspondence_warmup_s", 0), refine_warmup_end)
+        if warming_up:
+            batch = train.batch(rng.integers(0, len(train), batch_size + config.get("correspondence_extra_batch", 0)))
+            loss_corr = correspondence_losses(encoder, batch, table, cfg, config, generator)
             loss_rot = loss_pos = torch.zeros(())
         else:
             condition, mask, coordinates = encoder.encode(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
             flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0))
             loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
-        loss_corr = correspondence_loss(coordinates, batch, table, cfg)
+            loss_corr = sum(correspondence_loss(c, batch, table, cfg) for c in coordinates) / len(coordinates)
         extra = config.get("correspondence_extra_batch", 0)
-        if extra and state["train_s"] >= config.get("correspondence_warmup_s", 0):
+        if extra and not warming_up:
             # The correspondences are the slow part to learn and cheap to
             # train alone: each step also trains them on more observations.
             more = train.batch(rng.integers(0, len(train), extra))
-            coordinates = encoder.correspondences(more["points"], more["object_index"])
-            loss_corr = (batch_size * loss_corr + extra * correspondence_loss(coordinates, more, table, cfg)) / (batch_size + extra)
+            loss_more = correspondence_losses(encoder, more, table, cfg, config, generator)
+            loss_corr = (batch_size * loss_corr + extra * loss_more) / (batch_size + extra)
         loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr
         optimiser.zero_grad()
         loss.backward()

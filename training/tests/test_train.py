@@ -1,5 +1,5 @@
-"""The correspondence loss: zero for the true coordinates and for those of
-a symmetric twin, positive otherwise."""
+"""Training pieces: the correspondence loss (zero for the true coordinates
+and a symmetric twin), hint paths, the refiner and pose perturbation."""
 
 import math
 
@@ -48,3 +48,31 @@ def test_hint_paths_end_at_the_coarse_pose_with_the_truth_as_target():
     # About half of `mixed` ends at the coarse pose: its states differ from `plain`'s.
     differ = (mixed["p_t"] - plain["p_t"]).abs().sum(-1) > 1e-7
     assert 0.3 < differ.float().mean().item() < 0.7
+
+
+def test_an_untrained_refiner_returns_the_pose_it_is_given():
+    from poseflow_train.model import Refiner
+
+    cfg = ModelConfig(object_ids=[1], correspondence_points=64, refine_iterations=1)
+    g = torch.Generator().manual_seed(2)
+    rotation = se3.uniform_rotation((3,), generator=g)
+    translation = torch.randn(3, 3, generator=g) * 0.02
+    points = torch.randn(3, 64, 3, generator=g) * 0.03
+    refiner = Refiner(cfg)
+    coordinates, r, p = refiner(points, torch.zeros(3, dtype=torch.long), rotation, translation)
+    # The head starts at zero: the coordinates are the points in the object
+    # frame of the given pose, and Horn aligns them back to that pose.
+    assert torch.allclose(coordinates, (points - translation[:, None]) @ rotation, atol=1e-6)
+    assert torch.allclose(r, rotation, atol=1e-4) and torch.allclose(p, translation, atol=1e-6)
+
+
+def test_perturbed_poses_stay_within_their_bounds():
+    from poseflow_train.train import perturbed
+
+    g = torch.Generator().manual_seed(3)
+    rotation = se3.uniform_rotation((500,), generator=g)
+    translation = torch.zeros(500, 3)
+    r, p = perturbed(rotation, translation, 40.0, 2.0, g)
+    angles = torch.rad2deg(se3.geodesic_angle(r, rotation))
+    assert angles.max().item() <= 40.0 + 1e-3 and angles.mean().item() > 10.0
+    assert p.norm(dim=-1).max().item() <= 0.02 + 1e-6

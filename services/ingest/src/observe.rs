@@ -182,8 +182,22 @@ impl Prepared {
         let (s, p) = (params.image_size as usize, params.patch_grid as usize);
         let (image, rest) = out.split_at_mut(3 * s * s);
         let (token_mask, points) = rest.split_at_mut(p * p);
-        write_crop(&frame.rgb.pixels, frame.rgb.width, frame.rgb.height, &self.crop, s, &params.normalisation, image);
-        write_token_mask(&object.mask.pixels, object.mask.width, &self.crop, p, token_mask);
+        if params.rgb {
+            write_crop(
+                &frame.rgb.pixels,
+                frame.rgb.width,
+                frame.rgb.height,
+                &self.crop,
+                s,
+                &params.normalisation,
+                image,
+            );
+            write_token_mask(&object.mask.pixels, object.mask.width, &self.crop, p, token_mask);
+        } else {
+            // The normalised mean colour, and no token may be attended to.
+            image.fill(0.0);
+            token_mask.fill(0.0);
+        }
         for (out, point) in points.chunks_exact_mut(3).zip(&self.points) {
             out.copy_from_slice(point.coords.as_slice());
         }

@@ -31,6 +31,9 @@ pub struct IngestParams {
     pub min_points: usize,
     /// Depths beyond this (metres) are treated as missing.
     pub max_depth: f32,
+    /// `false`: the network gets no image (a blank crop, every image token
+    /// masked out): the depth-only ablation, or a camera without colour.
+    pub rgb: bool,
 }
 
 impl Default for IngestParams {
@@ -48,6 +51,7 @@ impl Default for IngestParams {
             min_mask_pixels: 16,
             min_points: 16,
             max_depth: 6.0,
+            rgb: true,
         }
     }
 }

@@ -112,6 +112,13 @@ fn points_lie_on_the_model_and_tokens_cover_the_projection() {
                 }
             }
             assert!(inside as f64 >= 0.99 * total as f64, "{inside} of {total} vertices on marked patches");
+            // Without RGB: the same points, no image and no token to attend to.
+            let depth_only = IngestParams { rgb: false, ..params.clone() };
+            let mut blind = vec![1.0; payload.len()];
+            prepared.write_payload(&loaded.frame, object, &depth_only, &mut blind);
+            let blind_view = header.view(&blind).unwrap();
+            assert!(blind_view.image.iter().chain(blind_view.token_mask).all(|&v| v == 0.0));
+            assert_eq!(blind_view.points, header.view(&payload).unwrap().points);
             covered_objects += 1;
         }
     }

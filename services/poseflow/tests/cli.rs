@@ -160,8 +160,18 @@ fn eval_scores_a_rendered_dataset_and_writes_bop19_results() {
     let stages = &summary["stages"];
     assert_eq!(stages["ingest"]["frames_out"], stages["selector"]["frames_out"], "{summary}");
     assert_eq!(stages["selector"]["dropped"], 0, "{summary}");
-    for key in ["acc_5deg_2cm", "acc_5deg_5cm", "acc_10deg_2cm", "acc_10deg_5cm", "add_s", "mssd_recall", "mspd_recall"]
-    {
+    // The rendered dataset has depth: VSD and the BOP19 average recall.
+    for key in [
+        "acc_5deg_2cm",
+        "acc_5deg_5cm",
+        "acc_10deg_2cm",
+        "acc_10deg_5cm",
+        "add_s",
+        "mssd_recall",
+        "mspd_recall",
+        "vsd_recall",
+        "bop_ar",
+    ] {
         assert!((0.0..=100.0).contains(&summary[key].as_f64().unwrap()), "{key}: {summary}");
     }
     let acc = |key: &str| summary[key].as_f64().unwrap();
@@ -200,11 +210,24 @@ fn eval_scores_a_rendered_dataset_and_writes_bop19_results() {
     ]);
     assert!(rescored.status.success(), "{}", String::from_utf8_lossy(&rescored.stderr));
     let rescored: serde_json::Value = serde_json::from_slice(&rescored.stdout).unwrap();
-    for key in ["instances", "estimated", "acc_5deg_2cm", "acc_10deg_5cm", "add_s", "mssd_recall", "mspd_recall"] {
+    for key in
+        ["instances", "estimated", "acc_5deg_2cm", "acc_10deg_5cm", "add_s", "mssd_recall", "mspd_recall", "vsd_recall"]
+    {
         let (a, b) = (summary[key].as_f64().unwrap(), rescored[key].as_f64().unwrap());
         assert!((a - b).abs() < 1e-6, "{key}: {a} from the graph, {b} from its results file");
     }
     assert!(rescored["mode_recall"].is_null() && rescored["spread_error_spearman"].is_null(), "{rescored}");
+    // Depth only: the ingest stage of the graph run is told to hand the
+    // network no image, and every instance is still estimated.
+    let blind_dir = dir.join("no-rgb");
+    let blind =
+        eval(&["--dataset", dataset_arg, "--out", blind_dir.to_str().unwrap(), "--no-rgb", "--selection", "none"]);
+    assert!(blind.status.success(), "{}", String::from_utf8_lossy(&blind.stderr));
+    let blind: serde_json::Value = serde_json::from_slice(&blind.stdout).unwrap();
+    assert_eq!((blind["rgb"].as_bool(), &blind["estimated"]), (Some(false), &summary["instances"]), "{blind}");
+    let graph: toml::Table = std::fs::read_to_string(blind_dir.join("estimation.toml")).unwrap().parse().unwrap();
+    assert_eq!(graph["stages"]["ingest"]["params"]["rgb"].as_bool(), Some(false));
+    assert_eq!(summary["rgb"].as_bool(), Some(true));
     // A targets file that is not there is named.
     let out = poseflow(&["eval", "--dataset", dataset_arg, "--targets", "/nowhere/targets.json"]);
     assert_eq!(out.status.code(), Some(1));

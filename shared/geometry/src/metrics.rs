@@ -4,7 +4,8 @@
 //! mesh vertices); poses are `camera_from_object` (metres). Errors are in
 //! metres, [`mspd`] in pixels. Symmetric objects: [`mssd`] and [`mspd`]
 //! take the minimum over the [`SymmetrySet`], as the BOP toolkit does;
-//! [`add_s`] needs no symmetries (closest-point matching).
+//! [`add_s`] needs no symmetries (closest-point matching). [`vsd`] compares
+//! depth images and so needs no symmetries either.
 
 use nalgebra::Point3;
 
@@ -75,6 +76,61 @@ pub fn mspd(points: &[Point3<f64>], estimate: &Pose, truth: &Pose, symmetries: &
         let (a, b) = (camera.project(&estimate.transform_point(p)), camera.project(&twin.transform_point(p)));
         (a[0] - b[0]).hypot(a[1] - b[1])
     })
+}
+
+/// Depth images of one camera for [`vsd`]: row-major, `width` pixels per
+/// row, metres of camera-frame z, 0 = no measurement / no surface.
+#[derive(Debug, Clone, Copy)]
+pub struct DepthImages<'a> {
+    pub pinhole: Pinhole,
+    pub width: usize,
+    /// The sensor's depth of the test image.
+    pub test: &'a [f32],
+    /// The object alone rendered at the estimate and at the truth.
+    pub estimate: &'a [f32],
+    pub truth: &'a [f32],
+}
+
+/// Visible Surface Discrepancy (BOP19; Hodaň et al.), one error in [0, 1]
+/// per misalignment tolerance in `taus` (metres): over the pixels where the
+/// object is visible under the estimate or the truth, the share that is not
+/// visible under both with distances within τ. Visibility as the BOP toolkit's
+/// "bop19" mode: the rendered surface is at most `delta` metres behind the
+/// test depth, or the test has no measurement there; a pixel visible under
+/// the truth counts as visible under the estimate wherever the estimate has
+/// a surface. Distances are along the ray, not z. An empty union gives 1.
+/// Images of different sizes give 1 (nothing can be compared).
+pub fn vsd(images: &DepthImages<'_>, delta: f64, taus: &[f64]) -> Vec<f64> {
+    let n = images.test.len();
+    if images.estimate.len() != n || images.truth.len() != n || images.width == 0 {
+        return vec![1.0; taus.len()];
+    }
+    let Pinhole { fx, fy, cx, cy } = images.pinhole;
+    let visible = |model: f64, test: f64| model > 0.0 && (test == 0.0 || model - test <= delta);
+    let (mut union, mut only_one) = (0usize, 0usize);
+    let mut both: Vec<f64> = Vec::new();
+    for i in 0..n {
+        let (u, v) = ((i % images.width) as f64, (i / images.width) as f64);
+        let ray = ((u - cx) / fx).hypot((v - cy) / fy).hypot(1.0);
+        let [test, estimate, truth] = [images.test[i], images.estimate[i], images.truth[i]].map(|z| f64::from(z) * ray);
+        let in_truth = visible(truth, test);
+        let in_estimate = visible(estimate, test) || (in_truth && estimate > 0.0);
+        match (in_truth, in_estimate) {
+            (true, true) => both.push((estimate - truth).abs()),
+            (false, false) => continue,
+            _ => only_one += 1,
+        }
+        union += 1;
+    }
+    taus.iter()
+        .map(|&tau| {
+            if union == 0 {
+                return 1.0;
+            }
+            let misaligned = both.iter().filter(|&&d| d >= tau).count();
+            (misaligned + only_one) as f64 / union as f64
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -153,5 +209,37 @@ mod tests {
         // Without its symmetries the twin is far off.
         assert!(mssd(&points, &twin, &truth, &SymmetrySet::identity_only()) > 0.05);
         assert!(add(&points, &twin, &truth) > 0.05);
+    }
+
+    /// A 4×3 camera with unit rays along the centre column's neighbours.
+    fn depth_images<'a>(test: &'a [f32], estimate: &'a [f32], truth: &'a [f32]) -> DepthImages<'a> {
+        DepthImages { pinhole: Pinhole { fx: 1e6, fy: 1e6, cx: 1.5, cy: 1.0 }, width: 4, test, estimate, truth }
+    }
+
+    #[test]
+    fn vsd_in_closed_form() {
+        let taus = [0.005, 0.02];
+        // Truth covers 4 pixels, all seen by the sensor.
+        let truth = [0.0, 0.5, 0.5, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let test = [0.8, 0.5, 0.5, 0.8, 0.8, 0.5, 0.5, 0.8, 0.8, 0.8, 0.8, 0.8];
+        assert_eq!(vsd(&depth_images(&test, &truth, &truth), 0.015, &taus), vec![0.0, 0.0]);
+        // The estimate 1 cm deeper: misaligned for τ = 5 mm, aligned for 2 cm.
+        let deeper = truth.map(|z| if z > 0.0 { z + 0.01 } else { 0.0 });
+        assert_eq!(vsd(&depth_images(&test, &deeper, &truth), 0.015, &taus), vec![1.0, 0.0]);
+        // Shifted one column right: 2 pixels in both, 2 only in the truth,
+        // 2 only in the estimate (in front of the background: visible).
+        let shifted = [0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0];
+        assert_eq!(vsd(&depth_images(&test, &shifted, &truth), 0.015, &taus), vec![4.0 / 6.0, 4.0 / 6.0]);
+        // No estimate at all: every truth pixel is unmatched.
+        let nothing = [0.0; 12];
+        assert_eq!(vsd(&depth_images(&test, &nothing, &truth), 0.015, &taus), vec![1.0, 1.0]);
+        // An estimate hidden behind an occluder is not visible, so it is not
+        // counted against the estimate: the occluded part of the truth...
+        let occluded_test = [0.8, 0.3, 0.3, 0.8, 0.8, 0.5, 0.5, 0.8, 0.8, 0.8, 0.8, 0.8];
+        let hidden_top = [0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0];
+        // ...is invisible under the truth as well, so hiding it costs nothing.
+        assert_eq!(vsd(&depth_images(&occluded_test, &hidden_top, &truth), 0.015, &taus), vec![0.0, 0.0]);
+        // Mismatched sizes compare nothing.
+        assert_eq!(vsd(&depth_images(&test[..4], &truth, &truth), 0.015, &taus), vec![1.0, 1.0]);
     }
 }

@@ -25,4 +25,4 @@ pub use error::SceneError;
 pub use library::{LibraryObject, ModelLibrary, model_file_name};
 pub use mesh::{MeshFormat, ObjectMesh, load_mesh};
 pub use noise::DepthNoise;
-pub use render::{Camera, Frame, Light, Placed, RenderModel, render, silhouettes};
+pub use render::{Camera, Frame, Light, Placed, RenderModel, object_depth, render, silhouettes};

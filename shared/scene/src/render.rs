@@ -166,27 +166,31 @@ pub fn render(camera: &Camera, objects: &[Placed<'_>], light: &Light) -> Frame {
 }
 
 /// Each object's full silhouette, ignoring the others (BOP's `mask/`; the
-/// visible masks, `mask_visib/`, are the labels of [`render`]). Rays are
-/// cast only inside the box that the object's projected vertices span.
+/// visible masks, `mask_visib/`, are the labels of [`render`]).
 pub fn silhouettes(camera: &Camera, objects: &[Placed<'_>]) -> Vec<Vec<bool>> {
+    objects.iter().map(|object| object_depth(camera, object).iter().map(|&z| z > 0.0).collect()).collect()
+}
+
+/// The depth of `object` alone (row-major, metres, 0 where it is not seen),
+/// as for BOP's VSD. Rays are cast only inside the box that the object's
+/// projected vertices span.
+pub fn object_depth(camera: &Camera, object: &Placed<'_>) -> Vec<f32> {
     let (w, h) = (camera.width as usize, camera.height as usize);
-    objects
-        .iter()
-        .map(|object| {
-            let mut mask = vec![false; w * h];
-            let Some((u0, v0, u1, v1)) = projected_box(camera, object) else {
-                return mask;
-            };
-            let pose = isometry(object.pose);
-            mask.par_chunks_mut(w).enumerate().skip(v0).take(v1 + 1 - v0).for_each(|(v, row)| {
-                for (u, inside) in row.iter_mut().enumerate().take(u1 + 1).skip(u0) {
-                    let ray = Ray::new(Point3::origin(), camera.ray_direction(u as f64, v as f64).cast::<f32>());
-                    *inside = object.model.trimesh.intersects_ray(&pose, &ray, f32::MAX);
-                }
-            });
-            mask
-        })
-        .collect()
+    let mut depth = vec![0.0f32; w * h];
+    let Some((u0, v0, u1, v1)) = projected_box(camera, object) else {
+        return depth;
+    };
+    let pose = isometry(object.pose);
+    depth.par_chunks_mut(w).enumerate().skip(v0).take(v1 + 1 - v0).for_each(|(v, row)| {
+        for (u, z) in row.iter_mut().enumerate().take(u1 + 1).skip(u0) {
+            let direction = camera.ray_direction(u as f64, v as f64).cast::<f32>();
+            let ray = Ray::new(Point3::origin(), direction);
+            if let Some(toi) = object.model.trimesh.cast_ray(&pose, &ray, f32::MAX, false) {
+                *z = toi * direction.z;
+            }
+        }
+    });
+    depth
 }
 
 /// The inclusive pixel box `(u0, v0, u1, v1)` that may see `object`: the

@@ -135,3 +135,21 @@ fn full_masks_contain_the_visible_ones() {
         }
     }
 }
+
+#[test]
+fn an_objects_own_depth_equals_the_rendered_depth_where_nothing_hides_it() {
+    let model = RenderModel::new(sphere(0.05, 32, 16)).unwrap();
+    let far = Pose::new(Rotation3::from_euler_angles(0.2, 0.1, 0.3), Vector3::new(0.0, 0.0, 0.8));
+    let near = Pose::new(Rotation3::identity(), Vector3::new(0.03, 0.0, 0.5));
+    let alone = render(&CAMERA, &[Placed { model: &model, pose: &far }], &Light::default());
+    let own = poseflow_scene::object_depth(&CAMERA, &Placed { model: &model, pose: &far });
+    assert_eq!(own, alone.depth);
+    // With an occluder in front, the object's own depth still sees all of it.
+    let both = render(
+        &CAMERA,
+        &[Placed { model: &model, pose: &far }, Placed { model: &model, pose: &near }],
+        &Light::default(),
+    );
+    let hidden = own.iter().zip(&both.label).filter(|&(&z, &label)| z > 0.0 && label == 2).count();
+    assert!(hidden > 50, "{hidden} pixels of the far sphere behind the near one");
+}

@@ -23,6 +23,8 @@ pub struct Overrides<'a> {
     pub tracking_steps: Option<usize>,
     /// The frame source's pace (a video), or as fast as the graph takes.
     pub rate_hz: Option<f64>,
+    /// `false`: the ingest stage hands the network no image.
+    pub rgb: bool,
 }
 
 fn absolute(path: &Path) -> anyhow::Result<String> {
@@ -76,6 +78,9 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
                 if let Some(rate_hz) = overrides.rate_hz {
                     params.insert("rate_hz".into(), rate_hz.into());
                 }
+            }
+            "ingest" if !overrides.rgb => {
+                params.insert("rgb".into(), false.into());
             }
             "inference" => {
                 params.insert("model".into(), absolute(overrides.model)?.into());

@@ -293,6 +293,7 @@ fn render_and_run(
         steps: args.steps,
         tracking_steps: None,
         rate_hz: args.track.then_some(args.rate_hz),
+        rgb: true,
     };
     let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
     let graph = args.out.join(name);

@@ -2,15 +2,16 @@
 //! source's stream, its camera and the targeted object instances.
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use poseflow_geometry::Pose;
 use poseflow_geometry::metrics::Pinhole;
 use poseflow_ingest::sources::BopFrames;
-use poseflow_scene::bop::{ByImage, CameraEntry, GtEntry, GtInfoEntry, SceneDir, read_json};
+use poseflow_scene::Camera;
+use poseflow_scene::bop::{ByImage, CameraEntry, GtEntry, GtInfoEntry, SceneDir, read_depth_png, read_json};
 
-use super::score::ImageCamera;
+use super::score::{ImageCamera, TestDepth};
 
 /// BOP19 scores only instances with at least this much of their silhouette
 /// visible.
@@ -30,8 +31,35 @@ pub struct TruthImage {
     pub scene_id: u32,
     pub im_id: u32,
     pub camera: ImageCamera,
+    /// The image's depth PNG, when the dataset has one (for VSD).
+    pub depth: Option<DepthFile>,
     /// The targeted instances (every annotated one without targets).
     pub instances: Vec<TruthInstance>,
+}
+
+/// A depth PNG and what reading it needs.
+#[derive(Debug, Clone)]
+pub struct DepthFile {
+    pub path: PathBuf,
+    pub depth_scale: f64,
+    pub camera: Camera,
+}
+
+impl DepthFile {
+    pub fn read(&self) -> anyhow::Result<TestDepth> {
+        let raster = read_depth_png(&self.path, self.depth_scale)?;
+        if (raster.width, raster.height) != (self.camera.width, self.camera.height) {
+            bail!(
+                "{}: {}×{} pixels, the image's rgb is {}×{}",
+                self.path.display(),
+                raster.width,
+                raster.height,
+                self.camera.width,
+                self.camera.height
+            );
+        }
+        Ok(TestDepth { camera: self.camera, depth: raster.pixels })
+    }
 }
 
 struct SceneFiles {
@@ -57,10 +85,15 @@ pub fn read_truth(split_dir: &Path, frames: &BopFrames) -> anyhow::Result<Vec<Tr
         };
         let missing = |file: &Path| format!("{}: no entry for image {im_id}", file.display());
         let entry = files.cameras.get(&im_id).with_context(|| missing(&dir.scene_camera()))?;
-        let (width, _) = image::image_dimensions(dir.rgb(im_id))
+        let (width, height) = image::image_dimensions(dir.rgb(im_id))
             .with_context(|| format!("{}: cannot read the image size", dir.rgb(im_id).display()))?;
         let k = &entry.cam_k;
         let camera = ImageCamera { pinhole: Pinhole { fx: k[0], fy: k[4], cx: k[2], cy: k[5] }, width };
+        let depth = dir.depth(im_id).is_file().then(|| DepthFile {
+            path: dir.depth(im_id),
+            depth_scale: entry.depth_scale,
+            camera: Camera { fx: k[0], fy: k[4], cx: k[2], cy: k[5], width, height },
+        });
         let gts = files.gts.get(&im_id).with_context(|| missing(&dir.scene_gt()))?;
         let infos = files.infos.as_ref().and_then(|infos| infos.get(&im_id));
         let mut instances = Vec::new();
@@ -75,7 +108,7 @@ pub fn read_truth(split_dir: &Path, frames: &BopFrames) -> anyhow::Result<Vec<Tr
                 scored: visib_fract >= MIN_VISIB_FRACT,
             });
         }
-        images.push(TruthImage { scene_id, im_id, camera, instances });
+        images.push(TruthImage { scene_id, im_id, camera, depth, instances });
     }
     Ok(images)
 }

@@ -41,6 +41,12 @@ pub struct Accuracies {
     pub add_s: f64,
     pub mssd_recall: f64,
     pub mspd_recall: f64,
+    /// When the dataset has depth images; an instance without an estimate
+    /// counts 0.
+    pub vsd_recall: Option<f64>,
+    /// BOP19's average recall, the mean of the VSD, MSSD and MSPD recalls
+    /// (with VSD only).
+    pub bop_ar: Option<f64>,
     /// Over the symmetric objects' instances with an estimate; `None` when
     /// there are none.
     pub mode_recall: Option<f64>,
@@ -95,6 +101,9 @@ fn accuracies<'a>(outcomes: impl Iterator<Item = &'a InstanceOutcome>) -> Accura
     // fold from +0.0: an empty f64 sum is -0.0, printed as "-0.0".
     let sum = |f: &dyn Fn(&InstanceScore) -> f64| scores.iter().fold(0.0, |total, s| total + f(s));
     let modes: Vec<f64> = scores.iter().filter_map(|s| s.mode_recall).collect();
+    let has_depth = scores.iter().any(|s| s.vsd_recall.is_some());
+    let vsd_recall = has_depth.then(|| percent(sum(&|s| s.vsd_recall.unwrap_or(0.0)), n));
+    let (mssd_recall, mspd_recall) = (percent(sum(&|s| s.mssd_recall), n), percent(sum(&|s| s.mspd_recall), n));
     Accuracies {
         instances: n,
         estimated: scores.len(),
@@ -104,8 +113,10 @@ fn accuracies<'a>(outcomes: impl Iterator<Item = &'a InstanceOutcome>) -> Accura
         acc_10deg_2cm: percent(sum(&|s| s.accuracy[2]), n),
         acc_10deg_5cm: percent(sum(&|s| s.accuracy[3]), n),
         add_s: percent(sum(&|s| s.add_s), n),
-        mssd_recall: percent(sum(&|s| s.mssd_recall), n),
-        mspd_recall: percent(sum(&|s| s.mspd_recall), n),
+        mssd_recall,
+        mspd_recall,
+        vsd_recall,
+        bop_ar: vsd_recall.map(|vsd| (vsd + mssd_recall + mspd_recall) / 3.0),
         mode_recall: (!modes.is_empty()).then(|| percent(modes.iter().fold(0.0, |a, b| a + b), modes.len())),
         median_rotation_error_deg: median(scores.iter().map(|s| s.rotation_error_deg).collect()),
         median_translation_error_cm: median(scores.iter().map(|s| s.translation_error_cm).collect()),
@@ -220,6 +231,7 @@ mod tests {
                 add_s: accuracy[3],
                 mssd_recall: 0.5,
                 mspd_recall: 0.25,
+                vsd_recall: Some(0.75),
                 mode_recall: (obj_id == 10).then_some(0.5),
                 rotation_spread_deg: Some(spread),
             }),
@@ -251,6 +263,9 @@ mod tests {
         assert_eq!(summary.overall.acc_10deg_5cm, 50.0);
         assert_eq!(summary.overall.add_s, 50.0);
         assert_eq!(summary.overall.mssd_recall, 37.5);
+        // VSD 0.75 on 3 of 4; AR = mean(56.25, 37.5, 18.75).
+        assert_eq!(summary.overall.vsd_recall, Some(56.25));
+        assert_eq!(summary.overall.bop_ar, Some(37.5));
         assert_eq!(summary.overall.mode_recall, Some(50.0));
         assert_eq!(summary.overall.median_rotation_error_deg, Some(8.0));
         assert_eq!(summary.per_object[&1].accuracies.acc_10deg_5cm, 50.0);
