@@ -19,9 +19,24 @@ from .data import Shard
 from .train import load_config
 
 
-def learning_curve(log_path):
-    entries = [json.loads(line) for line in Path(log_path).read_text().splitlines() if line.strip()]
-    return [e for e in entries if "validation" in e]
+def learning_curve(log_paths):
+    """Validation entries of the runs' logs in order; an earlier run's
+    entries count up to where the next run's log starts (a run continued
+    from its checkpoint repeats nothing)."""
+    runs = [[json.loads(line) for line in Path(p).read_text().splitlines() if line.strip()] for p in log_paths]
+    curve = []
+    for k, entries in enumerate(runs):
+        later = [e["train_s"] for run in runs[k + 1:] for e in run[:1]]
+        end = min(later, default=math.inf)
+        for entry in entries:
+            if "validation" not in entry or entry["train_s"] >= end:
+                continue
+            # A run resumed from an older checkpoint logs those steps again:
+            # the later lines replace the earlier ones.
+            while curve and curve[-1]["step"] >= entry["step"]:
+                curve.pop()
+            curve.append(entry)
+    return curve
 
 
 def plot(curve, path):
@@ -64,6 +79,10 @@ def main():
     parser.add_argument("--model", required=True)
     parser.add_argument("--eval", required=True)
     parser.add_argument("--bench", required=True)
+    parser.add_argument("--earlier-logs", nargs="*", default=[],
+                        help="log.jsonl of the runs this one continues, oldest first (for the learning curve)")
+    parser.add_argument("--history", default="",
+                        help="Markdown describing how the runs followed each other, for the Training section")
     args = parser.parse_args()
     config = load_config(args.config)
     cfg = config["model"]
@@ -71,7 +90,7 @@ def main():
     run = Path(config["out"])
     saved = torch.load(run / "checkpoint.pt", weights_only=False, map_location="cpu")
     state = saved["state"]
-    curve = learning_curve(run / "log.jsonl")
+    curve = learning_curve([*args.earlier_logs, run / "log.jsonl"])
     plot(curve, out / "learning-curve.png")
     evaluation = json.loads(Path(args.eval).read_text())
     coarse = evaluation["coarse"]
@@ -131,6 +150,10 @@ Runtime reproduces within 1e-4 (checked at export and by the Rust tests).
   {cfg.correspondence_points} points (PointNet segmentation network), aligned to the observed
   points in closed form (Horn); the heads predict the clean pose as a
   correction of it.
+- Refiner: {cfg.refine_iterations} iterations that map the observed points into the object
+  frame by the current coarse pose, predict corrected object-frame
+  coordinates (PointNet, residual) and align them again (Horn); the last
+  pose is the coarse pose token (0 iterations: no refiner).
 - PointNet++'s "group all" level adds one global point token; a pooled
   summary of the condition joins the adaLN conditioning
   (global_condition = {cfg.global_condition}).
@@ -152,7 +175,8 @@ medium occlusion, never trained on.
 AdamW lr {config.get('lr')}, loss λ·ℓ_pos + ℓ_rot with λ = {config.get('lambda_pos')} ("{config.get('loss', 'velocity')}"),
 plus the correspondence loss with weight {config.get('correspondence', 1.0)}; the first
 {config.get('correspondence_warmup_s', 0) / 60:.0f} minutes train the correspondence network alone
-(see `training/README.md` for why). Hours are cumulative training time,
+(see `training/README.md` for why). {args.history}
+Hours are cumulative training time,
 measured inside the training loop; part of it ran while the same two cores
 built and tested the Rust workspace, so it overstates the CPU time spent.
 During the warm-up the velocity network is untrained and its zero-initialised
