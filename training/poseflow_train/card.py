@@ -79,8 +79,11 @@ def main():
     parser.add_argument("--model", required=True)
     parser.add_argument("--eval", required=True)
     parser.add_argument("--bench", required=True)
+    parser.add_argument("--also-eval", nargs="*", default=[],
+                        help="evaluate outputs on further held-out shards (e.g. one never used during training)")
     parser.add_argument("--earlier-logs", nargs="*", default=[],
                         help="log.jsonl of the runs this one continues, oldest first (for the learning curve)")
+    parser.add_argument("--eval-note", default="", help="Markdown after the held-out table")
     parser.add_argument("--history", default="",
                         help="Markdown describing how the runs followed each other, for the Training section")
     args = parser.parse_args()
@@ -112,6 +115,13 @@ def main():
          else "no", r["observations"], r["acc_10deg_5cm"], r["acc_5deg_5cm"], r["median_rot_deg"], r["median_trans_cm"])
         for obj, r in evaluation["per_object"].items()
     ]
+    others = [json.loads(Path(p).read_text()) for p in args.also_eval]
+    other_rows = "".join(
+        f"| all, `{' '.join(e['shard'])}` ({e['observations']} instances) | {e['acc_10deg_5cm']} | {e['acc_5deg_5cm']} | "
+        f"{e['acc_10deg_2cm']} | {e['median_rot_deg']} | {e['median_trans_cm']} |\n"
+        f"| its coarse pose | {e['coarse']['acc_10deg_5cm']} | {e['coarse']['acc_5deg_5cm']} | "
+        f"{e['coarse']['acc_10deg_2cm']} | {e['coarse']['median_rot_deg']} | {e['coarse']['median_trans_cm']} |\n"
+        for e in others)
     timing = lambda t: f"{t['p50_ms']:.1f} ms p50, {t['p99_ms']:.1f} ms p99 (mean {t['mean_ms']:.1f})"  # noqa: E731
     text = f"""# Model card: {out.name}
 
@@ -199,6 +209,8 @@ object's symmetries (`models_info.json`; continuous ones in 1° steps).
 |---|---|---|---|---|---|
 | all | {evaluation['acc_10deg_5cm']} | {evaluation['acc_5deg_5cm']} | {evaluation['acc_10deg_2cm']} | {evaluation['median_rot_deg']} | {evaluation['median_trans_cm']} |
 | the encoder's coarse pose alone (one per instance) | {coarse['acc_10deg_5cm']} | {coarse['acc_5deg_5cm']} | {coarse['acc_10deg_2cm']} | {coarse['median_rot_deg']} | {coarse['median_trans_cm']} |
+{other_rows}
+{args.eval_note}
 
 {table(object_rows, ["object", "symmetric", "instances", "10°5cm %", "5°5cm %", "median rot °", "median trans cm"])}
 

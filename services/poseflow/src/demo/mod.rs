@@ -216,6 +216,14 @@ pub(crate) fn run_graph(graph: &Path, recording: &Path, edges: &str, mut waiting
     let log = std::fs::File::create(&log_path).with_context(|| format!("{}", log_path.display()))?;
     let report_path = recording.with_file_name("run.json");
     let report = std::fs::File::create(&report_path).with_context(|| format!("{}", report_path.display()))?;
+    // A recording left by an earlier run in the same folder would show as
+    // progress until the new run truncates it.
+    match std::fs::remove_file(recording) {
+        Err(err) if err.kind() != std::io::ErrorKind::NotFound => {
+            return Err(err).with_context(|| format!("{}: cannot remove the old recording", recording.display()));
+        }
+        _ => {}
+    }
     let mut child = Command::new(&exe)
         .args(["run", "--status-ms", "0", "--json", "--record"])
         .arg(recording)
