@@ -110,6 +110,11 @@ pub fn vsd(images: &DepthImages<'_>, delta: f64, taus: &[f64]) -> Vec<f64> {
     let (mut union, mut only_one) = (0usize, 0usize);
     let mut both: Vec<f64> = Vec::new();
     for i in 0..n {
+        // Neither model surface here: not visible under either (most of
+        // the image, so skip the ray before computing it).
+        if images.estimate[i] <= 0.0 && images.truth[i] <= 0.0 {
+            continue;
+        }
         let (u, v) = ((i % images.width) as f64, (i / images.width) as f64);
         let ray = ((u - cx) / fx).hypot((v - cy) / fy).hypot(1.0);
         let [test, estimate, truth] = [images.test[i], images.estimate[i], images.truth[i]].map(|z| f64::from(z) * ray);
