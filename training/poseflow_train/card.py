@@ -73,6 +73,14 @@ def table(rows, header):
     return "\n".join(lines)
 
 
+def learning_rate_text(config):
+    """The learning rate and its schedule, as the card states it."""
+    decay = config.get("lr_decay")
+    if not decay:
+        return f"{config.get('lr')}"
+    return f"{config.get('lr')} cosine-decayed to {decay['final']} over {decay['over_s'] / 60:.0f} minutes (`lr_decay`)"
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", required=True)
@@ -182,7 +190,7 @@ medium occlusion, never trained on.
 
 {state['step']:,} steps, {state['train_s'] / 3600:.2f} h of training on 2 CPU cores (PyTorch,
 `torch.set_num_threads(2)`), batch {config.get('batch')} observations × {config.get('samples_per_observation')} flow samples,
-AdamW lr {config.get('lr')}, loss λ·ℓ_pos + ℓ_rot with λ = {config.get('lambda_pos')} ("{config.get('loss', 'velocity')}"),
+AdamW lr {learning_rate_text(config)}, loss λ·ℓ_pos + ℓ_rot with λ = {config.get('lambda_pos')} ("{config.get('loss', 'velocity')}"),
 plus the correspondence loss with weight {config.get('correspondence', 1.0)}; the first
 {config.get('correspondence_warmup_s', 0) / 60:.0f} minutes train the correspondence network alone
 (see `training/README.md` for why). {args.history}

@@ -173,6 +173,19 @@ def correspondence_losses(encoder, batch, table, cfg, config, generator):
     return sum(losses) / len(losses)
 
 
+def learning_rate(config, state):
+    """`lr`, or with `lr_decay` {"over_s", "final"} a cosine from `lr` to
+    `final` over the run's first `over_s` seconds of training (counted from
+    `init_from`'s time for a grown model), then `final`: a time budget, not
+    a step count, is what a CPU run has."""
+    lr = config.get("lr", 3e-4)
+    decay = config.get("lr_decay")
+    if not decay:
+        return lr
+    done = (state["train_s"] - state.get("initialised_at_s", 0.0)) / decay["over_s"]
+    return decay["final"] + (lr - decay["final"]) * 0.5 * (1.0 + math.cos(math.pi * min(max(done, 0.0), 1.0)))
+
+
 def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
     """Everything a later run needs to continue, written atomically."""
     saved = {name: module.state_dict() for name, module in modules.items()}
@@ -270,6 +283,8 @@ def main():
             loss_more = correspondence_losses(encoder, more, table, cfg, config, generator)
             loss_corr = (batch_size * loss_corr + extra * loss_more) / (batch_size + extra)
         loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr
+        for group in optimiser.param_groups:
+            group["lr"] = learning_rate(config, state)
         optimiser.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, config.get("clip", 1.0))
@@ -277,7 +292,7 @@ def main():
         state["step"] += 1
         state["train_s"] += time.monotonic() - started
         if state["step"] % config.get("log_every", 20) == 0:
-            entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "loss": loss.item(),
+            entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "lr": learning_rate(config, state), "loss": loss.item(),
                      "loss_rot": loss_rot.item(), "loss_pos": loss_pos.item(), "loss_corr": loss_corr.item()}
             log.write(json.dumps(entry) + "\n")
             log.flush()

@@ -76,3 +76,16 @@ def test_perturbed_poses_stay_within_their_bounds():
     angles = torch.rad2deg(se3.geodesic_angle(r, rotation))
     assert angles.max().item() <= 40.0 + 1e-3 and angles.mean().item() > 10.0
     assert p.norm(dim=-1).max().item() <= 0.02 + 1e-6
+
+
+def test_the_learning_rate_decays_by_cosine_over_the_runs_own_time():
+    from poseflow_train.train import learning_rate
+
+    config = {"lr": 2e-4, "lr_decay": {"over_s": 1000.0, "final": 1e-5}}
+    grown = {"initialised_at_s": 5000.0}
+    assert learning_rate({"lr": 2e-4}, {"train_s": 9e9}) == 2e-4
+    assert math.isclose(learning_rate(config, dict(grown, train_s=5000.0)), 2e-4)
+    assert math.isclose(learning_rate(config, dict(grown, train_s=5500.0)), (2e-4 + 1e-5) / 2)
+    assert math.isclose(learning_rate(config, dict(grown, train_s=6000.0)), 1e-5)
+    assert math.isclose(learning_rate(config, dict(grown, train_s=7000.0)), 1e-5)
+    assert math.isclose(learning_rate(config, {"train_s": 250.0}), 1e-5 + 1.9e-4 * 0.5 * (1 + math.cos(math.pi / 4)))
