@@ -661,10 +661,14 @@ params = {{ report = "{report}" }}
 /// cross shared memory are bit for bit those of the same stages run
 /// in-process on the recorded observations with the same seed.
 #[test]
-fn the_estimation_graph_matches_the_in_process_run_bit_for_bit() {
+fn the_estimation_and_grasp_graph_matches_the_in_process_run_bit_for_bit() {
     use std::cell::RefCell;
 
-    use poseflow_contracts::{EstimateHeader, HypothesesHeader, MessageHeader, ObservationHeader};
+    use poseflow_contracts::{
+        EstimateHeader, GRASP_LEN, GraspsHeader, HypothesesHeader, MessageHeader, ObservationHeader,
+    };
+    use poseflow_grasp::stage::{grasp_values, kept_hypotheses};
+    use poseflow_grasp::{GraspParams, GraspPlanner};
     use poseflow_inference::PoseFlowModel;
     use poseflow_inference::stage::InferenceStage;
     use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
@@ -682,6 +686,9 @@ fn the_estimation_graph_matches_the_in_process_run_bit_for_bit() {
     let sampler_params = serde_json::json!({ "samples": 16, "steps": 3, "seed": 7 });
     let selector_params = serde_json::json!({
         "method": "sdf", "models": models, "refine": true, "score_points": 128, "sdf_resolution": 32,
+    });
+    let grasp_params = serde_json::json!({
+        "model": root.join("models/grasp-flow"), "models": models, "grasps": 6, "steps": 3, "hypotheses": 3, "seed": 5,
     });
     let graph = scratch.dir.join("estimation.toml");
     std::fs::write(
@@ -708,24 +715,37 @@ calls = ["velocities"]
 outputs = ["hypotheses"]
 params = {sampler_params}
 
+[edges.grasps]
+message = "Grasps"
+queue = 4
+overflow = "block"
+max_payload_len = 200
+
 [stages.selector]
 exe = "selector"
 inputs = ["hypotheses"]
 side_inputs = ["observations"]
 outputs = ["estimates"]
 params = {selector_params}
+
+[stages.grasp]
+exe = "grasp"
+inputs = ["estimates"]
+outputs = ["grasps"]
+params = {grasp_params}
 "#,
                 sampler_params = toml_inline(&sampler_params),
                 selector_params = toml_inline(&selector_params),
+                grasp_params = toml_inline(&grasp_params),
             ),
     )
     .unwrap();
     let recording = scratch.dir.join("estimation.rec");
-    let (result, stderr) = run_recording(&graph, "observations,hypotheses,estimates", &recording);
-    for stage in ["ingest", "inference", "sampler", "selector"] {
+    let (result, stderr) = run_recording(&graph, "observations,hypotheses,estimates,grasps", &recording);
+    for stage in ["ingest", "inference", "sampler", "selector", "grasp"] {
         assert_eq!(result["stages"][stage]["outcome"], "finished", "{result}\n{stderr}");
     }
-    for stage in ["inference", "sampler", "selector"] {
+    for stage in ["inference", "sampler", "selector", "grasp"] {
         assert_eq!(result["stages"][stage]["errors"], 0, "{stage}: {result}\n{stderr}");
         assert_eq!(result["stages"][stage]["dropped"], 0, "{stage}: {result}\n{stderr}");
     }
@@ -735,9 +755,9 @@ params = {selector_params}
     while let Some(message) = reader.next_message().unwrap() {
         recorded.entry(message.edge.clone()).or_default().push(message);
     }
-    let [observations, hypotheses, estimates] =
-        ["observations", "hypotheses", "estimates"].map(|edge| recorded.remove(edge).unwrap_or_default());
-    assert_eq!((observations.len(), hypotheses.len(), estimates.len()), (3, 3, 3), "{result}");
+    let [observations, hypotheses, estimates, grasps] =
+        ["observations", "hypotheses", "estimates", "grasps"].map(|edge| recorded.remove(edge).unwrap_or_default());
+    assert_eq!((observations.len(), hypotheses.len(), estimates.len(), grasps.len()), (3, 3, 3, 3), "{result}");
 
     let inference = RefCell::new(InferenceStage::with_model(PoseFlowModel::load(&model, 1).unwrap(), 8));
     let field = |request: &poseflow_contracts::VelocityRequest, poses: &[f32], out: &mut [f32]| {
@@ -745,7 +765,9 @@ params = {selector_params}
     };
     let mut sampler = SamplerStage::new(SamplerParams::from_json(&sampler_params).unwrap(), field);
     let mut selector = SelectorStage::new(SelectorParams::from_json(&selector_params).unwrap()).unwrap();
-    for ((observation, hypothesis), estimate) in observations.iter().zip(&hypotheses).zip(&estimates) {
+    let mut planner = GraspPlanner::load(GraspParams::from_json(&grasp_params).unwrap()).unwrap();
+    let served = observations.iter().zip(&hypotheses).zip(&estimates).zip(&grasps);
+    for (((observation, hypothesis), estimate), grasp) in served {
         let obs: ObservationHeader = header_from_bytes(&observation.header).unwrap();
         let handle = inference.borrow_mut().encode(&obs, &observation.payload).unwrap();
         let (expected_header, poses) = sampler.hypotheses(&handle).unwrap();
@@ -773,6 +795,21 @@ params = {selector_params}
         assert_eq!(served, local, "estimate header of frame {}", obs.header.frame_id);
         assert_eq!(estimate.payload, expected, "estimate of frame {}", obs.header.frame_id);
         assert_eq!((served.kept_count, served.refined), (4, 1));
+
+        // The grasp process: the same grasps as the planner in-process,
+        // under the first three kept hypotheses.
+        let kept = kept_hypotheses(&served, &estimate.payload).unwrap();
+        let planned = planner.plan(served.header.frame_id, served.header.object_id, &kept).unwrap();
+        let expected: Vec<f32> = planned.iter().flat_map(grasp_values).collect();
+        let grasps_header: GraspsHeader = header_from_bytes(&grasp.header).unwrap();
+        grasps_header.check_payload(&grasp.payload).unwrap();
+        assert_eq!((grasps_header.grasp_count, grasps_header.hypothesis_count), (6, 3));
+        assert_eq!(grasps_header.header.frame_id, served.header.frame_id);
+        assert_eq!(grasp.payload, expected, "grasps of frame {}", served.header.frame_id);
+        for values in grasp.payload.chunks_exact(GRASP_LEN) {
+            let share = values[GRASP_LEN - 2];
+            assert!([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0].iter().any(|s| (s - share).abs() < 1e-6), "{share}");
+        }
     }
     drop(scratch);
     assert_nothing_leaked(&before);

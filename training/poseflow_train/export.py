@@ -60,6 +60,22 @@ def export(module, args, names, outputs, dynamic, path, meta):
     onnx.save(model, str(path))
 
 
+def write_parity(out, tensors):
+    """`parity.bin` (the tensors, little-endian, one after another) and
+    `parity.json` (name -> shape, dtype, byte offset): what the Rust parity
+    tests read."""
+    index, blob, offset = {}, bytearray(), 0
+    for name, value in tensors.items():
+        array = value.numpy()
+        kind = "i64" if array.dtype == np.int64 else "f32"
+        data = array.astype("<i8" if kind == "i64" else "<f4").tobytes()
+        index[name] = {"shape": list(array.shape), "dtype": kind, "offset": offset}
+        blob += data
+        offset += len(data)
+    (out / "parity.bin").write_bytes(bytes(blob))
+    (out / "parity.json").write_text(json.dumps(index, indent=1) + "\n")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", required=True)
@@ -110,16 +126,7 @@ def main():
     vel_session = onnxruntime.InferenceSession(str(out / "velocity.onnx"))
     got = vel_session.run(None, {k: tensors[k].numpy() for k in ["condition", "condition_mask", "rotation", "translation", "t"]})
     assert np.abs(got[0] - v_rot.numpy()).max() < 1e-4 and np.abs(got[1] - v_pos.numpy()).max() < 1e-4, "velocity parity"
-    index, blob, offset = {}, bytearray(), 0
-    for name, value in tensors.items():
-        array = value.numpy()
-        kind = "i64" if array.dtype == np.int64 else "f32"
-        data = array.astype("<i8" if kind == "i64" else "<f4").tobytes()
-        index[name] = {"shape": list(array.shape), "dtype": kind, "offset": offset}
-        blob += data
-        offset += len(data)
-    (out / "parity.bin").write_bytes(bytes(blob))
-    (out / "parity.json").write_text(json.dumps(index, indent=1) + "\n")
+    write_parity(out, tensors)
     sizes = {f.name: f.stat().st_size for f in out.glob("*.onnx")}
     print(json.dumps({"out": str(out), "sizes": sizes, "parity": "ok"}))
 

@@ -66,18 +66,23 @@ pub struct PoseFlowModel {
 }
 
 /// An expected input or output: name, element type, dimensions (-1 = any).
-struct Port {
+pub(crate) struct Port {
     name: &'static str,
     ty: TensorElementType,
     dims: Vec<i64>,
 }
 
-fn port(name: &'static str, ty: TensorElementType, dims: &[i64]) -> Port {
+pub(crate) fn port(name: &'static str, ty: TensorElementType, dims: &[i64]) -> Port {
     Port { name, ty, dims: dims.to_vec() }
 }
 
 /// Checks a session's inputs or outputs against the contract.
-fn check_ports(path: &Path, what: &str, found: &[ort::value::Outlet], expected: &[Port]) -> Result<(), InferenceError> {
+pub(crate) fn check_ports(
+    path: &Path,
+    what: &str,
+    found: &[ort::value::Outlet],
+    expected: &[Port],
+) -> Result<(), InferenceError> {
     let bad = |detail: String| InferenceError::Model { path: path.to_path_buf(), detail };
     let names: Vec<&str> = found.iter().map(|o| o.name()).collect();
     if names.len() != expected.len() || expected.iter().any(|e| !names.contains(&e.name)) {
@@ -105,11 +110,11 @@ fn check_ports(path: &Path, what: &str, found: &[ort::value::Outlet], expected: 
     Ok(())
 }
 
-fn session(path: &Path, threads: usize) -> Result<Session, InferenceError> {
+pub(crate) fn session(path: &Path, threads: usize) -> Result<Session, InferenceError> {
     let model_error = |detail: String| InferenceError::Model { path: path.to_path_buf(), detail };
     if !path.is_file() {
         return Err(model_error(
-            "no such file (expected encoder.onnx and velocity.onnx in the model directory)".into(),
+            "no such file (a PoseFlow model directory holds encoder.onnx and velocity.onnx, a grasp flow model grasp_encoder.onnx and grasp_velocity.onnx)".into(),
         ));
     }
     let environment = crate::runtime::environment()?;
@@ -120,8 +125,33 @@ fn session(path: &Path, threads: usize) -> Result<Session, InferenceError> {
         .map_err(|e| model_error(e.to_string()))
 }
 
+/// The fixed token count T of a velocity network's `condition` input
+/// (dimension 1), which the condition buffers are sized by.
+pub(crate) fn condition_tokens(velocity: &Session, path: &Path) -> Result<i64, InferenceError> {
+    velocity
+        .inputs()
+        .iter()
+        .find(|o| o.name() == "condition")
+        .and_then(|o| o.dtype().tensor_shape().and_then(|s| s.get(1).copied()))
+        .filter(|&tokens| tokens > 0)
+        .ok_or_else(|| InferenceError::Model {
+            path: path.to_path_buf(),
+            detail: "input `condition` needs a fixed token count (dimension 1)".into(),
+        })
+}
+
+/// The two outputs every velocity network has: `v_rot` and `v_pos`, M × 3.
+pub(crate) fn check_velocity_outputs(velocity: &Session, path: &Path) -> Result<(), InferenceError> {
+    use TensorElementType::Float32 as F;
+    check_ports(path, "outputs", velocity.outputs(), &[port("v_rot", F, &[-1, 3]), port("v_pos", F, &[-1, 3])])
+}
+
 /// A metadata value parsed as JSON into `T`.
-fn meta<T: serde::de::DeserializeOwned>(session: &Session, path: &Path, key: &str) -> Result<T, InferenceError> {
+pub(crate) fn meta<T: serde::de::DeserializeOwned>(
+    session: &Session,
+    path: &Path,
+    key: &str,
+) -> Result<T, InferenceError> {
     let bad = |detail: String| InferenceError::Model { path: path.to_path_buf(), detail };
     let metadata = session.metadata().map_err(|e| bad(e.to_string()))?;
     let text = metadata.custom(key).ok_or_else(|| bad(format!("metadata has no `{key}`")))?;
@@ -167,12 +197,7 @@ impl PoseFlowModel {
             encoder.outputs(),
             &[port("condition", F, &[-1, -1, width]), port("condition_mask", F, &[-1, -1])],
         )?;
-        let t_dim = velocity
-            .inputs()
-            .iter()
-            .find(|o| o.name() == "condition")
-            .and_then(|o| o.dtype().tensor_shape().and_then(|s| s.get(1).copied()))
-            .unwrap_or(-1);
+        let t_dim = condition_tokens(&velocity, &velocity_path)?;
         check_ports(
             &velocity_path,
             "inputs",
@@ -185,18 +210,7 @@ impl PoseFlowModel {
                 port("t", F, &[-1]),
             ],
         )?;
-        check_ports(
-            &velocity_path,
-            "outputs",
-            velocity.outputs(),
-            &[port("v_rot", F, &[-1, 3]), port("v_pos", F, &[-1, 3])],
-        )?;
-        if t_dim <= 0 {
-            return Err(InferenceError::Model {
-                path: velocity_path,
-                detail: "input `condition` needs a fixed token count (dimension 1)".into(),
-            });
-        }
+        check_velocity_outputs(&velocity, &velocity_path)?;
         let info = ModelInfo {
             image_size: s as usize,
             patch_grid: p as usize,

@@ -7,7 +7,7 @@ mod common;
 use std::path::PathBuf;
 
 use common::{max_difference, model_dir, parity, parity_of};
-use poseflow_inference::{Condition, PoseFlowModel};
+use poseflow_inference::{Condition, GraspFlowModel, PoseFlowModel};
 
 #[test]
 fn onnx_runtime_matches_pytorch_on_the_stored_vectors() {
@@ -43,6 +43,11 @@ fn every_shipped_model_reproduces_its_parity_vectors() {
         if !dir.join("parity.json").is_file() {
             continue;
         }
+        if dir.join("grasp_encoder.onnx").is_file() {
+            check_grasp_flow(&dir);
+            checked.push(dir.file_name().unwrap().to_string_lossy().into_owned());
+            continue;
+        }
         let mut model = PoseFlowModel::load(&dir, 1).unwrap();
         let v = parity_of(&dir);
         let index = v["object_index"][0] as usize;
@@ -54,7 +59,30 @@ fn every_shipped_model_reproduces_its_parity_vectors() {
         assert!(max_difference(&out.translation, &v["v_pos"]) < 1e-4, "{}", dir.display());
         checked.push(dir.file_name().unwrap().to_string_lossy().into_owned());
     }
-    assert!(checked.contains(&"test-tiny".to_string()), "{checked:?}");
+    for shipped in ["test-tiny", "poseflow-lmo10", "grasp-flow"] {
+        assert!(checked.contains(&shipped.to_string()), "{checked:?}");
+    }
+}
+
+/// A grasp flow model directory reproduces its stored vectors, and a
+/// batch of several clouds gives each cloud's grasps what it gives alone.
+fn check_grasp_flow(dir: &std::path::Path) {
+    let mut model = GraspFlowModel::load(dir, 1).unwrap();
+    let v = parity_of(dir);
+    let condition = model.encode(&v["points"]).unwrap();
+    assert!(max_difference(&condition, &v["condition"]) < 1e-4, "{}", dir.display());
+    let out = model.velocity(&v["condition"], &v["rotation"], &v["translation"], &v["t"]).unwrap();
+    assert!(max_difference(&out.rotation, &v["v_rot"]) < 1e-4, "{}", dir.display());
+    assert!(max_difference(&out.translation, &v["v_pos"]) < 1e-4, "{}", dir.display());
+    // The stored inputs are two clouds with three grasps each: the second
+    // cloud alone gives its three grasps the same velocities.
+    let per_cloud = v["condition"].len() / 2;
+    let alone = model
+        .velocity(&v["condition"][per_cloud..], &v["rotation"][27..], &v["translation"][9..], &v["t"][3..])
+        .unwrap();
+    assert!(max_difference(&alone.rotation, &v["v_rot"][9..]) < 1e-4, "{}", dir.display());
+    let err = model.velocity(&v["condition"], &v["rotation"][..45], &v["translation"][..15], &v["t"][..5]).unwrap_err();
+    assert!(err.to_string().contains("B × G grasps"), "{err}");
 }
 
 #[test]

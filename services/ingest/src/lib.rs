@@ -27,4 +27,4 @@ pub use error::IngestError;
 pub use frame_message::{FrameLayout, read_frame};
 pub use observe::{ObjectMask, Prepared, RgbdFrame, check_frame, prepare};
 pub use params::IngestParams;
-pub use points::{OutlierFilter, back_project, centre, farthest_point_indices, remove_outliers, sample_fixed, thin};
+pub use points::{OutlierFilter, back_project, centre, remove_outliers, sample_fixed, thin};

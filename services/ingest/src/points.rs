@@ -4,6 +4,7 @@
 //! Points are camera-frame metres (OpenCV axes), `f32`.
 
 use nalgebra::Point3;
+use poseflow_geometry::sampling::farthest_point_indices;
 use poseflow_scene::Camera;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
@@ -228,40 +229,6 @@ fn typical_spacing(points: &[Point3<f32>]) -> f32 {
     (face / points.len() as f32).sqrt().max(1e-5)
 }
 
-/// Indices of `count` points chosen by farthest-point sampling, starting
-/// from the first point: each next point is the one farthest from those
-/// chosen. `count` must not exceed `points.len()`.
-pub fn farthest_point_indices(points: &[Point3<f32>], count: usize) -> Vec<usize> {
-    let mut chosen = Vec::with_capacity(count);
-    if points.is_empty() || count == 0 {
-        return chosen;
-    }
-    // Coordinates as separate arrays so the distance update vectorises.
-    let (xs, ys, zs): (Vec<f32>, Vec<f32>, Vec<f32>) = (
-        points.iter().map(|p| p.x).collect(),
-        points.iter().map(|p| p.y).collect(),
-        points.iter().map(|p| p.z).collect(),
-    );
-    let mut distance = vec![f32::INFINITY; points.len()];
-    let mut next = 0;
-    for _ in 0..count {
-        chosen.push(next);
-        let (lx, ly, lz) = (xs[next], ys[next], zs[next]);
-        for (((d, x), y), z) in distance.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
-            let (dx, dy, dz) = (x - lx, y - ly, z - lz);
-            *d = d.min(dx * dx + dy * dy + dz * dz);
-        }
-        let mut farthest = (0, -1.0f32);
-        for (i, &d) in distance.iter().enumerate() {
-            if d > farthest.1 {
-                farthest = (i, d);
-            }
-        }
-        next = farthest.0;
-    }
-    chosen
-}
-
 /// `count` points: farthest-point sampled when there are enough, otherwise
 /// all of them plus draws with replacement. Returns the points and how many
 /// distinct input points they hold.
@@ -347,19 +314,6 @@ mod tests {
             let brute = d[..6].iter().sum::<f32>() / 6.0;
             assert!((grid.mean_knn_distance(i, 6) - brute).abs() < 1e-6, "point {i}");
         }
-    }
-
-    #[test]
-    fn farthest_point_sampling_spreads_out() {
-        // Two clusters far apart: the second pick is in the other cluster.
-        let mut points: Vec<Point3<f32>> = (0..50).map(|i| Point3::new(i as f32 * 1e-4, 0.0, 0.0)).collect();
-        points.extend((0..50).map(|i| Point3::new(1.0 + i as f32 * 1e-4, 0.0, 0.0)));
-        let picks = farthest_point_indices(&points, 2);
-        assert_eq!(picks, [0, 99]);
-        // From the centre of a square: then the corners (ties go to the
-        // lowest index), each once.
-        let square = [[0.5, 0.5], [0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]].map(|[x, y]| Point3::new(x, y, 0.0));
-        assert_eq!(farthest_point_indices(&square, 5), [0, 1, 2, 3, 4]);
     }
 
     #[test]

@@ -35,6 +35,8 @@ pub enum Command {
     Render(crate::render::RenderArgs),
     /// Add an object from a PLY or OBJ mesh to a BOP models directory (model file + models_info.json entry).
     ImportModel(crate::import_model::ImportModelArgs),
+    /// Sample antipodal, collision-free grasps on object models (the grasp flow's training data).
+    GraspData(crate::grasp_data::GraspDataArgs),
     /// Write one dataset image's RGB, depth and visible masks side by side as a PNG.
     Preview(crate::preview::PreviewArgs),
     /// Write a BOP dataset's observations and ground truth as a training shard.
@@ -43,6 +45,8 @@ pub enum Command {
     Eval(crate::eval::EvalArgs),
     /// Benchmark transport latency and end-to-end throughput.
     Bench(crate::bench::BenchArgs),
+    /// Closed-loop simulations on rendered scenes (grasping under pose uncertainty).
+    Sim(crate::sim::SimArgs),
 }
 
 fn report(result: anyhow::Result<ExitCode>) -> ExitCode {
@@ -61,7 +65,9 @@ pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
         Command::Render(args) => done(crate::render::run(&args)),
         Command::ImportModel(args) => done(crate::import_model::run(&args)),
         Command::Preview(args) => done(crate::preview::run(&args)),
+        Command::GraspData(args) => done(crate::grasp_data::run(&args)),
         Command::Observe(args) => done(crate::observe::run(&args)),
         Command::Eval(args) => done(crate::eval::run(&args)),
+        Command::Sim(args) => done(crate::sim::run(&args)),
     }
 }

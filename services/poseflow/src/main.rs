@@ -4,13 +4,16 @@ mod bench;
 mod cli;
 mod demo;
 mod eval;
+mod grasp_data;
 mod import_model;
 mod logging;
 mod observe;
+mod pipeline;
 mod preview;
 mod progress;
 mod render;
 mod run;
+mod sim;
 mod timing;
 
 use std::process::ExitCode;

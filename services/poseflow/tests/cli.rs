@@ -12,7 +12,7 @@ fn poseflow(args: &[&str]) -> Output {
         .expect("poseflow binary runs")
 }
 
-const SUBCOMMANDS: [&str; 7] = ["demo", "run", "render", "preview", "observe", "eval", "bench"];
+const SUBCOMMANDS: [&str; 9] = ["demo", "run", "render", "preview", "observe", "grasp-data", "eval", "bench", "sim"];
 
 #[test]
 fn help_lists_every_subcommand() {
@@ -458,4 +458,71 @@ fn bench_model_times_both_networks() {
     let missing = poseflow(&["bench", "model", "--model", "/nonexistent"]);
     assert_eq!(missing.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&missing.stderr).contains("/nonexistent/encoder.onnx"));
+}
+
+const YCBV_MODELS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../objects/ycbv/models");
+
+/// Every grasp `grasp-data` writes holds on the mesh when checked again,
+/// closes to the width it records, and comes with the object's cloud; an
+/// unknown object is named.
+#[test]
+fn grasp_data_writes_grasps_that_hold_on_the_mesh() {
+    use poseflow_grasp::data::GraspSet;
+    use poseflow_grasp::{GraspOutcome, check_grasp};
+
+    let out = scratch("grasp-data");
+    let dir = out.to_str().unwrap();
+    let run = poseflow(&["grasp-data", "--models", YCBV_MODELS, "--ids", "14", "--grasps", "25", "--out", dir]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let stdout = String::from_utf8(run.stdout).unwrap();
+    assert!(stdout.contains("object  14:    25 grasps from"), "{stdout}");
+    let set: GraspSet = serde_json::from_slice(&std::fs::read(out.join("grasps_000014.json")).unwrap()).unwrap();
+    assert_eq!((set.obj_id, set.grasps.len(), set.widths.len(), set.cloud.len()), (14, 25, 25, 2048));
+    let library = poseflow_scene::ModelLibrary::load(Path::new(YCBV_MODELS), &[14]).unwrap();
+    let mesh = &library.objects[0].model.mesh;
+    let mesh = poseflow_scene::oriented_trimesh(mesh.vertices.clone(), mesh.triangles.clone()).unwrap();
+    for (values, width) in set.grasps.iter().zip(&set.widths) {
+        let r = nalgebra::Matrix3::from_row_slice(&values[..9]);
+        let rotation = nalgebra::UnitQuaternion::from_matrix(&r);
+        let pose =
+            nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(values[9], values[10], values[11]), rotation);
+        match check_grasp(&mesh, &set.gripper, &pose) {
+            GraspOutcome::Holds { width: again } => assert!((again - width).abs() < 1e-4, "{again} vs {width}"),
+            other => panic!("a written grasp does not hold: {other:?}"),
+        }
+    }
+    let bad = poseflow(&["grasp-data", "--models", YCBV_MODELS, "--ids", "99", "--out", dir]);
+    assert_eq!(bad.status.code(), Some(1));
+    let stderr = String::from_utf8(bad.stderr).unwrap();
+    assert!(stderr.contains("object 99 is not listed"), "{stderr}");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// `sim grasp --json`: both conditions, both plans, rates that are whole
+/// shares of the trials; no trials is an error.
+#[test]
+fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let sim = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_poseflow"))
+            .args(["sim", "grasp"])
+            .args(args)
+            .current_dir(&root)
+            .env_remove("RUST_LOG")
+            .output()
+            .unwrap()
+    };
+    let out = sim(&["--trials", "2", "--grasps", "8", "--hypotheses", "4", "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["trials"], 2, "{report}");
+    for condition in ["visible", "occluded"] {
+        for plan in ["single", "marginalised"] {
+            let rate = report[condition][plan].as_f64().unwrap_or_else(|| panic!("{condition}.{plan}: {report}"));
+            assert!([0.0, 50.0, 100.0].contains(&rate), "{condition}.{plan} = {rate}");
+        }
+    }
+    let none = sim(&["--trials", "0"]);
+    assert_eq!(none.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&none.stderr).contains("--trials 0"));
 }

@@ -8,7 +8,7 @@
 use nalgebra::Vector3;
 use poseflow_contracts::{ConditionHandle, POSE_LEN, VELOCITY_LEN, VelocityRequest};
 use poseflow_geometry::flow::euler_step;
-use poseflow_geometry::sampling::{TranslationNoise, initial_pose, seeded_rng};
+use poseflow_geometry::sampling::{TranslationNoise, initial_pose, sample_seed, seeded_rng};
 use poseflow_geometry::{Pose, Velocity, so3};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -38,16 +38,6 @@ pub enum Start {
     /// Tracking: the previous estimate (camera frame), perturbed, placed at
     /// `tracking.start_time`.
     Track(Pose),
-}
-
-/// The seed of one observation's draws: the same (seed, frame, object)
-/// gives the same samples in every process and in every order.
-pub fn sample_seed(seed: u64, frame_id: u64, object_id: u32) -> u64 {
-    let mut z = seed ^ frame_id.rotate_left(17) ^ u64::from(object_id).rotate_left(47);
-    // splitmix64 finaliser.
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
 }
 
 /// The sampler with its buffers (reused across frames).

@@ -14,5 +14,5 @@ mod params;
 pub mod stage;
 
 pub use error::SamplerError;
-pub use flow::{FlowSampler, Start, VelocityField, sample_seed};
+pub use flow::{FlowSampler, Start, VelocityField};
 pub use params::{SamplerParams, TrackingParams};

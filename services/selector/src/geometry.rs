@@ -8,9 +8,9 @@ use std::sync::OnceLock;
 use std::time::Instant;
 
 use nalgebra::Point3;
-use parry3d::shape::{TriMesh, TriMeshFlags};
+use parry3d::shape::TriMesh;
 use poseflow_geometry::models_info::ModelsInfo;
-use poseflow_scene::{load_mesh, model_file_name};
+use poseflow_scene::{load_mesh, model_file_name, oriented_trimesh};
 
 use crate::SelectorError;
 use crate::sdf::SignedDistanceGrid;
@@ -28,28 +28,15 @@ pub struct ObjectGeometry {
 }
 
 impl ObjectGeometry {
-    /// The model of a closed triangle mesh (model frame, metres). Faces
-    /// wound inwards (negative enclosed volume) are flipped: the
-    /// inside/outside test needs outward normals.
+    /// The model of a closed triangle mesh (model frame, metres), see
+    /// [`oriented_trimesh`].
     pub fn from_mesh(
         obj_id: u32,
         vertices: Vec<Point3<f32>>,
-        mut triangles: Vec<[u32; 3]>,
+        triangles: Vec<[u32; 3]>,
         resolution: usize,
     ) -> Result<Self, String> {
-        let volume: f64 = triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| vertices[i as usize].coords.cast::<f64>());
-                a.dot(&b.cross(&c)) / 6.0
-            })
-            .sum();
-        if volume < 0.0 {
-            triangles.iter_mut().for_each(|t| t.swap(1, 2));
-        }
-        let flags = TriMeshFlags::ORIENTED | TriMeshFlags::MERGE_DUPLICATE_VERTICES;
-        let mesh = TriMesh::with_flags(vertices, triangles, flags)
-            .map_err(|e| format!("cannot build a triangle mesh: {e}"))?;
+        let mesh = oriented_trimesh(vertices, triangles).map_err(|e| format!("cannot build a triangle mesh: {e}"))?;
         Ok(Self { obj_id, mesh, resolution, grid: OnceLock::new() })
     }
 

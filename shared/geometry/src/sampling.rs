@@ -1,7 +1,7 @@
-//! Seeded random draws that start the flow: Haar-uniform rotations and
-//! translation noise.
+//! Seeded random draws that start the flow (Haar-uniform rotations and
+//! translation noise) and farthest-point subsampling of point clouds.
 
-use nalgebra::{Quaternion, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{Point3, Quaternion, Rotation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -51,11 +51,56 @@ impl TranslationNoise {
     }
 }
 
+/// The seed of one observation's draws (pose samples, grasps): the same
+/// (seed, frame, object) gives the same draws in every process and in
+/// every order.
+pub fn sample_seed(seed: u64, frame_id: u64, object_id: u32) -> u64 {
+    let mut z = seed ^ frame_id.rotate_left(17) ^ u64::from(object_id).rotate_left(47);
+    // splitmix64 finaliser.
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
 /// An initial flow sample `(R₀, p₀)`: Haar-uniform rotation, translation from
 /// `noise`.
 pub fn initial_pose<R: Rng + ?Sized>(rng: &mut R, noise: &TranslationNoise) -> Pose {
     let rotation = uniform_rotation(rng);
     Pose::new(rotation, noise.sample(rng))
+}
+
+/// Indices of `count` points chosen by farthest-point sampling, starting
+/// from the first point: each next point is the one farthest from those
+/// chosen. `count` must not exceed `points.len()`.
+pub fn farthest_point_indices(points: &[Point3<f32>], count: usize) -> Vec<usize> {
+    let mut chosen = Vec::with_capacity(count);
+    if points.is_empty() || count == 0 {
+        return chosen;
+    }
+    // Coordinates as separate arrays so the distance update vectorises.
+    let (xs, ys, zs): (Vec<f32>, Vec<f32>, Vec<f32>) = (
+        points.iter().map(|p| p.x).collect(),
+        points.iter().map(|p| p.y).collect(),
+        points.iter().map(|p| p.z).collect(),
+    );
+    let mut distance = vec![f32::INFINITY; points.len()];
+    let mut next = 0;
+    for _ in 0..count {
+        chosen.push(next);
+        let (lx, ly, lz) = (xs[next], ys[next], zs[next]);
+        for (((d, x), y), z) in distance.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            let (dx, dy, dz) = (x - lx, y - ly, z - lz);
+            *d = d.min(dx * dx + dy * dy + dz * dz);
+        }
+        let mut farthest = (0, -1.0f32);
+        for (i, &d) in distance.iter().enumerate() {
+            if d > farthest.1 {
+                farthest = (i, d);
+            }
+        }
+        next = farthest.0;
+    }
+    chosen
 }
 
 #[cfg(test)]
@@ -104,5 +149,18 @@ mod tests {
         // Uniform on [−h, h] has variance h²/3.
         let var: f64 = samples.iter().map(|p| p.y * p.y).sum::<f64>() / n as f64;
         assert!((var - 0.25 / 3.0).abs() < 0.003, "var {var}");
+    }
+
+    #[test]
+    fn farthest_point_sampling_spreads_out() {
+        // Two clusters far apart: the second pick is in the other cluster.
+        let mut points: Vec<Point3<f32>> = (0..50).map(|i| Point3::new(i as f32 * 1e-4, 0.0, 0.0)).collect();
+        points.extend((0..50).map(|i| Point3::new(1.0 + i as f32 * 1e-4, 0.0, 0.0)));
+        let picks = farthest_point_indices(&points, 2);
+        assert_eq!(picks, [0, 99]);
+        // From the centre of a square: then the corners (ties go to the
+        // lowest index), each once.
+        let square = [[0.5, 0.5], [0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]].map(|[x, y]| Point3::new(x, y, 0.0));
+        assert_eq!(farthest_point_indices(&square, 5), [0, 1, 2, 3, 4]);
     }
 }

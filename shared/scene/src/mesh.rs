@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use nalgebra::{Point3, Vector3};
-use parry3d::shape::TriMesh;
+use parry3d::shape::{TriMesh, TriMeshFlags};
 
 use crate::SceneError;
 
@@ -109,4 +109,26 @@ impl ObjectMesh {
     pub fn to_trimesh(&self) -> Result<TriMesh, parry3d::shape::TriMeshBuilderError> {
         TriMesh::new(self.vertices.clone(), self.triangles.clone())
     }
+}
+
+/// The parry mesh of a closed surface with outward faces and pseudo-normals,
+/// for inside/outside tests (signed distances, grippers inside an object)
+/// and outward contact normals. Faces wound inwards (negative enclosed
+/// volume) are flipped.
+pub fn oriented_trimesh(
+    vertices: Vec<Point3<f32>>,
+    mut triangles: Vec<[u32; 3]>,
+) -> Result<TriMesh, parry3d::shape::TriMeshBuilderError> {
+    let volume: f64 = triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| vertices[i as usize].coords.cast::<f64>());
+            a.dot(&b.cross(&c)) / 6.0
+        })
+        .sum();
+    if volume < 0.0 {
+        triangles.iter_mut().for_each(|t| t.swap(1, 2));
+    }
+    let flags = TriMeshFlags::ORIENTED | TriMeshFlags::MERGE_DUPLICATE_VERTICES;
+    TriMesh::with_flags(vertices, triangles, flags)
 }

@@ -1,0 +1,21 @@
+use std::path::PathBuf;
+
+/// Why the grasp stage cannot start or plan a frame; each names the
+/// parameter, file, frame or object concerned.
+#[derive(Debug, thiserror::Error)]
+pub enum GraspError {
+    #[error("param `{key}`: {detail}")]
+    Params { key: &'static str, detail: String },
+
+    #[error("{path}: {detail}")]
+    Objects { path: PathBuf, detail: String },
+
+    #[error(transparent)]
+    Model(#[from] poseflow_inference::InferenceError),
+
+    #[error("frame {frame} object {object}: {detail}")]
+    Frame { frame: u64, object: u32, detail: String },
+
+    #[error(transparent)]
+    Emit(#[from] poseflow_runtime::EmitError),
+}

@@ -1,0 +1,76 @@
+//! The grasp stage: Estimate in, Grasps out.
+
+use poseflow_contracts::{EstimateHeader, GRASP_LEN, GraspsHeader, POSE_LEN, Stage, WEIGHTED_POSE_LEN};
+use poseflow_geometry::Pose;
+use poseflow_runtime::{Emitter, Input, Transform};
+
+use crate::{GraspError, GraspField, GraspPlanner, PlannedGrasp};
+
+#[derive(Debug)]
+pub struct GraspStage<F: GraspField> {
+    planner: GraspPlanner<F>,
+}
+
+impl<F: GraspField> GraspStage<F> {
+    pub fn new(planner: GraspPlanner<F>) -> Self {
+        Self { planner }
+    }
+}
+
+/// The kept hypotheses of an Estimate (object-to-camera), best first.
+pub fn kept_hypotheses(header: &EstimateHeader, payload: &[f32]) -> Result<Vec<Pose>, GraspError> {
+    let (frame, object) = (header.header.frame_id, header.header.object_id);
+    let in_frame = |detail: String| GraspError::Frame { frame, object, detail };
+    let view = header.view(payload).map_err(|e| in_frame(e.to_string()))?;
+    view.hypotheses
+        .chunks_exact(WEIGHTED_POSE_LEN)
+        .take(header.kept_count as usize)
+        .enumerate()
+        .map(|(i, chunk)| {
+            Pose::from_f32_row_major(chunk[..POSE_LEN].try_into().expect("12 values"))
+                .map_err(|e| in_frame(format!("hypothesis {i}: {e}")))
+        })
+        .collect()
+}
+
+/// One grasp as the Grasps payload holds it: pose, width, valid share,
+/// score (the valid share: what a robot should rank by).
+pub fn grasp_values(grasp: &PlannedGrasp) -> [f32; GRASP_LEN] {
+    let mut values = [0.0; GRASP_LEN];
+    values[..POSE_LEN].copy_from_slice(&grasp.camera_from_grasp.to_f32_row_major());
+    values[POSE_LEN] = grasp.width;
+    values[POSE_LEN + 1] = grasp.valid_share as f32;
+    values[POSE_LEN + 2] = grasp.valid_share as f32;
+    values
+}
+
+impl<F: GraspField> Transform for GraspStage<F> {
+    type In = EstimateHeader;
+    type Out = GraspsHeader;
+    type Error = GraspError;
+    const SLOT: Option<Stage> = Some(Stage::Grasp);
+
+    fn process(
+        &mut self,
+        input: Input<'_, EstimateHeader>,
+        output: &mut dyn Emitter<GraspsHeader>,
+    ) -> Result<(), GraspError> {
+        let header = input.header;
+        let (frame, object) = (header.header.frame_id, header.header.object_id);
+        let _span = tracing::debug_span!("grasp", frame, object).entered();
+        let hypotheses = kept_hypotheses(header, input.payload)?;
+        let grasps = self.planner.plan(frame, object, &hypotheses)?;
+        let used = hypotheses.len().min(self.planner.params().hypotheses);
+        let out = GraspsHeader {
+            header: input.forward_header(),
+            grasp_count: grasps.len() as u32,
+            hypothesis_count: used as u32,
+        };
+        output.emit(out, grasps.len() * GRASP_LEN, &mut |payload| {
+            for (chunk, grasp) in payload.chunks_exact_mut(GRASP_LEN).zip(&grasps) {
+                chunk.copy_from_slice(&grasp_values(grasp));
+            }
+        })?;
+        Ok(())
+    }
+}

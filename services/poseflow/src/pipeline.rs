@@ -1,0 +1,83 @@
+//! The pose stages in one process: ingest → encode → flow sampling →
+//! selection, the same library code the graph's processes run (the
+//! simulations use it; `tests/e2e` checks that processes and libraries
+//! agree bit for bit).
+
+use std::cell::RefCell;
+use std::rc::Rc;
+
+use anyhow::Context;
+use poseflow_contracts::{EstimateHeader, MessageHeader, VelocityRequest};
+use poseflow_geometry::sampling::{sample_seed, seeded_rng};
+use poseflow_inference::stage::{InferenceParams, InferenceStage};
+use poseflow_ingest::{IngestParams, ObjectMask, RgbdFrame, prepare};
+use poseflow_sampler::stage::SamplerStage;
+use poseflow_sampler::{SamplerParams, VelocityField};
+use poseflow_selector::SelectorParams;
+use poseflow_selector::stage::{SelectorStage, estimate_header, estimate_payload_len, write_estimate_payload};
+
+/// The inference stage shared by the pipeline (encoding) and the sampler's
+/// velocity field, as the two talk over request-response in the graph.
+#[derive(Debug, Clone)]
+struct SharedField(Rc<RefCell<InferenceStage>>);
+
+impl VelocityField for SharedField {
+    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
+        self.0
+            .borrow_mut()
+            .velocities(request, poses, out)
+            .map_err(|status| format!("velocity request status {status}"))
+    }
+}
+
+/// One object's Estimate: header and payload as the selector publishes them.
+#[derive(Debug, Clone)]
+pub struct Estimated {
+    pub header: EstimateHeader,
+    pub payload: Vec<f32>,
+}
+
+#[derive(Debug)]
+pub struct PosePipeline {
+    ingest: IngestParams,
+    inference: Rc<RefCell<InferenceStage>>,
+    sampler: SamplerStage<SharedField>,
+    selector: SelectorStage,
+}
+
+impl PosePipeline {
+    pub fn new(
+        ingest: IngestParams,
+        inference: &InferenceParams,
+        sampler: SamplerParams,
+        selector: SelectorParams,
+    ) -> anyhow::Result<Self> {
+        let inference = Rc::new(RefCell::new(InferenceStage::new(inference)?));
+        Ok(Self {
+            ingest,
+            sampler: SamplerStage::new(sampler, SharedField(Rc::clone(&inference))),
+            inference,
+            selector: SelectorStage::new(selector)?,
+        })
+    }
+
+    /// The Estimate of `object` in `frame` (frame id `frame.frame_id`).
+    pub fn estimate(&mut self, frame: &RgbdFrame, object: &ObjectMask) -> anyhow::Result<Estimated> {
+        let (frame_id, obj_id) = (frame.frame_id, object.obj_id);
+        let mut rng = seeded_rng(sample_seed(0, frame_id, obj_id));
+        let prepared = prepare(frame, object, &self.ingest, &mut rng)?;
+        let observation = prepared.header(frame_id, &frame.camera, &self.ingest);
+        let mut payload = vec![0.0; observation.payload_len()?];
+        prepared.write_payload(frame, object, &self.ingest, &mut payload);
+        let handle = self.inference.borrow_mut().encode(&observation, &payload)?;
+        let (hypotheses, poses) = self.sampler.hypotheses(&handle)?;
+        let poses: Vec<f32> = poses.iter().flat_map(|p| p.to_f32_row_major()).collect();
+        self.selector.keep_observation(&observation, &payload)?;
+        let selection = self.selector.select_for(&hypotheses, &poses)?;
+        let mut payload = vec![0.0; estimate_payload_len(&selection)];
+        write_estimate_payload(&selection, &mut payload);
+        let header = estimate_header(&selection, hypotheses.header);
+        header.check_payload(&payload).context("the selector's own estimate")?;
+        Ok(Estimated { header, payload })
+    }
+}

@@ -1,0 +1,119 @@
+//! A mug standing alone on a table, seen with its handle in view or hidden
+//! behind its body: the paper's grasping scenes.
+//!
+//! World frame: z up, the table top is `z = 0`, metres. The YCB-V mug's
+//! handle points along its object +x (beyond the body's 4.65 cm radius);
+//! its axis is object z.
+
+use nalgebra::{Point3, Rotation3, Vector3};
+use poseflow_geometry::Pose;
+use poseflow_geometry::sampling::SeededRng;
+use poseflow_ingest::{ObjectMask, RgbdFrame};
+use poseflow_scene::bop::Raster;
+use poseflow_scene::dataset::lmo_camera;
+use poseflow_scene::primitives::support_plane;
+use poseflow_scene::scene::{Scene, SceneObject, look_at, random_light, render_view};
+use poseflow_scene::{DepthNoise, ModelLibrary, RenderModel};
+use rand::Rng;
+
+/// Object-frame x beyond which a surface point belongs to the handle.
+pub const HANDLE_X: f64 = 0.05;
+
+/// Where the handle points relative to the camera.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Handle {
+    /// Turned 60–120° from the line of sight: seen from the side.
+    Visible,
+    /// Pointing away from the camera (within 15°): hidden behind the body.
+    Occluded,
+}
+
+/// One rendered trial: the frame and mask the pipeline reads, the truth,
+/// and how much of the handle the camera sees.
+#[derive(Debug, Clone)]
+pub struct MugView {
+    pub frame: RgbdFrame,
+    pub mask: ObjectMask,
+    pub camera_from_object: Pose,
+    pub camera_from_world: Pose,
+    /// Visible mug pixels that lie on the handle.
+    pub handle_pixels: usize,
+}
+
+/// Renders the mug (library object 0) for `handle`, drawing the view until
+/// the handle's visibility matches: hidden means at most 10 handle pixels,
+/// visible at least 150.
+pub fn render_mug(library: &ModelLibrary, handle: Handle, frame_id: u64, rng: &mut SeededRng) -> MugView {
+    let mug = &library.objects[0];
+    let (min, max) = mug.model.mesh.bounds();
+    let plane = RenderModel::new(support_plane(1.0, 32, [150, 130, 110], rng)).expect("the plane is a valid mesh");
+    loop {
+        let azimuth = rng.random_range(0.0..std::f64::consts::TAU);
+        let yaw = match handle {
+            Handle::Occluded => azimuth + std::f64::consts::PI + rng.random_range(-15f64..=15.0).to_radians(),
+            Handle::Visible => {
+                let side = if rng.random::<bool>() { 1.0 } else { -1.0 };
+                azimuth + side * rng.random_range(60f64..=120.0).to_radians()
+            }
+        };
+        let world_from_object =
+            Pose::new(Rotation3::from_axis_angle(&Vector3::z_axis(), yaw), Vector3::new(0.0, 0.0, -f64::from(min.z)));
+        let centre = Point3::new(0.0, 0.0, f64::from(max.z - min.z) / 2.0);
+        let elevation = rng.random_range(15f64..=35.0).to_radians();
+        let distance = rng.random_range(0.45..=0.65);
+        let eye = centre
+            + distance
+                * Vector3::new(elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin());
+        let camera_from_world = look_at(&eye, &centre, 0.0);
+        let scene = Scene {
+            objects: vec![SceneObject { obj_id: mug.obj_id, library_index: 0, world_from_object }],
+            clutter: Vec::new(),
+            plane: plane.clone(),
+            centre,
+            spread: 0.1,
+            background: [90, 90, 100],
+        };
+        let camera = lmo_camera(640, 480);
+        let view = render_view(library, &scene, &camera, &camera_from_world, &random_light(rng));
+        let camera_from_object = view.object_poses[0];
+        let visible: Vec<bool> = view.frame.label.iter().map(|&l| l == 1).collect();
+        let handle_pixels = handle_pixels(&view.frame.depth, &visible, &camera, &camera_from_object);
+        let wanted = match handle {
+            Handle::Occluded => handle_pixels <= 10,
+            Handle::Visible => handle_pixels >= 150,
+        };
+        if !wanted {
+            continue;
+        }
+        let depth = DepthNoise::default().apply(&view.frame.depth, camera.width as usize, rng);
+        let (w, h) = (camera.width, camera.height);
+        let frame = RgbdFrame {
+            frame_id,
+            label: format!("mug trial {frame_id}"),
+            camera,
+            rgb: Raster { width: w, height: h, pixels: view.frame.rgb },
+            depth: Raster { width: w, height: h, pixels: depth },
+        };
+        let mask =
+            ObjectMask { obj_id: mug.obj_id, instance: 0, mask: Raster { width: w, height: h, pixels: visible } };
+        return MugView { frame, mask, camera_from_object, camera_from_world, handle_pixels };
+    }
+}
+
+/// Visible pixels whose surface point (noiseless depth) lies on the handle.
+fn handle_pixels(depth: &[f32], visible: &[bool], camera: &poseflow_scene::Camera, camera_from_object: &Pose) -> usize {
+    let object_from_camera = camera_from_object.inverse();
+    let width = camera.width as usize;
+    depth
+        .iter()
+        .zip(visible)
+        .enumerate()
+        .filter(|(_, (z, seen))| **seen && **z > 0.0)
+        .filter(|(i, (z, _))| {
+            let (u, v) = ((i % width) as f64 + 0.5, (i / width) as f64 + 0.5);
+            let ray = camera.ray_direction(u, v);
+            let point = Point3::from(ray * (f64::from(**z) / ray.z));
+            object_from_camera.transform_point(&point).x > HANDLE_X
+        })
+        .count()
+}
