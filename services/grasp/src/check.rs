@@ -11,8 +11,10 @@ use crate::gripper::Gripper;
 /// What closing the gripper on an object does.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum GraspOutcome {
-    /// Antipodal and collision-free: the pads close to `width` (m).
-    Holds { width: f32 },
+    /// Antipodal and collision-free: the pads close to `width` (m), and the
+    /// steeper contact normal is `margin` (radians) inside the friction
+    /// cone: how much pose error the contacts tolerate before slipping.
+    Holds { width: f32, margin: f32 },
     /// The open gripper (fingers at `max_opening`, palm) meets the object.
     Collides,
     /// Nothing lies between the pads on the contact line.
@@ -47,8 +49,9 @@ pub fn check_grasp(mesh: &TriMesh, gripper: &Gripper, object_from_grasp: &Isomet
         }
     }
     let half = gripper.max_opening / 2.0;
-    let cos_cone = gripper.friction_angle().cos();
+    let cone = gripper.friction_angle();
     let mut travel = 0.0;
+    let mut steepest = 0.0f32;
     for side in [-1.0f32, 1.0] {
         // The finger on `side` closes towards the other one.
         let origin = object_from_grasp * Point3::new(side * half, 0.0, -gripper.contact_depth);
@@ -60,12 +63,14 @@ pub fn check_grasp(mesh: &TriMesh, gripper: &Gripper, object_from_grasp: &Isomet
         let Some(normal) = outward_normal(mesh, hit.feature) else {
             return GraspOutcome::Slips;
         };
-        if normal.dot(&-direction) < cos_cone {
+        let angle = normal.dot(&-direction).clamp(-1.0, 1.0).acos();
+        if angle > cone {
             return GraspOutcome::Slips;
         }
+        steepest = steepest.max(angle);
         travel += hit.time_of_impact;
     }
-    GraspOutcome::Holds { width: (gripper.max_opening - travel).max(0.0) }
+    GraspOutcome::Holds { width: (gripper.max_opening - travel).max(0.0), margin: cone - steepest }
 }
 
 /// The outward normal of the triangle a ray hit (parry numbers back-face
@@ -114,8 +119,10 @@ pub(crate) mod tests {
         let mesh = box_mesh([0.02, 0.02, 0.05]);
         // Contact line 2 cm below the top face: fingertips 1 cm below it.
         let outcome = check_grasp(&mesh, &gripper, &top_grasp(&gripper, 0.03, 0.0));
-        let GraspOutcome::Holds { width } = outcome else { panic!("{outcome:?}") };
+        let GraspOutcome::Holds { width, margin } = outcome else { panic!("{outcome:?}") };
         assert!((width - 0.04).abs() < 1e-5, "{width}");
+        // Both pads meet their faces square on: the whole cone is margin.
+        assert!((margin - gripper.friction_angle()).abs() < 1e-3, "{margin}");
     }
 
     #[test]
@@ -143,7 +150,9 @@ pub(crate) mod tests {
         // Tilting about y turns the closing axis away from the face normals
         // (±x) by the tilt: inside the 26.6° cone it holds, outside it slips.
         let holds = check_grasp(&mesh, &gripper, &top_grasp(&gripper, 0.035, 20f32.to_radians()));
-        assert!(holds.holds(), "{holds:?}");
+        let GraspOutcome::Holds { margin, .. } = holds else { panic!("{holds:?}") };
+        // 0.5 friction: a 26.57° cone, 6.57° of it left after the tilt.
+        assert!((margin.to_degrees() - (0.5f32.atan().to_degrees() - 20.0)).abs() < 0.01, "{}", margin.to_degrees());
         let slips = check_grasp(&mesh, &gripper, &top_grasp(&gripper, 0.035, 30f32.to_radians()));
         assert_eq!(slips, GraspOutcome::Slips);
     }

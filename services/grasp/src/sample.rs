@@ -107,7 +107,7 @@ pub fn sample_grasps<R: Rng + ?Sized>(
         let Some(object_from_grasp) = propose(mesh, gripper, surface, rng) else {
             continue;
         };
-        if let GraspOutcome::Holds { width } = check_grasp(mesh, gripper, &object_from_grasp) {
+        if let GraspOutcome::Holds { width, .. } = check_grasp(mesh, gripper, &object_from_grasp) {
             grasps.push(ObjectGrasp { object_from_grasp, width });
         }
     }

@@ -4,7 +4,7 @@ use poseflow_contracts::{EstimateHeader, GRASP_LEN, GraspsHeader, POSE_LEN, Stag
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Transform};
 
-use crate::{GraspError, GraspField, GraspPlanner, PlannedGrasp};
+use crate::{GraspError, GraspField, GraspPlanner, Gripper, PlannedGrasp};
 
 #[derive(Debug)]
 pub struct GraspStage<F: GraspField> {
@@ -34,13 +34,13 @@ pub fn kept_hypotheses(header: &EstimateHeader, payload: &[f32]) -> Result<Vec<P
 }
 
 /// One grasp as the Grasps payload holds it: pose, width, valid share,
-/// score (the valid share: what a robot should rank by).
-pub fn grasp_values(grasp: &PlannedGrasp) -> [f32; GRASP_LEN] {
+/// score ([`PlannedGrasp::score`]: what a robot should rank by).
+pub fn grasp_values(grasp: &PlannedGrasp, gripper: &Gripper) -> [f32; GRASP_LEN] {
     let mut values = [0.0; GRASP_LEN];
     values[..POSE_LEN].copy_from_slice(&grasp.camera_from_grasp.to_f32_row_major());
     values[POSE_LEN] = grasp.width;
     values[POSE_LEN + 1] = grasp.valid_share as f32;
-    values[POSE_LEN + 2] = grasp.valid_share as f32;
+    values[POSE_LEN + 2] = grasp.score(gripper) as f32;
     values
 }
 
@@ -60,7 +60,8 @@ impl<F: GraspField> Transform for GraspStage<F> {
         let _span = tracing::debug_span!("grasp", frame, object).entered();
         let hypotheses = kept_hypotheses(header, input.payload)?;
         let grasps = self.planner.plan(frame, object, &hypotheses)?;
-        let used = hypotheses.len().min(self.planner.params().hypotheses);
+        let params = self.planner.params();
+        let used = hypotheses.len().min(params.hypotheses);
         let out = GraspsHeader {
             header: input.forward_header(),
             grasp_count: grasps.len() as u32,
@@ -68,7 +69,7 @@ impl<F: GraspField> Transform for GraspStage<F> {
         };
         output.emit(out, grasps.len() * GRASP_LEN, &mut |payload| {
             for (chunk, grasp) in payload.chunks_exact_mut(GRASP_LEN).zip(&grasps) {
-                chunk.copy_from_slice(&grasp_values(grasp));
+                chunk.copy_from_slice(&grasp_values(grasp, &params.gripper));
             }
         })?;
         Ok(())

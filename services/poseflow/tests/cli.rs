@@ -487,7 +487,7 @@ fn grasp_data_writes_grasps_that_hold_on_the_mesh() {
         let pose =
             nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(values[9], values[10], values[11]), rotation);
         match check_grasp(&mesh, &set.gripper, &pose) {
-            GraspOutcome::Holds { width: again } => assert!((again - width).abs() < 1e-4, "{again} vs {width}"),
+            GraspOutcome::Holds { width: again, .. } => assert!((again - width).abs() < 1e-4, "{again} vs {width}"),
             other => panic!("a written grasp does not hold: {other:?}"),
         }
     }

@@ -11,6 +11,7 @@ use clap::Args;
 use nalgebra::Point3;
 use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::seeded_rng;
+use poseflow_geometry::so3::geodesic_angle;
 use poseflow_grasp::stage::kept_hypotheses;
 use poseflow_grasp::{GraspParams, GraspPlanner, Gripper, OnnxGraspField, PlannedGrasp, judge};
 use poseflow_inference::stage::InferenceParams;
@@ -31,7 +32,8 @@ use crate::pipeline::PosePipeline;
     samples, K = 5 steps, SDF selection with refinement) estimate the mug's pose distribution. Two grasp plans \
     follow, each --grasps grasps from the grasp flow: `single` under the selected pose alone, `marginalised` in the \
     velocity averaged over the first --hypotheses kept hypotheses (the paper's mean field). Each plan executes its \
-    top grasp (the highest share of hypotheses it holds under); it succeeds when it is antipodal and \
+    top grasp (the highest score: the share of hypotheses it holds under, ties broken by its robustness to small \
+    perturbations and its friction margin); it succeeds when it is antipodal and \
     collision-free on the true pose and clear of the table.\n\n\
     --json prints {\"trials\": n, \"visible\": {\"single\": rate, \"marginalised\": rate}, \"occluded\": {...}}, \
     rates in percent.\n\nExample:\n  poseflow sim grasp --trials 20 --seed 0")]
@@ -122,20 +124,44 @@ fn clear_of_table(gripper: &Gripper, world_from_grasp: &Pose) -> bool {
     })
 }
 
-/// One trial: condition, index, handle pixels seen, kept hypotheses, the
-/// selected pose's rotation error (degrees), and both plans' outcomes.
-type TrialRow = (Handle, usize, usize, usize, f64, Executed, Executed);
+/// One trial's record (a row of trials.csv and of the table).
+#[derive(Debug)]
+struct Trial {
+    handle: Handle,
+    index: usize,
+    handle_pixels: usize,
+    kept: usize,
+    /// Rotation error of the selected pose (degrees).
+    rotation_error_deg: f64,
+    /// Translation error of the selected pose (mm).
+    translation_error_mm: f64,
+    /// Largest rotation of a marginalised-over hypothesis from the selected
+    /// pose (degrees): how much the plan had to hedge.
+    spread_deg: f64,
+    /// Largest rotation error among the marginalised-over hypotheses.
+    worst_error_deg: f64,
+    single: Executed,
+    marginalised: Executed,
+}
 
-fn write_trials(out: &Path, rows: &[TrialRow]) -> anyhow::Result<()> {
+fn write_trials(out: &Path, trials: &[Trial]) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let mut text = String::from(
-        "condition,trial,handle_pixels,kept,rotation_error_deg,single_success,single_share,single_success_any,\
-         marginalised_success,marginalised_share,marginalised_success_any\n",
+        "condition,trial,handle_pixels,kept,rotation_error_deg,translation_error_mm,spread_deg,worst_error_deg,single_success,\
+         single_share,single_success_any,marginalised_success,marginalised_share,marginalised_success_any\n",
     );
-    for (handle, trial, pixels, kept, error, one, many) in rows {
+    for t in trials {
+        let (one, many) = (&t.single, &t.marginalised);
         text += &format!(
-            "{},{trial},{pixels},{kept},{error:.2},{},{:.4},{:.4},{},{:.4},{:.4}\n",
-            format!("{handle:?}").to_lowercase(),
+            "{},{},{},{},{:.2},{:.2},{:.2},{:.2},{},{:.4},{:.4},{},{:.4},{:.4}\n",
+            format!("{:?}", t.handle).to_lowercase(),
+            t.index,
+            t.handle_pixels,
+            t.kept,
+            t.rotation_error_deg,
+            t.translation_error_mm,
+            t.spread_deg,
+            t.worst_error_deg,
             u8::from(one.success),
             one.planned_share,
             one.success_any,
@@ -202,7 +228,7 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
     let gripper = single.params().gripper;
 
     let mut report = Report { trials: args.trials, visible: Rates::default(), occluded: Rates::default() };
-    let mut rows: Vec<TrialRow> = Vec::new();
+    let mut rows: Vec<Trial> = Vec::new();
     for (c, handle) in [Handle::Visible, Handle::Occluded].into_iter().enumerate() {
         let (mut single_ok, mut marginal_ok) = (0, 0);
         for trial in 0..args.trials {
@@ -225,8 +251,21 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
             let [one, many] = plans.map(|plan| execute(&plan, holds));
             single_ok += usize::from(one.success);
             marginal_ok += usize::from(many.success);
-            let rotation_error = poseflow_geometry::so3::geodesic_angle(&best.rotation, &truth.rotation).to_degrees();
-            rows.push((handle, trial, view.handle_pixels, kept.len(), rotation_error, one, many));
+            let angle = |a: &Pose, b: &Pose| geodesic_angle(&a.rotation, &b.rotation).to_degrees();
+            let used = &kept[..kept.len().min(args.hypotheses)];
+            let widest = |from: &Pose| used.iter().map(|h| angle(h, from)).fold(0.0, f64::max);
+            rows.push(Trial {
+                handle,
+                index: trial,
+                handle_pixels: view.handle_pixels,
+                kept: kept.len(),
+                rotation_error_deg: angle(&best, &truth),
+                translation_error_mm: 1000.0 * (best.translation - truth.translation).norm(),
+                spread_deg: widest(&best),
+                worst_error_deg: widest(&truth),
+                single: one,
+                marginalised: many,
+            });
         }
         let rates = Rates {
             single: 100.0 * single_ok as f64 / args.trials as f64,
@@ -252,14 +291,20 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
         args.seed
     );
     println!(
-        "{:<9} {:>5} {:>9} {:>5} {:>8} | {:>6} {:>6} {:>6} | {:>6} {:>6} {:>6}",
-        "handle", "trial", "handle px", "kept", "rot err", "single", "share", "any", "marg.", "share", "any"
+        "{:<9} {:>5} {:>9} {:>5} {:>8} {:>8} | {:>6} {:>6} {:>6} | {:>6} {:>6} {:>6}",
+        "handle", "trial", "handle px", "kept", "rot err", "spread", "single", "share", "any", "marg.", "share", "any"
     );
-    for (handle, trial, pixels, kept, error, one, many) in &rows {
+    for t in &rows {
         let mark = |e: &Executed| if e.success { "ok" } else { "fail" };
+        let (one, many) = (&t.single, &t.marginalised);
         println!(
-            "{:<9} {trial:>5} {pixels:>9} {kept:>5} {error:>7.1}° | {:>6} {:>6.2} {:>5.0}% | {:>6} {:>6.2} {:>5.0}%",
-            format!("{handle:?}").to_lowercase(),
+            "{:<9} {:>5} {:>9} {:>5} {:>7.1}° {:>7.1}° | {:>6} {:>6.2} {:>5.0}% | {:>6} {:>6.2} {:>5.0}%",
+            format!("{:?}", t.handle).to_lowercase(),
+            t.index,
+            t.handle_pixels,
+            t.kept,
+            t.rotation_error_deg,
+            t.spread_deg,
             mark(one),
             one.planned_share,
             100.0 * one.success_any,
