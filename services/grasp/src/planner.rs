@@ -243,15 +243,20 @@ mod tests {
     use super::*;
     use crate::check::tests::box_mesh;
 
+    /// A grasp from above closing along x, its contact line at `height`.
+    fn from_above(gripper: &Gripper, height: f64) -> Pose {
+        let down = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+        Pose::new(down, Vector3::new(0.0, 0.0, height - f64::from(gripper.contact_depth)))
+    }
+
     #[test]
     fn a_grasp_at_the_edge_of_an_object_is_not_robust() {
         let gripper = Gripper::default();
         let mesh = box_mesh([0.02, 0.02, 0.05]);
-        let down = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
         // The contact line 1 mm under the top face: 2 mm further out along
         // the approach (grasp −z) it closes on air; the tilts about y lift
         // one pad's contact above the face too.
-        let edge = Pose::new(down, Vector3::new(0.0, 0.0, 0.049 - f64::from(gripper.contact_depth)));
+        let edge = from_above(&gripper, 0.049);
         let judged = judge(&mesh, &gripper, &[Pose::identity()], &edge);
         assert_eq!(judged.valid_share, 1.0);
         assert!(judged.robustness < 1.0 && judged.robustness > 0.0, "{}", judged.robustness);
@@ -263,8 +268,7 @@ mod tests {
         // A 4 cm wide box; a grasp from above closing along x, its contact
         // line 2 cm below the top of the box placed at the origin.
         let mesh = box_mesh([0.02, 0.02, 0.05]);
-        let down = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
-        let grasp = Pose::new(down, Vector3::new(0.0, 0.0, 0.03 - f64::from(gripper.contact_depth)));
+        let grasp = from_above(&gripper, 0.03);
         let here = Pose::identity();
         // The same box 10 cm aside: the gripper closes on air.
         let aside = Pose::new(Rotation3::identity(), Vector3::new(0.1, 0.0, 0.0));

@@ -5,6 +5,7 @@
 //! hypotheses, and executes each plan's top grasp on the true pose.
 
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::Args;
@@ -229,6 +230,8 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
 
     let mut report = Report { trials: args.trials, visible: Rates::default(), occluded: Rates::default() };
     let mut rows: Vec<Trial> = Vec::new();
+    // Wall time of each plan (grasp flow and checks), single then marginalised.
+    let mut plan_ms: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
     for (c, handle) in [Handle::Visible, Handle::Occluded].into_iter().enumerate() {
         let (mut single_ok, mut marginal_ok) = (0, 0);
         for trial in 0..args.trials {
@@ -242,7 +245,12 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
             let truth = view.camera_from_object;
             let world_from_camera = view.camera_from_world.inverse();
             let best = Pose::from_f32_row_major(&estimate.header.best)?;
-            let plans = [single.plan(frame_id, args.mug, &[best])?, marginal.plan(frame_id, args.mug, &kept)?];
+            let started = Instant::now();
+            let one_plan = single.plan(frame_id, args.mug, &[best])?;
+            plan_ms[0].push(started.elapsed().as_secs_f64() * 1e3);
+            let started = Instant::now();
+            let plans = [one_plan, marginal.plan(frame_id, args.mug, &kept)?];
+            plan_ms[1].push(started.elapsed().as_secs_f64() * 1e3);
             let mesh = &single.objects().get(args.mug).context("the mug's mesh")?.mesh;
             let holds = |g: &PlannedGrasp| {
                 judge(mesh, &gripper, &[truth], &g.camera_from_grasp).valid_share == 1.0
@@ -313,6 +321,15 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
             100.0 * many.success_any
         );
     }
+    let [single_ms, marginal_ms] = plan_ms.map(|mut ms| {
+        ms.sort_by(f64::total_cmp);
+        ms[ms.len() / 2]
+    });
+    println!(
+        "\nplanning {} grasps, median wall time: single {single_ms:.1} ms, marginalised over {} hypotheses \
+         {marginal_ms:.1} ms",
+        args.grasps, args.hypotheses
+    );
     println!("\nsuccess of the executed (top) grasp, % of trials:");
     println!("{:<10} {:>8} {:>13}", "condition", "single", "marginalised");
     for (name, rates) in [("visible", &report.visible), ("occluded", &report.occluded)] {
