@@ -105,8 +105,7 @@ def grasp_section(directory):
              "(N = 50, K = 5, SDF selection + refinement) estimate its pose distribution; the grasp flow plans 32 "
              "grasps under the selected pose alone (`single`) and in the velocity averaged over the first 8 kept "
              "hypotheses (`marginalised`, the paper's mean field); each plan executes its top grasp (the highest "
-             "share of hypotheses it holds under, ties broken by robustness to small perturbations and friction "
-             "margin), which succeeds when it is antipodal and collision-free on the "
+             "share of hypotheses it holds under, ties broken by the friction margin), which succeeds when it is antipodal and collision-free on the "
              "true pose and clear of the table. Paper (real robot, 10 trials each): single 9/10 visible, 6/10 "
              "occluded; marginalised 10/10 and 9/10.", "",
              "| handle | trials | single % | marginalised % | selected pose error, median ° / mm | "

@@ -476,9 +476,8 @@ the mesh, both contact normals inside the friction cone. Gripper:
 
 ## Training
 
-{state['step']:,} steps, {state['train_s'] / 60:.1f} min of training on one CPU thread (its
-share of the 2-core VM beside the pose model's training and evaluation),
-batch {config.get('batch', 16)} objects × {config.get('grasps_per_object', 16)} grasps, AdamW lr {config.get('lr', 3e-4)}. Validation (every 10 min): share of
+{state['step']:,} steps, {state['train_s'] / 60:.1f} min of training on {config.get('threads', 1)} CPU thread(s) of the
+2-core VM (how the runs shared it: the note below), batch {config.get('batch', 16)} objects × {config.get('grasps_per_object', 16)} grasps, AdamW lr {config.get('lr', 3e-4)}. Validation (every 10 min): share of
 32 grasps sampled with 10 Euler steps for 32 fixed random turns of the
 objects that lie within 2 cm and 20° of a data grasp — a cheap
 learning-curve figure; the grasp stage's mesh check is the real test

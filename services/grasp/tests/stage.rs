@@ -41,12 +41,11 @@ fn the_kept_hypotheses_are_read_in_order_and_a_bad_payload_names_the_frame() {
 fn a_grasp_is_written_as_pose_width_share_and_score() {
     let pose = Pose::new(nalgebra::Rotation3::identity(), nalgebra::Vector3::new(0.1, 0.2, 0.3));
     let gripper = Gripper::default();
-    // Half the friction cone left, robust to every perturbation: the score
-    // is the share plus 0.005 × (1 + 0.5).
+    // Half the friction cone left: the score is the share plus 0.01 × 0.5.
     let margin = gripper.friction_angle() / 2.0;
-    let grasp = PlannedGrasp { camera_from_grasp: pose, width: 0.03, valid_share: 0.75, margin, robustness: 1.0 };
+    let grasp = PlannedGrasp { camera_from_grasp: pose, width: 0.03, valid_share: 0.75, margin };
     let values = grasp_values(&grasp, &gripper);
     assert_eq!(values.len(), GRASP_LEN);
     assert_eq!(&values[..POSE_LEN], &pose.to_f32_row_major());
-    assert_eq!(&values[POSE_LEN..], &[0.03, 0.75, 0.7575]);
+    assert_eq!(&values[POSE_LEN..], &[0.03, 0.75, 0.755]);
 }

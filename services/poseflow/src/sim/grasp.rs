@@ -33,9 +33,8 @@ use crate::pipeline::PosePipeline;
     samples, K = 5 steps, SDF selection with refinement) estimate the mug's pose distribution. Two grasp plans \
     follow, each --grasps grasps from the grasp flow: `single` under the selected pose alone, `marginalised` in the \
     velocity averaged over the first --hypotheses kept hypotheses (the paper's mean field). Each plan executes its \
-    top grasp (the highest score: the share of hypotheses it holds under, ties broken by its robustness to small \
-    perturbations and its friction margin); it succeeds when it is antipodal and \
-    collision-free on the true pose and clear of the table.\n\n\
+    top grasp (the highest score: the share of hypotheses it holds under, ties broken by its friction margin); it \
+    succeeds when it is antipodal and collision-free on the true pose and clear of the table.\n\n\
     --json prints {\"trials\": n, \"visible\": {\"single\": rate, \"marginalised\": rate}, \"occluded\": {...}}, \
     rates in percent.\n\nExample:\n  poseflow sim grasp --trials 20 --seed 0")]
 pub struct GraspSimArgs {
