@@ -800,7 +800,8 @@ params = {grasp_params}
         // under the first three kept hypotheses.
         let kept = kept_hypotheses(&served, &estimate.payload).unwrap();
         let planned = planner.plan(served.header.frame_id, served.header.object_id, &kept).unwrap();
-        let expected: Vec<f32> = planned.iter().flat_map(grasp_values).collect();
+        let gripper = planner.params().gripper;
+        let expected: Vec<f32> = planned.iter().flat_map(|g| grasp_values(g, &gripper)).collect();
         let grasps_header: GraspsHeader = header_from_bytes(&grasp.header).unwrap();
         grasps_header.check_payload(&grasp.payload).unwrap();
         assert_eq!((grasps_header.grasp_count, grasps_header.hypothesis_count), (6, 3));
