@@ -17,7 +17,7 @@ use ort::session::Session;
 use ort::value::{TensorElementType, TensorRef};
 
 use crate::InferenceError;
-use crate::model::{check_ports, check_velocity_outputs, condition_tokens, meta, port, session};
+use crate::model::{SessionPair, check_ports, check_velocity_outputs, condition_tokens, meta, open_pair, port};
 
 /// The grasp contract version this crate serves.
 pub const GRASP_CONTRACT: &str = "poseflow-grasp-onnx/1";
@@ -47,16 +47,8 @@ pub struct GraspFlowModel {
 impl GraspFlowModel {
     /// Loads and checks `<dir>/grasp_encoder.onnx` and `<dir>/grasp_velocity.onnx`.
     pub fn load(dir: &Path, threads: usize) -> Result<Self, InferenceError> {
-        let (encoder_path, velocity_path) = (dir.join("grasp_encoder.onnx"), dir.join("grasp_velocity.onnx"));
-        let encoder = session(&encoder_path, threads)?;
-        let velocity = session(&velocity_path, threads)?;
-        let contract: String = meta(&encoder, &encoder_path, "contract")?;
-        if contract != GRASP_CONTRACT {
-            return Err(InferenceError::Model {
-                path: encoder_path,
-                detail: format!("metadata `contract` = {contract:?}, this build serves {GRASP_CONTRACT:?}"),
-            });
-        }
+        let SessionPair { encoder, encoder_path, velocity, velocity_path } =
+            open_pair(dir, ["grasp_encoder.onnx", "grasp_velocity.onnx"], threads, GRASP_CONTRACT)?;
         let n: i64 = meta(&encoder, &encoder_path, "point_count")?;
         let width: i64 = meta(&encoder, &encoder_path, "width")?;
         use TensorElementType::Float32 as F;

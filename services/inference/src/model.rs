@@ -160,19 +160,40 @@ pub(crate) fn meta<T: serde::de::DeserializeOwned>(
         .map_err(|e| bad(format!("metadata `{key}` = {text:?}: {e}")))
 }
 
+/// An encoder and a velocity session from one model directory.
+pub(crate) struct SessionPair {
+    pub encoder: Session,
+    pub encoder_path: PathBuf,
+    pub velocity: Session,
+    pub velocity_path: PathBuf,
+}
+
+/// Opens `<dir>/<files[0]>` (encoder) and `<dir>/<files[1]>` (velocity)
+/// and checks that the encoder's metadata declares `contract`.
+pub(crate) fn open_pair(
+    dir: &Path,
+    files: [&str; 2],
+    threads: usize,
+    contract: &str,
+) -> Result<SessionPair, InferenceError> {
+    let (encoder_path, velocity_path) = (dir.join(files[0]), dir.join(files[1]));
+    let encoder = session(&encoder_path, threads)?;
+    let velocity = session(&velocity_path, threads)?;
+    let declared: String = meta(&encoder, &encoder_path, "contract")?;
+    if declared != contract {
+        return Err(InferenceError::Model {
+            path: encoder_path,
+            detail: format!("metadata `contract` = {declared:?}, this build serves {contract:?}"),
+        });
+    }
+    Ok(SessionPair { encoder, encoder_path, velocity, velocity_path })
+}
+
 impl PoseFlowModel {
     /// Loads and checks `<dir>/encoder.onnx` and `<dir>/velocity.onnx`.
     pub fn load(dir: &Path, threads: usize) -> Result<Self, InferenceError> {
-        let (encoder_path, velocity_path) = (dir.join("encoder.onnx"), dir.join("velocity.onnx"));
-        let encoder = session(&encoder_path, threads)?;
-        let velocity = session(&velocity_path, threads)?;
-        let contract: String = meta(&encoder, &encoder_path, "contract")?;
-        if contract != CONTRACT {
-            return Err(InferenceError::Model {
-                path: encoder_path,
-                detail: format!("metadata `contract` = {contract:?}, this build serves {CONTRACT:?}"),
-            });
-        }
+        let SessionPair { encoder, encoder_path, velocity, velocity_path } =
+            open_pair(dir, ["encoder.onnx", "velocity.onnx"], threads, CONTRACT)?;
         let (s, p, n): (i64, i64, i64) = (
             meta(&encoder, &encoder_path, "image_size")?,
             meta(&encoder, &encoder_path, "patch_grid")?,
