@@ -1,6 +1,6 @@
 //! The grasp stage: Estimate in, Grasps out.
 
-use poseflow_contracts::{EstimateHeader, GRASP_LEN, GraspsHeader, POSE_LEN, Stage, WEIGHTED_POSE_LEN};
+use poseflow_contracts::{EstimateHeader, GRASP_LEN, GraspsHeader, POSE_LEN, Stage};
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Transform};
 
@@ -21,15 +21,9 @@ impl<F: GraspField> GraspStage<F> {
 pub fn kept_hypotheses(header: &EstimateHeader, payload: &[f32]) -> Result<Vec<Pose>, GraspError> {
     let (frame, object) = (header.header.frame_id, header.header.object_id);
     let in_frame = |detail: String| GraspError::Frame { frame, object, detail };
-    let view = header.view(payload).map_err(|e| in_frame(e.to_string()))?;
-    view.hypotheses
-        .chunks_exact(WEIGHTED_POSE_LEN)
-        .take(header.kept_count as usize)
-        .enumerate()
-        .map(|(i, chunk)| {
-            Pose::from_f32_row_major(chunk[..POSE_LEN].try_into().expect("12 values"))
-                .map_err(|e| in_frame(format!("hypothesis {i}: {e}")))
-        })
+    let kept = header.kept_poses(payload).map_err(|e| in_frame(e.to_string()))?;
+    kept.enumerate()
+        .map(|(i, values)| Pose::from_f32_row_major(values).map_err(|e| in_frame(format!("hypothesis {i}: {e}"))))
         .collect()
 }
 

@@ -8,7 +8,6 @@ mod grasp_data;
 mod import_model;
 mod logging;
 mod observe;
-mod pipeline;
 mod preview;
 mod progress;
 mod render;

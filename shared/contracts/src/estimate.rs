@@ -146,6 +146,17 @@ impl EstimateHeader {
         let [modes, hypotheses] = sections(payload, self.section_lengths()?);
         Ok(EstimateView { modes, hypotheses })
     }
+
+    /// The kept hypotheses' poses (object-to-camera, `R` row-major then
+    /// `t`), best first.
+    pub fn kept_poses<'a>(&self, payload: &'a [f32]) -> Result<impl Iterator<Item = &'a [f32; 12]>, ContractError> {
+        let view = self.view(payload)?;
+        Ok(view
+            .hypotheses
+            .chunks_exact(WEIGHTED_POSE_LEN)
+            .take(self.kept_count as usize)
+            .map(|chunk| chunk[..POSE_LEN].try_into().expect("a weighted pose starts with 12 values")))
+    }
 }
 
 impl MessageHeader for EstimateHeader {

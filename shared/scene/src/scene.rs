@@ -219,12 +219,19 @@ impl ViewRange {
 /// by `roll` radians about its optical axis. `eye` must not be straight
 /// above `target`.
 pub fn look_at(eye: &Point3<f64>, target: &Point3<f64>, roll: f64) -> Pose {
+    look_at_up(eye, target, &Vector3::z(), roll)
+}
+
+/// [`look_at`] with `up` (any length) as the direction that appears upwards
+/// in the image; `eye`, `target` and `up` are in one frame, the result maps
+/// it into the camera's. The line of sight must not be parallel to `up`.
+pub fn look_at_up(eye: &Point3<f64>, target: &Point3<f64>, up: &Vector3<f64>, roll: f64) -> Pose {
     let forward = (target - eye).normalize();
-    let right = forward.cross(&Vector3::z()).normalize();
+    let right = forward.cross(up).normalize();
     let down = forward.cross(&right);
-    let world_from_camera =
+    let frame_from_camera =
         Rotation3::from_basis_unchecked(&[right, down, forward]) * Rotation3::from_axis_angle(&Vector3::z_axis(), roll);
-    Pose::new(world_from_camera, eye.coords).inverse()
+    Pose::new(frame_from_camera, eye.coords).inverse()
 }
 
 /// A light from the camera's side of the scene: direction within 80° of

@@ -15,15 +15,11 @@ use poseflow_geometry::sampling::seeded_rng;
 use poseflow_geometry::so3::geodesic_angle;
 use poseflow_grasp::stage::kept_hypotheses;
 use poseflow_grasp::{GraspParams, GraspPlanner, Gripper, OnnxGraspField, PlannedGrasp, judge};
-use poseflow_inference::stage::InferenceParams;
-use poseflow_ingest::IngestParams;
-use poseflow_sampler::SamplerParams;
 use poseflow_scene::ModelLibrary;
-use poseflow_selector::SelectorParams;
 use serde::Serialize;
 
 use super::mug::{Handle, render_mug};
-use crate::pipeline::PosePipeline;
+use super::{pose_pipeline, stage_params};
 
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root (reads config/*.toml as the graph does).\n\n\
@@ -93,18 +89,6 @@ struct Report {
     trials: usize,
     visible: Rates,
     occluded: Rates,
-}
-
-/// A stage's parameters: its config file with `overrides` laid over it.
-fn stage_params(config: &Path, stage: &str, overrides: serde_json::Value) -> anyhow::Result<serde_json::Value> {
-    let path = config.join(format!("{stage}.toml"));
-    let text = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let table: toml::Table = toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
-    let mut params = serde_json::to_value(table)?;
-    if let (Some(params), Some(overrides)) = (params.as_object_mut(), overrides.as_object()) {
-        params.extend(overrides.clone());
-    }
-    Ok(params)
 }
 
 /// Does the gripper at `world_from_grasp` stay above the table (z = 0)?
@@ -190,29 +174,7 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
     }
     let library = ModelLibrary::load(&args.objects, &[args.mug])?;
     let config = &args.config;
-    let ingest = IngestParams::from_json(&stage_params(
-        config,
-        "ingest",
-        serde_json::json!({
-            "image_size": 112, "patch_grid": 8,
-        }),
-    )?)?;
-    let inference = InferenceParams::from_json(&stage_params(
-        config,
-        "inference",
-        serde_json::json!({
-            "model": args.model,
-        }),
-    )?)?;
-    let sampler = SamplerParams::from_json(&stage_params(config, "sampler", serde_json::json!({}))?)?;
-    let selector = SelectorParams::from_json(&stage_params(
-        config,
-        "selector",
-        serde_json::json!({
-            "method": "sdf", "models": args.objects, "refine": true,
-        }),
-    )?)?;
-    let mut pipeline = PosePipeline::new(ingest, &inference, sampler, selector)?;
+    let mut pipeline = pose_pipeline(config, &args.model, &args.objects)?;
     let grasp = |hypotheses: usize| -> anyhow::Result<GraspPlanner<OnnxGraspField>> {
         let params = GraspParams::from_json(&stage_params(
             config,
@@ -236,7 +198,7 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
         for trial in 0..args.trials {
             let frame_id = (c * args.trials + trial) as u64;
             let mut rng = seeded_rng(args.seed.wrapping_mul(1_000_003).wrapping_add(frame_id));
-            let view = render_mug(&library, handle, frame_id, &mut rng);
+            let (_, view) = render_mug(&library, handle, frame_id, &mut rng);
             let estimate = pipeline
                 .estimate(&view.frame, &view.mask)
                 .with_context(|| format!("trial {trial} ({handle:?}): pose estimation"))?;

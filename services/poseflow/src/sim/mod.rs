@@ -3,8 +3,17 @@
 
 mod grasp;
 mod mug;
+mod nbv;
 
+use std::path::Path;
+
+use anyhow::Context;
 use clap::{Args, Subcommand};
+use poseflow_inference::stage::InferenceParams;
+use poseflow_ingest::IngestParams;
+use poseflow_pipeline::PosePipeline;
+use poseflow_sampler::SamplerParams;
+use poseflow_selector::SelectorParams;
 
 #[derive(Debug, Args)]
 pub struct SimArgs {
@@ -16,10 +25,45 @@ pub struct SimArgs {
 pub enum SimCommand {
     /// Grasp a mug with its handle visible or hidden: single pose hypothesis vs the marginalised grasp flow.
     Grasp(grasp::GraspSimArgs),
+    /// Start from a mug with its handle hidden: move to the next-best view, a random view, or stay; compare uncertainty and error.
+    Nbv(nbv::NbvSimArgs),
 }
 
 pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     match &args.command {
         SimCommand::Grasp(args) => grasp::run(args),
+        SimCommand::Nbv(args) => nbv::run(args),
     }
+}
+
+/// A stage's parameters: its config file with `overrides` laid over it.
+fn stage_params(config: &Path, stage: &str, overrides: serde_json::Value) -> anyhow::Result<serde_json::Value> {
+    let path = config.join(format!("{stage}.toml"));
+    let text = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let table: toml::Table = toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
+    let mut params = serde_json::to_value(table)?;
+    if let (Some(params), Some(overrides)) = (params.as_object_mut(), overrides.as_object()) {
+        params.extend(overrides.clone());
+    }
+    Ok(params)
+}
+
+/// The pose stages as the simulations estimate with them: the graph's
+/// config with the default model's input size, `model`, and SDF selection
+/// with refinement against the models in `objects`.
+fn pose_pipeline(config: &Path, model: &Path, objects: &Path) -> anyhow::Result<PosePipeline> {
+    let ingest = IngestParams::from_json(&stage_params(
+        config,
+        "ingest",
+        serde_json::json!({"image_size": 112, "patch_grid": 8}),
+    )?)?;
+    let inference =
+        InferenceParams::from_json(&stage_params(config, "inference", serde_json::json!({"model": model}))?)?;
+    let sampler = SamplerParams::from_json(&stage_params(config, "sampler", serde_json::json!({}))?)?;
+    let selector = SelectorParams::from_json(&stage_params(
+        config,
+        "selector",
+        serde_json::json!({"method": "sdf", "models": objects, "refine": true}),
+    )?)?;
+    Ok(PosePipeline::new(ingest, &inference, sampler, selector)?)
 }

@@ -28,7 +28,7 @@ pub enum Handle {
     Occluded,
 }
 
-/// One rendered trial: the frame and mask the pipeline reads, the truth,
+/// One rendered view: the frame and mask the pipeline reads, the truth,
 /// and how much of the handle the camera sees.
 #[derive(Debug, Clone)]
 pub struct MugView {
@@ -40,12 +40,71 @@ pub struct MugView {
     pub handle_pixels: usize,
 }
 
-/// Renders the mug (library object 0) for `handle`, drawing the view until
-/// the handle's visibility matches: hidden means at most 10 handle pixels,
-/// visible at least 150.
-pub fn render_mug(library: &ModelLibrary, handle: Handle, frame_id: u64, rng: &mut SeededRng) -> MugView {
+/// The mug (library object 0) standing on `plane` (the table) with its
+/// handle turned `yaw` radians from world +x.
+fn mug_scene(library: &ModelLibrary, yaw: f64, plane: RenderModel) -> Scene {
     let mug = &library.objects[0];
     let (min, max) = mug.model.mesh.bounds();
+    let world_from_object =
+        Pose::new(Rotation3::from_axis_angle(&Vector3::z_axis(), yaw), Vector3::new(0.0, 0.0, -f64::from(min.z)));
+    Scene {
+        objects: vec![SceneObject { obj_id: mug.obj_id, library_index: 0, world_from_object }],
+        clutter: Vec::new(),
+        plane,
+        centre: Point3::new(0.0, 0.0, f64::from(max.z - min.z) / 2.0),
+        spread: 0.1,
+        background: [90, 90, 100],
+    }
+}
+
+/// Renders the mug scene from `camera_from_world` (LM-O camera, random
+/// light, depth noise).
+pub fn view_mug(
+    library: &ModelLibrary,
+    scene: &Scene,
+    camera_from_world: &Pose,
+    frame_id: u64,
+    rng: &mut SeededRng,
+) -> MugView {
+    view_mug_if(library, scene, camera_from_world, frame_id, rng, |_| true).expect("every view is wanted")
+}
+
+/// [`view_mug`] when `wanted(handle pixels)`; the depth noise is drawn only
+/// then, so a rejected view costs the random stream its light alone.
+fn view_mug_if(
+    library: &ModelLibrary,
+    scene: &Scene,
+    camera_from_world: &Pose,
+    frame_id: u64,
+    rng: &mut SeededRng,
+    wanted: impl Fn(usize) -> bool,
+) -> Option<MugView> {
+    let camera = lmo_camera(640, 480);
+    let view = render_view(library, scene, &camera, camera_from_world, &random_light(rng));
+    let camera_from_object = view.object_poses[0];
+    let visible: Vec<bool> = view.frame.label.iter().map(|&l| l == 1).collect();
+    let handle_pixels = handle_pixels(&view.frame.depth, &visible, &camera, &camera_from_object);
+    if !wanted(handle_pixels) {
+        return None;
+    }
+    let depth = DepthNoise::default().apply(&view.frame.depth, camera.width as usize, rng);
+    let (w, h) = (camera.width, camera.height);
+    let frame = RgbdFrame {
+        frame_id,
+        label: format!("mug trial {frame_id}"),
+        camera,
+        rgb: Raster { width: w, height: h, pixels: view.frame.rgb },
+        depth: Raster { width: w, height: h, pixels: depth },
+    };
+    let obj_id = scene.objects[0].obj_id;
+    let mask = ObjectMask { obj_id, instance: 0, mask: Raster { width: w, height: h, pixels: visible } };
+    Some(MugView { frame, mask, camera_from_object, camera_from_world: *camera_from_world, handle_pixels })
+}
+
+/// Draws a mug scene and a camera for `handle` until the handle's
+/// visibility matches (hidden: at most 10 handle pixels; visible: at least
+/// 150) and renders it.
+pub fn render_mug(library: &ModelLibrary, handle: Handle, frame_id: u64, rng: &mut SeededRng) -> (Scene, MugView) {
     let plane = RenderModel::new(support_plane(1.0, 32, [150, 130, 110], rng)).expect("the plane is a valid mesh");
     loop {
         let azimuth = rng.random_range(0.0..std::f64::consts::TAU);
@@ -56,47 +115,20 @@ pub fn render_mug(library: &ModelLibrary, handle: Handle, frame_id: u64, rng: &m
                 azimuth + side * rng.random_range(60f64..=120.0).to_radians()
             }
         };
-        let world_from_object =
-            Pose::new(Rotation3::from_axis_angle(&Vector3::z_axis(), yaw), Vector3::new(0.0, 0.0, -f64::from(min.z)));
-        let centre = Point3::new(0.0, 0.0, f64::from(max.z - min.z) / 2.0);
+        let scene = mug_scene(library, yaw, plane.clone());
         let elevation = rng.random_range(15f64..=35.0).to_radians();
         let distance = rng.random_range(0.45..=0.65);
-        let eye = centre
+        let eye = scene.centre
             + distance
                 * Vector3::new(elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin());
-        let camera_from_world = look_at(&eye, &centre, 0.0);
-        let scene = Scene {
-            objects: vec![SceneObject { obj_id: mug.obj_id, library_index: 0, world_from_object }],
-            clutter: Vec::new(),
-            plane: plane.clone(),
-            centre,
-            spread: 0.1,
-            background: [90, 90, 100],
+        let camera_from_world = look_at(&eye, &scene.centre, 0.0);
+        let wanted = |pixels: usize| match handle {
+            Handle::Occluded => pixels <= 10,
+            Handle::Visible => pixels >= 150,
         };
-        let camera = lmo_camera(640, 480);
-        let view = render_view(library, &scene, &camera, &camera_from_world, &random_light(rng));
-        let camera_from_object = view.object_poses[0];
-        let visible: Vec<bool> = view.frame.label.iter().map(|&l| l == 1).collect();
-        let handle_pixels = handle_pixels(&view.frame.depth, &visible, &camera, &camera_from_object);
-        let wanted = match handle {
-            Handle::Occluded => handle_pixels <= 10,
-            Handle::Visible => handle_pixels >= 150,
-        };
-        if !wanted {
-            continue;
+        if let Some(view) = view_mug_if(library, &scene, &camera_from_world, frame_id, rng, wanted) {
+            return (scene, view);
         }
-        let depth = DepthNoise::default().apply(&view.frame.depth, camera.width as usize, rng);
-        let (w, h) = (camera.width, camera.height);
-        let frame = RgbdFrame {
-            frame_id,
-            label: format!("mug trial {frame_id}"),
-            camera,
-            rgb: Raster { width: w, height: h, pixels: view.frame.rgb },
-            depth: Raster { width: w, height: h, pixels: depth },
-        };
-        let mask =
-            ObjectMask { obj_id: mug.obj_id, instance: 0, mask: Raster { width: w, height: h, pixels: visible } };
-        return MugView { frame, mask, camera_from_object, camera_from_world, handle_pixels };
     }
 }
 

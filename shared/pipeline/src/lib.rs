@@ -1,32 +1,52 @@
 //! The pose stages in one process: ingest → encode → flow sampling →
-//! selection, the same library code the graph's processes run (the
-//! simulations use it; `tests/e2e` checks that processes and libraries
-//! agree bit for bit).
+//! selection, the same library code the graph's processes run. The
+//! simulations and the next-best-view stage (which estimates on rendered
+//! views) use it; `tests/e2e` checks that processes and libraries agree bit
+//! for bit.
 
-use std::cell::RefCell;
-use std::rc::Rc;
+use std::sync::{Arc, Mutex, PoisonError};
 
-use anyhow::Context;
-use poseflow_contracts::{EstimateHeader, MessageHeader, VelocityRequest};
+use poseflow_contracts::{ContractError, EstimateHeader, MessageHeader, VelocityRequest};
 use poseflow_geometry::sampling::{sample_seed, seeded_rng};
+use poseflow_inference::InferenceError;
 use poseflow_inference::stage::{InferenceParams, InferenceStage};
-use poseflow_ingest::{IngestParams, ObjectMask, RgbdFrame, prepare};
+use poseflow_ingest::{IngestError, IngestParams, ObjectMask, RgbdFrame, prepare};
 use poseflow_sampler::stage::SamplerStage;
-use poseflow_sampler::{SamplerParams, VelocityField};
-use poseflow_selector::SelectorParams;
+use poseflow_sampler::{SamplerError, SamplerParams, VelocityField};
 use poseflow_selector::stage::{SelectorStage, estimate_header, estimate_payload_len, write_estimate_payload};
+use poseflow_selector::{SelectorError, SelectorParams};
+
+/// Why an object could not be estimated: the failing stage's own error.
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error(transparent)]
+    Ingest(#[from] IngestError),
+    #[error(transparent)]
+    Inference(#[from] InferenceError),
+    #[error(transparent)]
+    Sampler(#[from] SamplerError),
+    #[error(transparent)]
+    Selector(#[from] SelectorError),
+    #[error("the selector's own estimate: {0}")]
+    Contract(#[from] ContractError),
+}
 
 /// The inference stage shared by the pipeline (encoding) and the sampler's
-/// velocity field, as the two talk over request-response in the graph.
+/// velocity field, as the two talk over request-response in the graph. A
+/// mutex rather than a `RefCell` so a pipeline can move to a worker thread;
+/// it is never contended (one pipeline runs one object at a time).
 #[derive(Debug, Clone)]
-struct SharedField(Rc<RefCell<InferenceStage>>);
+struct SharedField(Arc<Mutex<InferenceStage>>);
+
+impl SharedField {
+    fn stage(&self) -> std::sync::MutexGuard<'_, InferenceStage> {
+        self.0.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
 
 impl VelocityField for SharedField {
     fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
-        self.0
-            .borrow_mut()
-            .velocities(request, poses, out)
-            .map_err(|status| format!("velocity request status {status}"))
+        self.stage().velocities(request, poses, out).map_err(|status| format!("velocity request status {status}"))
     }
 }
 
@@ -40,7 +60,7 @@ pub struct Estimated {
 #[derive(Debug)]
 pub struct PosePipeline {
     ingest: IngestParams,
-    inference: Rc<RefCell<InferenceStage>>,
+    inference: SharedField,
     sampler: SamplerStage<SharedField>,
     selector: SelectorStage,
 }
@@ -51,25 +71,25 @@ impl PosePipeline {
         inference: &InferenceParams,
         sampler: SamplerParams,
         selector: SelectorParams,
-    ) -> anyhow::Result<Self> {
-        let inference = Rc::new(RefCell::new(InferenceStage::new(inference)?));
+    ) -> Result<Self, PipelineError> {
+        let inference = SharedField(Arc::new(Mutex::new(InferenceStage::new(inference)?)));
         Ok(Self {
             ingest,
-            sampler: SamplerStage::new(sampler, SharedField(Rc::clone(&inference))),
+            sampler: SamplerStage::new(sampler, inference.clone()),
             inference,
             selector: SelectorStage::new(selector)?,
         })
     }
 
     /// The Estimate of `object` in `frame` (frame id `frame.frame_id`).
-    pub fn estimate(&mut self, frame: &RgbdFrame, object: &ObjectMask) -> anyhow::Result<Estimated> {
+    pub fn estimate(&mut self, frame: &RgbdFrame, object: &ObjectMask) -> Result<Estimated, PipelineError> {
         let (frame_id, obj_id) = (frame.frame_id, object.obj_id);
         let mut rng = seeded_rng(sample_seed(0, frame_id, obj_id));
         let prepared = prepare(frame, object, &self.ingest, &mut rng)?;
         let observation = prepared.header(frame_id, &frame.camera, &self.ingest);
         let mut payload = vec![0.0; observation.payload_len()?];
         prepared.write_payload(frame, object, &self.ingest, &mut payload);
-        let handle = self.inference.borrow_mut().encode(&observation, &payload)?;
+        let handle = self.inference.stage().encode(&observation, &payload)?;
         let (hypotheses, poses) = self.sampler.hypotheses(&handle)?;
         let poses: Vec<f32> = poses.iter().flat_map(|p| p.to_f32_row_major()).collect();
         self.selector.keep_observation(&observation, &payload)?;
@@ -77,7 +97,7 @@ impl PosePipeline {
         let mut payload = vec![0.0; estimate_payload_len(&selection)];
         write_estimate_payload(&selection, &mut payload);
         let header = estimate_header(&selection, hypotheses.header);
-        header.check_payload(&payload).context("the selector's own estimate")?;
+        header.check_payload(&payload)?;
         Ok(Estimated { header, payload })
     }
 }

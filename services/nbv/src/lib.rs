@@ -1,0 +1,24 @@
+//! Next-best-view planning (paper, "Active Perception"): the viewpoint
+//! expected to leave the least rotational uncertainty,
+//! v* = argmin_v E[tr(Σ_R | v)], approximated by sampling.
+//!
+//! - [`candidate_views`]: cameras on a sphere around the object, within an
+//!   elevation band, looking at its centre;
+//! - [`simulate::simulated_view`]: the object rendered at a hypothesis from
+//!   a candidate, with sensor noise;
+//! - [`NbvPlanner`]: for every candidate, the pose stages
+//!   ([`poseflow_pipeline`]) on the views simulated under a few of the
+//!   Estimate's hypotheses, ranked by the mean trace they leave; the same
+//!   code runs in-process and as the stage ([`stage::NbvStage`]).
+
+mod candidates;
+mod error;
+mod params;
+mod planner;
+pub mod simulate;
+pub mod stage;
+
+pub use candidates::candidate_views;
+pub use error::NbvError;
+pub use params::{NbvParams, ViewSphere};
+pub use planner::{NbvPlanner, NextViewPlan, PlanCost, ScoredView, UNIFORM_ROTATION_TRACE, spread_evenly};

@@ -1,0 +1,233 @@
+//! The next-best-view stage's parameters (graph `params` over
+//! `config/nbv.toml`).
+
+use std::path::PathBuf;
+
+use poseflow_inference::stage::InferenceParams;
+use poseflow_ingest::IngestParams;
+use poseflow_sampler::SamplerParams;
+use poseflow_scene::Camera;
+use poseflow_scene::dataset::lmo_camera;
+use poseflow_selector::SelectorParams;
+use serde::Deserialize;
+
+use crate::NbvError;
+
+/// | key | meaning | default |
+/// |---|---|---|
+/// | `candidates` | C viewpoints on the sphere | 12 |
+/// | `elevation_deg` | [min, max] elevation band (degrees above the plane through the object centre perpendicular to `up`) | [10, 60] |
+/// | `radius` | sphere radius (m); 0 = the current camera's distance to the object | 0 |
+/// | `up` | the world's up direction in the current camera frame (OpenCV axes: image up is −y) | [0, −1, 0] |
+/// | `hypotheses` | H hypotheses of the Estimate (spread evenly over its kept ones) rendered per candidate | 3 |
+/// | `workers` | pose pipelines scoring simulated views in parallel (one ONNX session pair each) | 2 |
+/// | `min_visible_pixels` | a simulated view showing fewer object pixels is uninformative (trace of a uniform rotation) | 200 |
+/// | `seed` | seed of the simulated sensor noise (with the frame, candidate and hypothesis) | 0 |
+/// | `models` | BOP models directory the views are rendered from | `objects/lmo` |
+/// | `camera` | intrinsics of the camera that moves (`fx`, `fy`, `cx`, `cy`, `width`, `height`) | LM-O 640×480 |
+/// | `ingest`, `inference`, `sampler`, `selector` | the pose stages run on each simulated view: tables over those stages' defaults (fewer samples and steps than estimation) | 112 px / 8 patches; `models/poseflow-lmo10`, 1 thread; 16 samples, 3 steps; no selection |
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Raw {
+    #[serde(default = "default_candidates")]
+    candidates: usize,
+    #[serde(default = "default_elevation")]
+    elevation_deg: [f64; 2],
+    #[serde(default)]
+    radius: f64,
+    #[serde(default = "default_up")]
+    up: [f64; 3],
+    #[serde(default = "default_hypotheses")]
+    hypotheses: usize,
+    #[serde(default = "default_workers")]
+    workers: usize,
+    #[serde(default = "default_min_visible_pixels")]
+    min_visible_pixels: usize,
+    #[serde(default)]
+    seed: u64,
+    #[serde(default = "default_models")]
+    models: PathBuf,
+    #[serde(default)]
+    camera: Option<CameraTable>,
+    #[serde(default)]
+    ingest: serde_json::Map<String, serde_json::Value>,
+    #[serde(default)]
+    inference: serde_json::Map<String, serde_json::Value>,
+    #[serde(default)]
+    sampler: serde_json::Map<String, serde_json::Value>,
+    #[serde(default)]
+    selector: serde_json::Map<String, serde_json::Value>,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CameraTable {
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    width: u32,
+    height: u32,
+}
+
+fn default_candidates() -> usize {
+    12
+}
+fn default_elevation() -> [f64; 2] {
+    [10.0, 60.0]
+}
+fn default_up() -> [f64; 3] {
+    [0.0, -1.0, 0.0]
+}
+fn default_hypotheses() -> usize {
+    3
+}
+fn default_workers() -> usize {
+    2
+}
+fn default_min_visible_pixels() -> usize {
+    200
+}
+fn default_models() -> PathBuf {
+    PathBuf::from("objects/lmo")
+}
+
+/// Where the candidate viewpoints lie.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewSphere {
+    pub candidates: usize,
+    /// Radians, min < max, both within (−90°, 90°).
+    pub elevation: [f64; 2],
+    /// Metres; `None`: the current camera's distance.
+    pub radius: Option<f64>,
+}
+
+#[derive(Debug, Clone)]
+pub struct NbvParams {
+    pub sphere: ViewSphere,
+    /// Unit vector, current camera frame.
+    pub up: nalgebra::Vector3<f64>,
+    pub hypotheses: usize,
+    pub workers: usize,
+    pub min_visible_pixels: usize,
+    pub seed: u64,
+    pub models: PathBuf,
+    pub camera: Camera,
+    pub ingest: IngestParams,
+    pub inference: InferenceParams,
+    pub sampler: SamplerParams,
+    pub selector: SelectorParams,
+}
+
+/// `overrides` laid over `defaults`, as a JSON object.
+fn over(defaults: serde_json::Value, overrides: serde_json::Map<String, serde_json::Value>) -> serde_json::Value {
+    let mut merged = defaults;
+    if let Some(table) = merged.as_object_mut() {
+        table.extend(overrides);
+    }
+    merged
+}
+
+impl NbvParams {
+    /// Reads the graph's `params`, naming the key that is wrong.
+    pub fn from_json(value: &serde_json::Value) -> Result<Self, NbvError> {
+        let bad = |key: &str, detail: String| NbvError::Params { key: key.to_string(), detail };
+        let raw: Raw = serde_json::from_value(value.clone()).map_err(|e| bad("nbv", e.to_string()))?;
+        let [low, high] = raw.elevation_deg;
+        let checks: [(&str, bool, String); 7] = [
+            ("candidates", (1..=4096).contains(&raw.candidates), format!("{}: expected 1 to 4096", raw.candidates)),
+            (
+                "elevation_deg",
+                -89.0 <= low && low < high && high <= 89.0,
+                format!("[{low}, {high}]: expected min < max, both within −89 to 89"),
+            ),
+            ("radius", raw.radius.is_finite() && raw.radius >= 0.0, format!("{}: expected ≥ 0 metres", raw.radius)),
+            (
+                "up",
+                raw.up.iter().all(|v| v.is_finite()) && nalgebra::Vector3::from(raw.up).norm() > 1e-6,
+                format!("{:?}: expected a non-zero direction", raw.up),
+            ),
+            ("hypotheses", (1..=64).contains(&raw.hypotheses), format!("{}: expected 1 to 64", raw.hypotheses)),
+            ("workers", (1..=16).contains(&raw.workers), format!("{}: expected 1 to 16", raw.workers)),
+            (
+                "camera",
+                raw.camera.is_none_or(|c| {
+                    c.width > 0 && c.height > 0 && c.fx > 0.0 && c.fy > 0.0 && c.cx.is_finite() && c.cy.is_finite()
+                }),
+                "expected positive fx, fy, width and height".to_string(),
+            ),
+        ];
+        if let Some((key, _, detail)) = checks.into_iter().find(|(_, ok, _)| !ok) {
+            return Err(bad(key, detail));
+        }
+        let stage = |key: &str, detail: String| bad(key, detail);
+        let ingest =
+            IngestParams::from_json(&over(serde_json::json!({"image_size": 112, "patch_grid": 8}), raw.ingest))
+                .map_err(|e| stage("ingest", e.to_string()))?;
+        let inference = InferenceParams::from_json(&over(
+            serde_json::json!({"model": "models/poseflow-lmo10", "threads": 1}),
+            raw.inference,
+        ))
+        .map_err(|e| stage("inference", e.to_string()))?;
+        let sampler = SamplerParams::from_json(&over(serde_json::json!({"samples": 16, "steps": 3}), raw.sampler))
+            .map_err(|e| stage("sampler", e.to_string()))?;
+        let selector = SelectorParams::from_json(&over(serde_json::json!({"method": "none"}), raw.selector))
+            .map_err(|e| stage("selector", e.to_string()))?;
+        let camera = raw.camera.map_or_else(
+            || lmo_camera(640, 480),
+            |c| Camera { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, width: c.width, height: c.height },
+        );
+        Ok(Self {
+            sphere: ViewSphere {
+                candidates: raw.candidates,
+                elevation: [low.to_radians(), high.to_radians()],
+                radius: (raw.radius > 0.0).then_some(raw.radius),
+            },
+            up: nalgebra::Vector3::from(raw.up).normalize(),
+            hypotheses: raw.hypotheses,
+            workers: raw.workers,
+            min_visible_pixels: raw.min_visible_pixels,
+            seed: raw.seed,
+            models: raw.models,
+            camera,
+            ingest,
+            inference,
+            sampler,
+            selector,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_overrides_and_named_errors() {
+        let params = NbvParams::from_json(&serde_json::json!({
+            "candidates": 8, "radius": 0.5, "sampler": {"samples": 8}, "selector": {"method": "model-free"},
+        }))
+        .unwrap();
+        assert_eq!(params.sphere.candidates, 8);
+        assert_eq!(params.sphere.radius, Some(0.5));
+        assert_eq!((params.sampler.samples, params.sampler.steps), (8, 3));
+        assert_eq!((params.ingest.image_size, params.ingest.patch_grid), (112, 8));
+        assert_eq!(params.up, nalgebra::Vector3::new(0.0, -1.0, 0.0));
+        assert_eq!(params.camera.width, 640);
+        assert!(NbvParams::from_json(&serde_json::json!({})).unwrap().sphere.radius.is_none());
+
+        let error = |value: serde_json::Value| NbvParams::from_json(&value).unwrap_err().to_string();
+        let err = error(serde_json::json!({"elevation_deg": [60.0, 10.0]}));
+        assert!(err.contains("`elevation_deg`") && err.contains("min < max"), "{err}");
+        let err = error(serde_json::json!({"up": [0.0, 0.0, 0.0]}));
+        assert!(err.contains("`up`"), "{err}");
+        let err = error(serde_json::json!({"sampler": {"samples": 0}}));
+        assert!(err.contains("`sampler`") && err.contains("samples"), "{err}");
+        let err = error(serde_json::json!({"candidate": 3}));
+        assert!(err.contains("unknown field `candidate`"), "{err}");
+        let err = error(
+            serde_json::json!({"camera": {"fx": 500.0, "fy": 500.0, "cx": 1.0, "cy": 1.0, "width": 0, "height": 4}}),
+        );
+        assert!(err.contains("`camera`"), "{err}");
+    }
+}

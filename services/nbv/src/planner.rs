@@ -1,0 +1,335 @@
+//! Scoring candidate views: v* = argmin_v E[tr Σ_R | v], the expectation
+//! over hypotheses of the current pose distribution, each view simulated
+//! by rendering the object at the hypothesis and running the pose stages
+//! on the rendering.
+
+use std::time::Instant;
+
+use nalgebra::{Point3, Vector3};
+use poseflow_geometry::Pose;
+use poseflow_geometry::sampling::{sample_seed, seeded_rng};
+use poseflow_ingest::IngestError;
+use poseflow_pipeline::{PipelineError, PosePipeline};
+use poseflow_scene::{ModelLibrary, RenderModel};
+
+use crate::candidates::candidate_views;
+use crate::simulate::simulated_view;
+use crate::{NbvError, NbvParams};
+
+/// tr Σ_R of the Haar-uniform rotation distribution, E[θ²] = π²/3 + 2
+/// (rad²): the uncertainty a view that shows nothing leaves.
+pub const UNIFORM_ROTATION_TRACE: f64 = std::f64::consts::PI * std::f64::consts::PI / 3.0 + 2.0;
+
+/// One candidate and the uncertainty it is expected to leave.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScoredView {
+    /// Pose of the candidate camera in the current one (`x_current = R
+    /// x_next + t`).
+    pub camera_from_next: Pose,
+    /// Mean over the simulated hypotheses of tr Σ_R (rad²).
+    pub expected_trace: f64,
+    /// Simulated views that showed too little to estimate (counted at
+    /// [`UNIFORM_ROTATION_TRACE`]).
+    pub uninformative: usize,
+}
+
+/// What one plan cost.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PlanCost {
+    /// Simulated views (candidates × hypotheses).
+    pub views: usize,
+    /// Summed over workers: rendering and noise, and the pose stages.
+    pub render_ms: f64,
+    pub estimate_ms: f64,
+    /// Wall time of the whole plan.
+    pub wall_ms: f64,
+}
+
+#[derive(Debug, Clone)]
+pub struct NextViewPlan {
+    /// Every candidate, lowest expected trace first (ties: candidate order).
+    pub views: Vec<ScoredView>,
+    pub cost: PlanCost,
+}
+
+/// `count` of `kept` (best first) spread evenly over the list, so the
+/// simulated hypotheses reach beyond the best-scored few.
+pub fn spread_evenly(kept: &[Pose], count: usize) -> Vec<Pose> {
+    let n = count.min(kept.len());
+    (0..n).map(|i| kept[i * kept.len() / n]).collect()
+}
+
+/// One simulated view's job and result.
+#[derive(Debug, Clone, Copy)]
+struct Job {
+    candidate: usize,
+    hypothesis: usize,
+    camera_from_object: Pose,
+    trace: Option<f64>,
+    render_ms: f64,
+    estimate_ms: f64,
+}
+
+/// The object models and the pose pipelines that score views.
+#[derive(Debug)]
+pub struct NbvPlanner {
+    params: NbvParams,
+    library: ModelLibrary,
+    pipelines: Vec<PosePipeline>,
+}
+
+impl NbvPlanner {
+    pub fn load(params: NbvParams) -> Result<Self, NbvError> {
+        let library = ModelLibrary::load(&params.models, &[])
+            .map_err(|e| NbvError::Objects { path: params.models.clone(), detail: e.to_string() })?;
+        let pipelines = (0..params.workers)
+            .map(|_| {
+                PosePipeline::new(
+                    params.ingest.clone(),
+                    &params.inference,
+                    params.sampler.clone(),
+                    params.selector.clone(),
+                )
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(Self { params, library, pipelines })
+    }
+
+    pub fn params(&self) -> &NbvParams {
+        &self.params
+    }
+
+    pub fn object_ids(&self) -> Vec<u32> {
+        self.library.objects.iter().map(|o| o.obj_id).collect()
+    }
+
+    /// The candidate views around the object at `hypotheses[0]` (the
+    /// middle of its model's bounding box: BOP origins need not be).
+    pub fn candidates(
+        &self,
+        frame: u64,
+        obj_id: u32,
+        hypotheses: &[Pose],
+        up: &Vector3<f64>,
+    ) -> Result<Vec<Pose>, NbvError> {
+        let best = hypotheses.first().ok_or_else(|| NbvError::Frame {
+            frame,
+            object: obj_id,
+            detail: "the Estimate has no kept hypothesis".into(),
+        })?;
+        let (low, high) = find_model(&self.library, &self.params, frame, obj_id)?.mesh.bounds();
+        let centre = best.transform_point(&Point3::from((low.coords + high.coords).cast::<f64>() / 2.0));
+        Ok(candidate_views(&centre, up, &self.params.sphere))
+    }
+
+    /// Ranks the candidate views around the object at `hypotheses[0]` for
+    /// object `obj_id` seen in frame `frame`; `up` is the world's up
+    /// direction in the current camera frame (unit).
+    pub fn plan(
+        &mut self,
+        frame: u64,
+        obj_id: u32,
+        hypotheses: &[Pose],
+        up: &Vector3<f64>,
+    ) -> Result<NextViewPlan, NbvError> {
+        let started = Instant::now();
+        let views = self.candidates(frame, obj_id, hypotheses, up)?;
+        let mut plan = self.score_views(frame, obj_id, &views, hypotheses)?;
+        plan.cost.wall_ms = started.elapsed().as_secs_f64() * 1e3;
+        tracing::debug!(
+            frame,
+            object = obj_id,
+            views = plan.cost.views,
+            wall_ms = plan.cost.wall_ms,
+            "next view planned"
+        );
+        Ok(plan)
+    }
+
+    /// Scores `views` (poses of candidate cameras in the current one) by
+    /// the mean tr Σ_R the pose stages leave on renderings under
+    /// `hypotheses` (spread evenly over them); lowest first.
+    pub fn score_views(
+        &mut self,
+        frame: u64,
+        obj_id: u32,
+        views: &[Pose],
+        hypotheses: &[Pose],
+    ) -> Result<NextViewPlan, NbvError> {
+        let started = Instant::now();
+        let model = find_model(&self.library, &self.params, frame, obj_id)?;
+        let simulated = spread_evenly(hypotheses, self.params.hypotheses);
+        let mut jobs: Vec<Job> = views
+            .iter()
+            .enumerate()
+            .flat_map(|(candidate, view)| {
+                simulated.iter().enumerate().map(move |(hypothesis, pose)| Job {
+                    candidate,
+                    hypothesis,
+                    camera_from_object: view.inverse() * *pose,
+                    trace: None,
+                    render_ms: 0.0,
+                    estimate_ms: 0.0,
+                })
+            })
+            .collect();
+
+        // The jobs are dealt round-robin to the workers, each with its own
+        // pipeline; a job's result depends on its inputs alone, so the
+        // ranking does not depend on the worker count.
+        let params = &self.params;
+        let workers = self.pipelines.len();
+        let results: Vec<Result<(), NbvError>> = std::thread::scope(|scope| {
+            let mut shares: Vec<Vec<&mut Job>> = (0..workers).map(|_| Vec::new()).collect();
+            for (i, job) in jobs.iter_mut().enumerate() {
+                shares[i % workers].push(job);
+            }
+            let handles: Vec<_> = self
+                .pipelines
+                .iter_mut()
+                .zip(shares)
+                .map(|(pipeline, share)| {
+                    scope.spawn(move || {
+                        for job in share {
+                            run_job(pipeline, params, model, frame, obj_id, job)?;
+                        }
+                        Ok(())
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| {
+                    h.join().unwrap_or_else(|_| {
+                        Err(NbvError::Frame { frame, object: obj_id, detail: "a scoring worker panicked".into() })
+                    })
+                })
+                .collect()
+        });
+        results.into_iter().collect::<Result<(), _>>()?;
+
+        let hypotheses_per_view = simulated.len().max(1);
+        let mut scored: Vec<ScoredView> = views
+            .iter()
+            .enumerate()
+            .map(|(c, view)| {
+                let traces = jobs.iter().filter(|j| j.candidate == c).map(|j| j.trace);
+                let (sum, uninformative) = traces.fold((0.0, 0), |(sum, none), trace| match trace {
+                    Some(t) => (sum + t, none),
+                    None => (sum + UNIFORM_ROTATION_TRACE, none + 1),
+                });
+                ScoredView { camera_from_next: *view, expected_trace: sum / hypotheses_per_view as f64, uninformative }
+            })
+            .collect();
+        scored.sort_by(|a, b| a.expected_trace.total_cmp(&b.expected_trace));
+        let cost = PlanCost {
+            views: jobs.len(),
+            render_ms: jobs.iter().map(|j| j.render_ms).sum(),
+            estimate_ms: jobs.iter().map(|j| j.estimate_ms).sum(),
+            wall_ms: started.elapsed().as_secs_f64() * 1e3,
+        };
+        Ok(NextViewPlan { views: scored, cost })
+    }
+}
+
+fn find_model<'a>(
+    library: &'a ModelLibrary,
+    params: &NbvParams,
+    frame: u64,
+    obj_id: u32,
+) -> Result<&'a RenderModel, NbvError> {
+    let found = library.objects.iter().find(|o| o.obj_id == obj_id);
+    found.map(|o| &o.model).ok_or_else(|| NbvError::Frame {
+        frame,
+        object: obj_id,
+        detail: format!("no model of object {obj_id} in {}", params.models.display()),
+    })
+}
+
+/// Renders one job's view and estimates on it; a view the ingest rejects
+/// (too few points) is uninformative, any other failure is the plan's.
+fn run_job(
+    pipeline: &mut PosePipeline,
+    params: &NbvParams,
+    model: &RenderModel,
+    frame: u64,
+    obj_id: u32,
+    job: &mut Job,
+) -> Result<(), NbvError> {
+    let view_id = (frame << 20) | ((job.candidate as u64) << 8) | job.hypothesis as u64;
+    let mut rng = seeded_rng(sample_seed(params.seed, view_id, obj_id));
+    let started = Instant::now();
+    let simulated = simulated_view(
+        model,
+        obj_id,
+        &params.camera,
+        &job.camera_from_object,
+        view_id,
+        params.min_visible_pixels,
+        &mut rng,
+    );
+    job.render_ms = started.elapsed().as_secs_f64() * 1e3;
+    let Some((rgbd, mask)) = simulated else {
+        return Ok(());
+    };
+    let started = Instant::now();
+    let estimated = pipeline.estimate(&rgbd, &mask);
+    job.estimate_ms = started.elapsed().as_secs_f64() * 1e3;
+    match estimated {
+        Ok(estimate) => job.trace = Some(f64::from(estimate.header.rotation_trace)),
+        Err(PipelineError::Ingest(IngestError::Object { .. })) => {}
+        Err(other) => return Err(other.into()),
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{Rotation3, Vector3};
+    use poseflow_geometry::sampling::{seeded_rng, uniform_rotation};
+    use poseflow_geometry::so3::geodesic_angle;
+
+    use super::*;
+
+    #[test]
+    fn the_uniform_trace_is_the_mean_squared_angle_of_haar_rotations() {
+        // Simpson's rule on E[θ²] = ∫ θ² (1 − cos θ)/π dθ over [0, π].
+        let n = 2000;
+        let h = std::f64::consts::PI / n as f64;
+        let f = |theta: f64| theta * theta * (1.0 - theta.cos()) / std::f64::consts::PI;
+        let simpson: f64 = (0..=n)
+            .map(|i| {
+                let weight = if i == 0 || i == n {
+                    1.0
+                } else if i % 2 == 1 {
+                    4.0
+                } else {
+                    2.0
+                };
+                weight * f(i as f64 * h)
+            })
+            .sum::<f64>()
+            * h
+            / 3.0;
+        assert!((simpson - UNIFORM_ROTATION_TRACE).abs() < 1e-9, "{simpson}");
+        // And by sampling: 100,000 Haar rotations' mean squared angle.
+        let mut rng = seeded_rng(3);
+        let samples = 100_000;
+        let mean = (0..samples)
+            .map(|_| geodesic_angle(&uniform_rotation(&mut rng), &Rotation3::identity()).powi(2))
+            .sum::<f64>()
+            / samples as f64;
+        assert!((mean - UNIFORM_ROTATION_TRACE).abs() < 0.03, "{mean}");
+    }
+
+    #[test]
+    fn hypotheses_are_spread_over_the_kept_list() {
+        let kept: Vec<Pose> =
+            (0..10).map(|i| Pose::new(Rotation3::identity(), Vector3::new(f64::from(i), 0.0, 0.0))).collect();
+        let xs = |poses: Vec<Pose>| poses.iter().map(|p| p.translation.x).collect::<Vec<_>>();
+        assert_eq!(xs(spread_evenly(&kept, 3)), [0.0, 3.0, 6.0]);
+        assert_eq!(xs(spread_evenly(&kept, 1)), [0.0]);
+        assert_eq!(xs(spread_evenly(&kept[..2], 3)), [0.0, 1.0]);
+        assert!(spread_evenly(&[], 3).is_empty());
+    }
+}
