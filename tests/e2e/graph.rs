@@ -657,18 +657,22 @@ params = {{ report = "{report}" }}
 }
 
 /// frames → ingest → inference ⇄ sampler → selector (Observations as its
-/// side input), each its own process: the hypotheses and estimates that
-/// cross shared memory are bit for bit those of the same stages run
-/// in-process on the recorded observations with the same seed.
+/// side input) → grasp and next-best view, each its own process: the
+/// hypotheses, estimates, grasps and next views that cross shared memory
+/// are bit for bit those of the same stages run in-process on the recorded
+/// observations with the same seed.
 #[test]
-fn the_estimation_and_grasp_graph_matches_the_in_process_run_bit_for_bit() {
+fn the_estimation_grasp_and_next_view_graph_matches_the_in_process_run_bit_for_bit() {
     use std::cell::RefCell;
 
     use poseflow_contracts::{
-        EstimateHeader, GRASP_LEN, GraspsHeader, HypothesesHeader, MessageHeader, ObservationHeader,
+        CANDIDATE_LEN, EstimateHeader, GRASP_LEN, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader,
+        ObservationHeader,
     };
     use poseflow_grasp::stage::{grasp_values, kept_hypotheses};
     use poseflow_grasp::{GraspParams, GraspPlanner};
+    use poseflow_nbv::stage::next_view_message;
+    use poseflow_nbv::{NbvParams, NbvPlanner};
     use poseflow_inference::PoseFlowModel;
     use poseflow_inference::stage::InferenceStage;
     use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
@@ -689,6 +693,10 @@ fn the_estimation_and_grasp_graph_matches_the_in_process_run_bit_for_bit() {
     });
     let grasp_params = serde_json::json!({
         "model": root.join("models/grasp-flow"), "models": models, "grasps": 6, "steps": 3, "hypotheses": 3, "seed": 5,
+    });
+    let nbv_params = serde_json::json!({
+        "models": models, "candidates": 3, "hypotheses": 2, "workers": 2,
+        "inference": { "model": model }, "sampler": { "samples": 4, "steps": 2 },
     });
     let graph = scratch.dir.join("estimation.toml");
     std::fs::write(
@@ -733,19 +741,32 @@ exe = "grasp"
 inputs = ["estimates"]
 outputs = ["grasps"]
 params = {grasp_params}
+
+[edges.next_views]
+message = "NextView"
+queue = 4
+overflow = "block"
+max_payload_len = 100
+
+[stages.nbv]
+exe = "nbv"
+inputs = ["estimates"]
+outputs = ["next_views"]
+params = {nbv_params}
 "#,
                 sampler_params = toml_inline(&sampler_params),
                 selector_params = toml_inline(&selector_params),
                 grasp_params = toml_inline(&grasp_params),
+                nbv_params = toml_inline(&nbv_params),
             ),
     )
     .unwrap();
     let recording = scratch.dir.join("estimation.rec");
-    let (result, stderr) = run_recording(&graph, "observations,hypotheses,estimates,grasps", &recording);
-    for stage in ["ingest", "inference", "sampler", "selector", "grasp"] {
+    let (result, stderr) = run_recording(&graph, "observations,hypotheses,estimates,grasps,next_views", &recording);
+    for stage in ["ingest", "inference", "sampler", "selector", "grasp", "nbv"] {
         assert_eq!(result["stages"][stage]["outcome"], "finished", "{result}\n{stderr}");
     }
-    for stage in ["inference", "sampler", "selector", "grasp"] {
+    for stage in ["inference", "sampler", "selector", "grasp", "nbv"] {
         assert_eq!(result["stages"][stage]["errors"], 0, "{stage}: {result}\n{stderr}");
         assert_eq!(result["stages"][stage]["dropped"], 0, "{stage}: {result}\n{stderr}");
     }
@@ -755,9 +776,11 @@ params = {grasp_params}
     while let Some(message) = reader.next_message().unwrap() {
         recorded.entry(message.edge.clone()).or_default().push(message);
     }
-    let [observations, hypotheses, estimates, grasps] =
-        ["observations", "hypotheses", "estimates", "grasps"].map(|edge| recorded.remove(edge).unwrap_or_default());
-    assert_eq!((observations.len(), hypotheses.len(), estimates.len(), grasps.len()), (3, 3, 3, 3), "{result}");
+    let [observations, hypotheses, estimates, grasps, next_views] =
+        ["observations", "hypotheses", "estimates", "grasps", "next_views"]
+            .map(|edge| recorded.remove(edge).unwrap_or_default());
+    let counts = (observations.len(), hypotheses.len(), estimates.len(), grasps.len(), next_views.len());
+    assert_eq!(counts, (3, 3, 3, 3, 3), "{result}");
 
     let inference = RefCell::new(InferenceStage::with_model(PoseFlowModel::load(&model, 1).unwrap(), 8));
     let field = |request: &poseflow_contracts::VelocityRequest, poses: &[f32], out: &mut [f32]| {
@@ -766,8 +789,9 @@ params = {grasp_params}
     let mut sampler = SamplerStage::new(SamplerParams::from_json(&sampler_params).unwrap(), field);
     let mut selector = SelectorStage::new(SelectorParams::from_json(&selector_params).unwrap()).unwrap();
     let mut planner = GraspPlanner::load(GraspParams::from_json(&grasp_params).unwrap()).unwrap();
-    let served = observations.iter().zip(&hypotheses).zip(&estimates).zip(&grasps);
-    for (((observation, hypothesis), estimate), grasp) in served {
+    let mut next_view_planner = NbvPlanner::load(NbvParams::from_json(&nbv_params).unwrap()).unwrap();
+    let served = observations.iter().zip(&hypotheses).zip(&estimates).zip(&grasps).zip(&next_views);
+    for ((((observation, hypothesis), estimate), grasp), next_view) in served {
         let obs: ObservationHeader = header_from_bytes(&observation.header).unwrap();
         let handle = inference.borrow_mut().encode(&obs, &observation.payload).unwrap();
         let (expected_header, poses) = sampler.hypotheses(&handle).unwrap();
@@ -811,6 +835,20 @@ params = {grasp_params}
             let share = values[GRASP_LEN - 2];
             assert!([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0].iter().any(|s| (s - share).abs() < 1e-6), "{share}");
         }
+
+        // The next-best-view process: the same ranking as the planner
+        // in-process, best first, chosen = first.
+        let up = NbvParams::from_json(&nbv_params).unwrap().up;
+        let plan = next_view_planner.plan(served.header.frame_id, served.header.object_id, &kept, &up).unwrap();
+        let (expected_header, expected) = next_view_message(&plan, served.rotation_trace);
+        let view: NextViewHeader = header_from_bytes(&next_view.header).unwrap();
+        view.check_payload(&next_view.payload).unwrap();
+        assert_eq!(view.header.frame_id, served.header.frame_id);
+        assert_eq!(NextViewHeader { header: expected_header.header, ..view }, expected_header);
+        assert_eq!(next_view.payload, expected, "next views of frame {}", served.header.frame_id);
+        let traces: Vec<f32> = next_view.payload.chunks_exact(CANDIDATE_LEN).map(|c| c[CANDIDATE_LEN - 1]).collect();
+        assert!(traces.windows(2).all(|w| w[0] <= w[1]), "{traces:?}");
+        assert_eq!(view.candidate_count, 3);
     }
     drop(scratch);
     assert_nothing_leaked(&before);
@@ -824,6 +862,7 @@ fn toml_inline(value: &serde_json::Value) -> String {
         .iter()
         .map(|(k, v)| match v {
             serde_json::Value::String(s) => format!("{k} = {s:?}"),
+            table @ serde_json::Value::Object(_) => format!("{k} = {}", toml_inline(table)),
             other => format!("{k} = {other}"),
         })
         .collect();
