@@ -671,10 +671,10 @@ fn the_estimation_grasp_and_next_view_graph_matches_the_in_process_run_bit_for_b
     };
     use poseflow_grasp::stage::{grasp_values, kept_hypotheses};
     use poseflow_grasp::{GraspParams, GraspPlanner};
-    use poseflow_nbv::stage::next_view_message;
-    use poseflow_nbv::{NbvParams, NbvPlanner};
     use poseflow_inference::PoseFlowModel;
     use poseflow_inference::stage::InferenceStage;
+    use poseflow_nbv::stage::next_view_message;
+    use poseflow_nbv::{NbvParams, NbvPlanner};
     use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
     use poseflow_sampler::SamplerParams;
     use poseflow_sampler::stage::SamplerStage;
@@ -848,7 +848,8 @@ params = {nbv_params}
         assert_eq!(next_view.payload, expected, "next views of frame {}", served.header.frame_id);
         let traces: Vec<f32> = next_view.payload.chunks_exact(CANDIDATE_LEN).map(|c| c[CANDIDATE_LEN - 1]).collect();
         assert!(traces.windows(2).all(|w| w[0] <= w[1]), "{traces:?}");
-        assert_eq!(view.candidate_count, 3);
+        // The current viewpoint and the sphere's three.
+        assert_eq!(view.candidate_count, 4);
     }
     drop(scratch);
     assert_nothing_leaked(&before);

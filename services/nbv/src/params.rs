@@ -19,6 +19,7 @@ use crate::NbvError;
 /// | `elevation_deg` | [min, max] elevation band (degrees above the plane through the object centre perpendicular to `up`) | [10, 60] |
 /// | `radius` | sphere radius (m); 0 = the current camera's distance to the object | 0 |
 /// | `up` | the world's up direction in the current camera frame (OpenCV axes: image up is −y) | [0, −1, 0] |
+/// | `include_current` | also score the current viewpoint (the identity pose), so the ranking says whether moving pays | true |
 /// | `hypotheses` | H hypotheses of the Estimate (spread evenly over its kept ones) rendered per candidate | 3 |
 /// | `workers` | pose pipelines scoring simulated views in parallel (one ONNX session pair each) | 2 |
 /// | `min_visible_pixels` | a simulated view showing fewer object pixels is uninformative (trace of a uniform rotation) | 200 |
@@ -37,6 +38,8 @@ struct Raw {
     radius: f64,
     #[serde(default = "default_up")]
     up: [f64; 3],
+    #[serde(default = "default_true")]
+    include_current: bool,
     #[serde(default = "default_hypotheses")]
     hypotheses: usize,
     #[serde(default = "default_workers")]
@@ -79,6 +82,9 @@ fn default_elevation() -> [f64; 2] {
 fn default_up() -> [f64; 3] {
     [0.0, -1.0, 0.0]
 }
+fn default_true() -> bool {
+    true
+}
 fn default_hypotheses() -> usize {
     3
 }
@@ -107,6 +113,7 @@ pub struct NbvParams {
     pub sphere: ViewSphere,
     /// Unit vector, current camera frame.
     pub up: nalgebra::Vector3<f64>,
+    pub include_current: bool,
     pub hypotheses: usize,
     pub workers: usize,
     pub min_visible_pixels: usize,
@@ -184,6 +191,7 @@ impl NbvParams {
                 radius: (raw.radius > 0.0).then_some(raw.radius),
             },
             up: nalgebra::Vector3::from(raw.up).normalize(),
+            include_current: raw.include_current,
             hypotheses: raw.hypotheses,
             workers: raw.workers,
             min_visible_pixels: raw.min_visible_pixels,

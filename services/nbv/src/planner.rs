@@ -122,9 +122,10 @@ impl NbvPlanner {
         Ok(candidate_views(&centre, up, &self.params.sphere))
     }
 
-    /// Ranks the candidate views around the object at `hypotheses[0]` for
-    /// object `obj_id` seen in frame `frame`; `up` is the world's up
-    /// direction in the current camera frame (unit).
+    /// Ranks the candidate views around the object at `hypotheses[0]` (and
+    /// the current viewpoint first, when `include_current`) for object
+    /// `obj_id` seen in frame `frame`; `up` is the world's up direction in
+    /// the current camera frame (unit).
     pub fn plan(
         &mut self,
         frame: u64,
@@ -133,7 +134,10 @@ impl NbvPlanner {
         up: &Vector3<f64>,
     ) -> Result<NextViewPlan, NbvError> {
         let started = Instant::now();
-        let views = self.candidates(frame, obj_id, hypotheses, up)?;
+        let mut views = self.candidates(frame, obj_id, hypotheses, up)?;
+        if self.params.include_current {
+            views.insert(0, Pose::identity());
+        }
         let mut plan = self.score_views(frame, obj_id, &views, hypotheses)?;
         plan.cost.wall_ms = started.elapsed().as_secs_f64() * 1e3;
         tracing::debug!(

@@ -118,9 +118,11 @@ fn uninformative_views_count_as_uniform_and_unknown_objects_are_named() {
     let up = current.rotation * Vector3::z();
     let plan = planner.plan(2, 14, &hypotheses, &up).unwrap();
     let candidates = planner.candidates(2, 14, &hypotheses, &up).unwrap();
-    assert_eq!(plan.views.len(), 4);
-    for (view, candidate) in plan.views.iter().zip(&candidates) {
-        assert_eq!(view.camera_from_next, *candidate);
+    // The current viewpoint first, then the sphere's four.
+    assert_eq!((plan.views.len(), candidates.len()), (5, 4));
+    let expected = std::iter::once(Pose::identity()).chain(candidates);
+    for (view, candidate) in plan.views.iter().zip(expected) {
+        assert_eq!(view.camera_from_next, candidate);
         assert_eq!((view.expected_trace, view.uninformative), (UNIFORM_ROTATION_TRACE, 1));
     }
     let err = planner.plan(2, 99, &hypotheses, &up).unwrap_err().to_string();

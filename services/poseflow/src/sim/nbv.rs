@@ -95,6 +95,9 @@ struct Outcome {
     expected_trace: Option<f64>,
     /// Wall time of the plan (nbv only).
     plan_ms: Option<f64>,
+    /// How far the camera turned for this view (degrees; 0 at the start
+    /// and when staying).
+    turn_deg: f64,
 }
 
 #[derive(Debug, Default, Serialize)]
@@ -138,6 +141,7 @@ fn outcome(view: &MugView, estimate: &Estimated) -> anyhow::Result<Outcome> {
         handle_pixels: view.handle_pixels,
         expected_trace: None,
         plan_ms: None,
+        turn_deg: 0.0,
     })
 }
 
@@ -184,7 +188,8 @@ fn run_policy(
             .pipeline
             .estimate(&view.frame, &view.mask)
             .with_context(|| format!("{} move {step}: pose estimation", policy.name()))?;
-        outcomes.push(Outcome { expected_trace, plan_ms, ..outcome(&view, &estimate)? });
+        let turn_deg = geodesic_angle(&camera_from_next.rotation, &nalgebra::Rotation3::identity()).to_degrees();
+        outcomes.push(Outcome { expected_trace, plan_ms, turn_deg, ..outcome(&view, &estimate)? });
     }
     Ok([outcomes[0], outcomes[1]])
 }
@@ -209,14 +214,16 @@ fn policy_means(trials: &[Trial], policy: Policy) -> PolicyMeans {
 
 fn write_trials(out: &Path, trials: &[Trial]) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
-    let mut text = String::from("trial,policy,move,rot_trace,rot_err_deg,handle_pixels,expected_trace,plan_ms\n");
+    let mut text =
+        String::from("trial,policy,move,rot_trace,rot_err_deg,handle_pixels,turn_deg,expected_trace,plan_ms\n");
     let row = |text: &mut String, trial: usize, policy: &str, step: usize, o: &Outcome| {
-        let optional = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.6}"));
+        let optional = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.4e}"));
         *text += &format!(
-            "{trial},{policy},{step},{:.6},{:.2},{},{},{}\n",
+            "{trial},{policy},{step},{:.4e},{:.2},{},{:.1},{},{}\n",
             o.trace,
             o.error_deg,
             o.handle_pixels,
+            o.turn_deg,
             optional(o.expected_trace),
             o.plan_ms.map_or(String::new(), |v| format!("{v:.0}"))
         );
@@ -299,10 +306,10 @@ fn print_table(args: &NbvSimArgs, trials: &[Trial], report: &Report) {
     );
     for (i, trial) in trials.iter().enumerate() {
         let s = &trial.start;
-        println!("{i:<6} {:<7} {:>12.5} {:>8.1}° {:>10} |", "start", s.trace, s.error_deg, s.handle_pixels);
+        println!("{i:<6} {:<7} {:>12.2e} {:>8.1}° {:>10} |", "start", s.trace, s.error_deg, s.handle_pixels);
         for (policy, [one, two]) in &trial.moves {
             println!(
-                "{:<6} {:<7} {:>12.5} {:>8.1}° {:>10} | {:>12.5} {:>8.1}° {:>10}",
+                "{:<6} {:<7} {:>12.2e} {:>8.1}° {:>10} | {:>12.2e} {:>8.1}° {:>10}",
                 "",
                 policy.name(),
                 one.trace,
@@ -331,7 +338,7 @@ fn print_table(args: &NbvSimArgs, trials: &[Trial], report: &Report) {
     );
     for (name, m) in [("nbv", &report.nbv), ("random", &report.random), ("stay", &report.stay)] {
         println!(
-            "{name:<8} {:>12.5} {:>12.5} {:>9.1}° {:>9.1}° {:>8.0}% {:>8.0}%",
+            "{name:<8} {:>12.2e} {:>12.2e} {:>9.1}° {:>9.1}° {:>8.0}% {:>8.0}%",
             m.rot_trace_1, m.rot_trace_2, m.rot_err_deg_1, m.rot_err_deg_2, m.handle_seen_1, m.handle_seen_2
         );
     }
