@@ -140,9 +140,10 @@ def nbv_section(directory):
              "on a table, first seen with its handle turned away (hidden behind the body); the pose stages (N = 50, "
              "K = 5, SDF selection + refinement) estimate its pose distribution; then the camera moves twice and the "
              "pose is estimated afresh after each move. `nbv`: the candidate (12 on a sphere at the current "
-             "distance, 10–60° above the table) whose views, rendered under 3 of the current Estimate's kept "
-             "hypotheses and run through the pose stages (16 samples, 3 steps, no selection), leave the least mean "
-             "tr Σ_R; `random`: a candidate drawn uniformly from the same 12; `stay`: the same camera (a new frame). "
+             "distance, 10–60° above the table, and the current viewpoint) whose views, rendered under 3 of the "
+             "current Estimate's kept hypotheses and run through the pose stages (16 samples, 3 steps, no "
+             "selection), leave the least mean tr Σ_R; `random`: one of the 12 sphere candidates drawn uniformly; "
+             "`stay`: the same camera (a new frame). "
              "tr Σ_R is the trace of the rotational covariance of the kept hypotheses after selection (rad²); the "
              "error is the selected pose's rotation error. No fusion across views: each estimate stands alone. "
              f"At the start: mean tr Σ_R {start['rot_trace']:.2e} rad², mean error {fmt(start['rot_err_deg'])}°.", "",
@@ -159,8 +160,11 @@ def nbv_section(directory):
                      f"{fmt(m['handle_seen_1'], 0)} / {fmt(m['handle_seen_2'], 0)} |")
     plans = sorted(float(t["plan_ms"]) for t in trials if t["plan_ms"])
     if plans:
-        lines += ["", f"Cost of a plan (12 candidates × 3 hypotheses = 36 simulated views, 2 workers): median "
-                      f"{fmt(plans[len(plans) // 2], 0)} ms wall time over {len(plans)} plans."]
+        stayed = sum(1 for t in trials if t["policy"] == "nbv" and float(t["turn_deg"]) == 0)
+        lines += ["", f"Cost of a plan (13 candidates × 3 hypotheses = 39 simulated views, 2 workers): median "
+                      f"{fmt(plans[len(plans) // 2], 0)} ms wall time over {len(plans)} plans "
+                      f"({fmt(plans[0], 0)}–{fmt(plans[-1], 0)} ms). `nbv` kept the current viewpoint in {stayed} "
+                      "of its moves."]
     lines.append("")
     return lines
 

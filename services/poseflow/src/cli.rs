@@ -45,7 +45,7 @@ pub enum Command {
     Eval(crate::eval::EvalArgs),
     /// Benchmark transport latency and end-to-end throughput.
     Bench(crate::bench::BenchArgs),
-    /// Closed-loop simulations on rendered scenes (grasping under pose uncertainty).
+    /// Closed-loop simulations on rendered scenes (grasping under pose uncertainty, next-best view).
     Sim(crate::sim::SimArgs),
 }
 

@@ -526,3 +526,39 @@ fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
     assert_eq!(none.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&none.stderr).contains("--trials 0"));
 }
+
+/// `sim nbv --json`: every policy's four means, traces within [0, the
+/// uniform distribution's], errors within [0°, 180°]; the table and the
+/// per-trial CSV (a start row and two moves per policy) otherwise.
+#[test]
+fn sim_nbv_reports_each_policy_after_one_and_two_moves() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let out_dir = std::env::temp_dir().join(format!("poseflow-sim-nbv-{}", std::process::id()));
+    let sim = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_poseflow"))
+            .args(["sim", "nbv"])
+            .args(args)
+            .current_dir(&root)
+            .env_remove("RUST_LOG")
+            .output()
+            .unwrap()
+    };
+    let out = sim(&["--trials", "1", "--seed", "5", "--json", "--out", out_dir.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["trials"], 1, "{report}");
+    for policy in ["nbv", "random", "stay"] {
+        for key in ["rot_trace_1", "rot_trace_2", "rot_err_deg_1", "rot_err_deg_2"] {
+            let value = report[policy][key].as_f64().unwrap_or_else(|| panic!("{policy}.{key}: {report}"));
+            let limit = if key.starts_with("rot_trace") { 5.3 } else { 180.0 };
+            assert!((0.0..=limit).contains(&value), "{policy}.{key} = {value}");
+        }
+    }
+    let csv = std::fs::read_to_string(out_dir.join("trials.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 1 + 3 * 2, "{csv}");
+    assert!(csv.lines().nth(2).unwrap().starts_with("0,nbv,1,"), "{csv}");
+    let _ = std::fs::remove_dir_all(&out_dir);
+    let none = sim(&["--trials", "0"]);
+    assert_eq!(none.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&none.stderr).contains("--trials 0"));
+}

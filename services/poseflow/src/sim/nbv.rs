@@ -30,7 +30,8 @@ use super::{pose_pipeline, stage_params};
     stages (N = 50 samples, K = 5 steps, SDF selection with refinement). Then, per policy, the camera moves twice \
     and the pose is estimated afresh from each new view:\n  \
     nbv     the next-best view: the candidate (config/nbv.toml: sphere, elevation band, count) whose views simulated \
-    under the current Estimate's hypotheses leave the least rotational uncertainty;\n  \
+    under the current Estimate's hypotheses leave the least rotational uncertainty, or staying put when the current \
+    viewpoint scores best (include_current);\n  \
     random  a candidate drawn uniformly from the same set;\n  \
     stay    the same camera (a new frame: new light and sensor noise).\n\
     Each new estimate stands alone (no fusion with the earlier views' hypotheses).\n\n\
