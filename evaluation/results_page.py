@@ -128,44 +128,78 @@ def grasp_section(directory):
     return lines
 
 
+MUG_START = "the YCB-V mug alone on a table, first seen with its handle turned away (hidden behind the body)"
+CLUTTER_START = ("the vendored LM-O objects (ape, eggbox, glue; in turn the target) among distractors, first seen "
+                 "0.4–0.8 m away with 15–45 % of the target's silhouette visible")
+# name: (title, the command's scene flags, the start, what "revealed" means)
+NBV_RUNS = {
+    "mug": ("simulated mug, handle hidden", "", MUG_START, "the handle in view (≥ 150 px)"),
+    "clutter": ("LM-O objects in clutter, heavy occlusion", " --scene clutter", CLUTTER_START,
+                "≥ 75 % of the target visible"),
+    "clutter-seed1": ("LM-O objects in clutter, a second seed", " --scene clutter", CLUTTER_START,
+                      "≥ 75 % of the target visible"),
+}
+
+
 def nbv_section(directory):
-    """The next-best-view table (`poseflow sim nbv`) with medians and the
-    planning cost from the per-trial CSV."""
-    report, trials = load(directory / "sim.json"), instances(directory / "trials.csv")
-    if not report or not trials:
-        return []
-    start = report["start"]
-    lines = ["## Next-best view (simulated mug, handle hidden)", "",
-             f"`evaluation/run nbv` = `poseflow sim nbv --trials {report['trials']} --seed 0`: the YCB-V mug alone "
-             "on a table, first seen with its handle turned away (hidden behind the body); the pose stages (N = 50, "
-             "K = 5, SDF selection + refinement) estimate its pose distribution; then the camera moves twice and the "
-             "pose is estimated afresh after each move. `nbv`: the candidate (12 on a sphere at the current "
-             "distance, 10–60° above the table, and the current viewpoint) whose views, rendered under 3 of the "
-             "current Estimate's kept hypotheses and run through the pose stages (16 samples, 3 steps, no "
-             "selection), leave the least mean tr Σ_R; `random`: one of the 12 sphere candidates drawn uniformly; "
-             "`stay`: the same camera (a new frame). "
-             "tr Σ_R is the trace of the rotational covariance of the kept hypotheses after selection (rad²); the "
-             "error is the selected pose's rotation error. No fusion across views: each estimate stands alone. "
-             f"At the start: mean tr Σ_R {start['rot_trace']:.2e} rad², mean error {fmt(start['rot_err_deg'])}°.", "",
-             "| policy | tr Σ_R after 1 move, mean | after 2 | rotation error after 1, mean ° (median) | after 2 | "
-             "handle in view (≥ 150 px) after 1 / 2, % |", "|---|---:|---:|---:|---:|---|"]
-    for policy in ["nbv", "random", "stay"]:
-        m = report[policy]
-        medians = []
-        for step in ("1", "2"):
-            errors = sorted(float(t["rot_err_deg"]) for t in trials if t["policy"] == policy and t["move"] == step)
-            medians.append(errors[len(errors) // 2] if errors else float("nan"))
-        lines.append(f"| {policy} | {m['rot_trace_1']:.2e} | {m['rot_trace_2']:.2e} | {fmt(m['rot_err_deg_1'])} "
-                     f"({fmt(medians[0])}) | {fmt(m['rot_err_deg_2'])} ({fmt(medians[1])}) | "
-                     f"{fmt(m['handle_seen_1'], 0)} / {fmt(m['handle_seen_2'], 0)} |")
-    plans = sorted(float(t["plan_ms"]) for t in trials if t["plan_ms"])
-    if plans:
-        stayed = sum(1 for t in trials if t["policy"] == "nbv" and float(t["turn_deg"]) == 0)
-        lines += ["", f"Cost of a plan (13 candidates × 3 hypotheses = 39 simulated views, 2 workers): median "
-                      f"{fmt(plans[len(plans) // 2], 0)} ms wall time over {len(plans)} plans "
-                      f"({fmt(plans[0], 0)}–{fmt(plans[-1], 0)} ms). `nbv` kept the current viewpoint in {stayed} "
-                      "of its moves."]
-    lines.append("")
+    """The next-best-view tables (`poseflow sim nbv`, one per run) with
+    medians and the planning cost from the per-trial CSVs."""
+    lines = []
+    for name, (title, flags, start_text, revealed_text) in NBV_RUNS.items():
+        report, trials = load(directory / f"{name}.json"), instances(directory / f"{name}.trials.csv")
+        if not report or not trials:
+            continue
+        start = report["start"]
+        seed = "1" if name.endswith("seed1") else "0"
+        lines += [f"## Next-best view ({title})", "",
+                  f"`poseflow sim nbv{flags} --trials {report['trials']} --seed {seed}` (in `evaluation/run nbv`): "
+                  f"{start_text}; the pose stages (N = 50, K = 5, SDF selection + refinement) estimate the pose "
+                  "distribution; then the camera moves twice and the pose is estimated afresh after each move. "
+                  "`nbv`: the candidate (12 on a sphere at the current distance, 10–60° above the table, and the "
+                  "current viewpoint) whose views, rendered under 3 of the current Estimate's kept hypotheses, hidden "
+                  "where the current frame's observed surface lies in front, and run through the pose stages (16 "
+                  "samples, 3 steps, no selection), leave the least mean rotational spread modulo the object's "
+                  "symmetries; `random`: one of the 12 sphere candidates drawn uniformly; `stay`: the same camera (a "
+                  "new frame). tr Σ_R: the trace of the rotational covariance of the kept hypotheses after selection, "
+                  "as the Estimate reports it (rad²); folded: their mean squared angle from their medoid modulo the "
+                  "symmetries (rad², what the planner minimises; equal in kind to tr Σ_R for an asymmetric object). "
+                  "Errors: the selected pose's rotation error, symmetry-aware. No fusion across views: each estimate "
+                  "stands alone; a view showing too little of the target to estimate is `lost` (the previous "
+                  f"estimate stands). At the start: mean tr Σ_R {start['rot_trace']:.2e}, folded "
+                  f"{start['folded_trace']:.2e} rad², mean error {fmt(start['rot_err_deg'])}°.", "",
+                  "| policy | tr Σ_R after 1 move / 2, mean | folded after 1 / 2, mean | rotation error after 1, mean ° "
+                  f"(median) | after 2 | {revealed_text} after 1 / 2, % | lost views |",
+                  "|---|---:|---:|---:|---:|---|---:|"]
+        for policy in ["nbv", "random", "stay"]:
+            m = report[policy]
+            medians = []
+            for step in ("1", "2"):
+                errors = sorted(float(t["rot_err_deg"]) for t in trials if t["policy"] == policy and t["move"] == step)
+                medians.append(errors[len(errors) // 2] if errors else float("nan"))
+            lines.append(f"| {policy} | {m['rot_trace_1']:.2e} / {m['rot_trace_2']:.2e} | "
+                         f"{m['folded_trace_1']:.2e} / {m['folded_trace_2']:.2e} | {fmt(m['rot_err_deg_1'])} "
+                         f"({fmt(medians[0])}) | {fmt(m['rot_err_deg_2'])} ({fmt(medians[1])}) | "
+                         f"{fmt(m['revealed_1'], 0)} / {fmt(m['revealed_2'], 0)} | {m['lost']} |")
+        objects = sorted({t["object"] for t in trials}, key=int)
+        if len(objects) > 1:
+            lines += ["", "Per target object, mean rotation error after 1 / 2 moves, °:", "",
+                      "| object | trials | start | nbv | random | stay |", "|---|---:|---:|---|---|---|"]
+            for obj in objects:
+                def err(policy, step):
+                    e = [float(t["rot_err_deg"]) for t in trials
+                         if t["object"] == obj and t["policy"] == policy and t["move"] == step]
+                    return sum(e) / len(e) if e else float("nan")
+                count = sum(1 for t in trials if t["object"] == obj and t["policy"] == "start")
+                cells = " | ".join(f"{fmt(err(p, '1'))} / {fmt(err(p, '2'))}" for p in ("nbv", "random", "stay"))
+                lines.append(f"| {obj} | {count} | {fmt(err('start', '0'))} | {cells} |")
+        plans = sorted(float(t["plan_ms"]) for t in trials if t["plan_ms"])
+        if plans:
+            stayed = sum(1 for t in trials if t["policy"] == "nbv" and float(t["turn_deg"]) == 0)
+            lines += ["", f"Cost of a plan (13 candidates × 3 hypotheses = 39 simulated views, 2 workers): median "
+                          f"{fmt(plans[len(plans) // 2], 0)} ms wall time over {len(plans)} plans "
+                          f"({fmt(plans[0], 0)}–{fmt(plans[-1], 0)} ms). `nbv` kept the current viewpoint in "
+                          f"{stayed} of its {len(plans)} moves."]
+        lines.append("")
     return lines
 
 
@@ -178,7 +212,7 @@ def main():
     figures = out.parent / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     lines = ["# Evaluation results", "",
-             "Generated by `evaluation/run all` (each table alone: `evaluation/run steps|tracking|selection|rgb|baseline`; this "
+             "Generated by `evaluation/run all` (each table alone: `evaluation/run steps|tracking|selection|rgb|baseline|grasp|nbv`; this "
              "page: `evaluation/make-page`) from the summaries `poseflow eval --json` wrote to "
              "`evaluation/results/`. Machine: 2-core x86-64 VM, no GPU "
              f"({platform.machine()}, Python {platform.python_version()} for this page).", ""]

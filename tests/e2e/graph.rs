@@ -673,7 +673,7 @@ fn the_estimation_grasp_and_next_view_graph_matches_the_in_process_run_bit_for_b
     use poseflow_grasp::{GraspParams, GraspPlanner};
     use poseflow_inference::PoseFlowModel;
     use poseflow_inference::stage::InferenceStage;
-    use poseflow_nbv::stage::next_view_message;
+    use poseflow_nbv::stage::NbvStage;
     use poseflow_nbv::{NbvParams, NbvPlanner};
     use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
     use poseflow_sampler::SamplerParams;
@@ -751,6 +751,7 @@ max_payload_len = 100
 [stages.nbv]
 exe = "nbv"
 inputs = ["estimates"]
+side_inputs = ["frames"]
 outputs = ["next_views"]
 params = {nbv_params}
 "#,
@@ -762,7 +763,8 @@ params = {nbv_params}
     )
     .unwrap();
     let recording = scratch.dir.join("estimation.rec");
-    let (result, stderr) = run_recording(&graph, "observations,hypotheses,estimates,grasps,next_views", &recording);
+    let edges = "frames,observations,hypotheses,estimates,grasps,next_views";
+    let (result, stderr) = run_recording(&graph, edges, &recording);
     for stage in ["ingest", "inference", "sampler", "selector", "grasp", "nbv"] {
         assert_eq!(result["stages"][stage]["outcome"], "finished", "{result}\n{stderr}");
     }
@@ -776,11 +778,12 @@ params = {nbv_params}
     while let Some(message) = reader.next_message().unwrap() {
         recorded.entry(message.edge.clone()).or_default().push(message);
     }
-    let [observations, hypotheses, estimates, grasps, next_views] =
-        ["observations", "hypotheses", "estimates", "grasps", "next_views"]
+    let [frames, observations, hypotheses, estimates, grasps, next_views] =
+        ["frames", "observations", "hypotheses", "estimates", "grasps", "next_views"]
             .map(|edge| recorded.remove(edge).unwrap_or_default());
     let counts = (observations.len(), hypotheses.len(), estimates.len(), grasps.len(), next_views.len());
     assert_eq!(counts, (3, 3, 3, 3, 3), "{result}");
+    assert!(!frames.is_empty(), "{result}");
 
     let inference = RefCell::new(InferenceStage::with_model(PoseFlowModel::load(&model, 1).unwrap(), 8));
     let field = |request: &poseflow_contracts::VelocityRequest, poses: &[f32], out: &mut [f32]| {
@@ -789,7 +792,13 @@ params = {nbv_params}
     let mut sampler = SamplerStage::new(SamplerParams::from_json(&sampler_params).unwrap(), field);
     let mut selector = SelectorStage::new(SelectorParams::from_json(&selector_params).unwrap()).unwrap();
     let mut planner = GraspPlanner::load(GraspParams::from_json(&grasp_params).unwrap()).unwrap();
-    let mut next_view_planner = NbvPlanner::load(NbvParams::from_json(&nbv_params).unwrap()).unwrap();
+    // The nbv stage in-process, holding the recorded frames (its side
+    // input) for their objects' occluders.
+    let mut next_view_stage = NbvStage::new(NbvPlanner::load(NbvParams::from_json(&nbv_params).unwrap()).unwrap());
+    for frame in &frames {
+        let header: poseflow_contracts::FrameHeader = header_from_bytes(&frame.header).unwrap();
+        next_view_stage.keep_frame(&header, &frame.payload).unwrap();
+    }
     let served = observations.iter().zip(&hypotheses).zip(&estimates).zip(&grasps).zip(&next_views);
     for ((((observation, hypothesis), estimate), grasp), next_view) in served {
         let obs: ObservationHeader = header_from_bytes(&observation.header).unwrap();
@@ -836,11 +845,11 @@ params = {nbv_params}
             assert!([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0].iter().any(|s| (s - share).abs() < 1e-6), "{share}");
         }
 
-        // The next-best-view process: the same ranking as the planner
-        // in-process, best first, chosen = first.
-        let up = NbvParams::from_json(&nbv_params).unwrap().up;
-        let plan = next_view_planner.plan(served.header.frame_id, served.header.object_id, &kept, &up).unwrap();
-        let (expected_header, expected) = next_view_message(&plan, served.rotation_trace);
+        // The next-best-view process: the same ranking as the stage
+        // in-process (occluders from the frame), best first, chosen = first.
+        let occluders = next_view_stage.occluders(served.header.frame_id, served.header.object_id);
+        assert!(occluders.is_some_and(|o| !o.is_empty()), "frame {}", served.header.frame_id);
+        let (expected_header, expected) = next_view_stage.next_view(&served, &estimate.payload).unwrap();
         let view: NextViewHeader = header_from_bytes(&next_view.header).unwrap();
         view.check_payload(&next_view.payload).unwrap();
         assert_eq!(view.header.frame_id, served.header.frame_id);

@@ -5,7 +5,8 @@
 //! - [`candidate_views`]: cameras on a sphere around the object, within an
 //!   elevation band, looking at its centre;
 //! - [`simulate::simulated_view`]: the object rendered at a hypothesis from
-//!   a candidate, with sensor noise;
+//!   a candidate, with sensor noise, hidden where the current frame's
+//!   observed surface ([`Occluders`]) lies in front of it;
 //! - [`NbvPlanner`]: for every candidate, the pose stages
 //!   ([`poseflow_pipeline`]) on the views simulated under a few of the
 //!   Estimate's hypotheses, ranked by the mean trace they leave; the same
@@ -13,6 +14,7 @@
 
 mod candidates;
 mod error;
+mod occluders;
 mod params;
 mod planner;
 pub mod simulate;
@@ -20,5 +22,6 @@ pub mod stage;
 
 pub use candidates::candidate_views;
 pub use error::NbvError;
+pub use occluders::Occluders;
 pub use params::{NbvParams, ViewSphere};
 pub use planner::{NbvPlanner, NextViewPlan, PlanCost, ScoredView, UNIFORM_ROTATION_TRACE, spread_evenly};

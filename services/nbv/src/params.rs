@@ -23,6 +23,8 @@ use crate::NbvError;
 /// | `hypotheses` | H hypotheses of the Estimate (spread evenly over its kept ones) rendered per candidate | 3 |
 /// | `workers` | pose pipelines scoring simulated views in parallel (one ONNX session pair each) | 2 |
 /// | `min_visible_pixels` | a simulated view showing fewer object pixels is uninformative (trace of a uniform rotation) | 200 |
+/// | `frames` | Frames (side input) kept for the Estimates still to come | 16 |
+/// | `occluder_stride` | every n-th depth pixel (both ways) of the frame becomes an occluder point | 4 |
 /// | `seed` | seed of the simulated sensor noise (with the frame, candidate and hypothesis) | 0 |
 /// | `models` | BOP models directory the views are rendered from | `objects/lmo` |
 /// | `camera` | intrinsics of the camera that moves (`fx`, `fy`, `cx`, `cy`, `width`, `height`) | LM-O 640×480 |
@@ -46,6 +48,10 @@ struct Raw {
     workers: usize,
     #[serde(default = "default_min_visible_pixels")]
     min_visible_pixels: usize,
+    #[serde(default = "default_frames")]
+    frames: usize,
+    #[serde(default = "default_occluder_stride")]
+    occluder_stride: usize,
     #[serde(default)]
     seed: u64,
     #[serde(default = "default_models")]
@@ -94,6 +100,12 @@ fn default_workers() -> usize {
 fn default_min_visible_pixels() -> usize {
     200
 }
+fn default_frames() -> usize {
+    16
+}
+fn default_occluder_stride() -> usize {
+    4
+}
 fn default_models() -> PathBuf {
     PathBuf::from("objects/lmo")
 }
@@ -117,6 +129,8 @@ pub struct NbvParams {
     pub hypotheses: usize,
     pub workers: usize,
     pub min_visible_pixels: usize,
+    pub frames: usize,
+    pub occluder_stride: usize,
     pub seed: u64,
     pub models: PathBuf,
     pub camera: Camera,
@@ -141,7 +155,7 @@ impl NbvParams {
         let bad = |key: &str, detail: String| NbvError::Params { key: key.to_string(), detail };
         let raw: Raw = serde_json::from_value(value.clone()).map_err(|e| bad("nbv", e.to_string()))?;
         let [low, high] = raw.elevation_deg;
-        let checks: [(&str, bool, String); 7] = [
+        let checks: [(&str, bool, String); 9] = [
             ("candidates", (1..=4096).contains(&raw.candidates), format!("{}: expected 1 to 4096", raw.candidates)),
             (
                 "elevation_deg",
@@ -156,6 +170,12 @@ impl NbvParams {
             ),
             ("hypotheses", (1..=64).contains(&raw.hypotheses), format!("{}: expected 1 to 64", raw.hypotheses)),
             ("workers", (1..=16).contains(&raw.workers), format!("{}: expected 1 to 16", raw.workers)),
+            ("frames", (1..=256).contains(&raw.frames), format!("{}: expected 1 to 256", raw.frames)),
+            (
+                "occluder_stride",
+                (1..=64).contains(&raw.occluder_stride),
+                format!("{}: expected 1 to 64", raw.occluder_stride),
+            ),
             (
                 "camera",
                 raw.camera.is_none_or(|c| {
@@ -195,6 +215,8 @@ impl NbvParams {
             hypotheses: raw.hypotheses,
             workers: raw.workers,
             min_visible_pixels: raw.min_visible_pixels,
+            frames: raw.frames,
+            occluder_stride: raw.occluder_stride,
             seed: raw.seed,
             models: raw.models,
             camera,

@@ -1,20 +1,24 @@
 //! Scoring candidate views: v* = argmin_v E[tr Σ_R | v], the expectation
 //! over hypotheses of the current pose distribution, each view simulated
 //! by rendering the object at the hypothesis and running the pose stages
-//! on the rendering.
+//! on the rendering. tr Σ_R is measured modulo the object's symmetries
+//! ([`SymmetrySet::folded_rotation_spread`] of the simulated estimate's kept
+//! hypotheses), so a symmetric object's twins do not count as uncertainty
+//! no view could remove.
 
 use std::time::Instant;
 
 use nalgebra::{Point3, Vector3};
 use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::{sample_seed, seeded_rng};
+use poseflow_geometry::symmetry::{BOP_MAX_SYMMETRY_STEP, SymmetrySet};
 use poseflow_ingest::IngestError;
 use poseflow_pipeline::{PipelineError, PosePipeline};
 use poseflow_scene::{ModelLibrary, RenderModel};
 
 use crate::candidates::candidate_views;
-use crate::simulate::simulated_view;
-use crate::{NbvError, NbvParams};
+use crate::simulate::{Viewpoint, simulated_view};
+use crate::{NbvError, NbvParams, Occluders};
 
 /// tr Σ_R of the Haar-uniform rotation distribution, E[θ²] = π²/3 + 2
 /// (rad²): the uncertainty a view that shows nothing leaves.
@@ -26,7 +30,8 @@ pub struct ScoredView {
     /// Pose of the candidate camera in the current one (`x_current = R
     /// x_next + t`).
     pub camera_from_next: Pose,
-    /// Mean over the simulated hypotheses of tr Σ_R (rad²).
+    /// Mean over the simulated hypotheses of tr Σ_R modulo symmetries
+    /// (rad²).
     pub expected_trace: f64,
     /// Simulated views that showed too little to estimate (counted at
     /// [`UNIFORM_ROTATION_TRACE`]).
@@ -65,6 +70,7 @@ struct Job {
     candidate: usize,
     hypothesis: usize,
     camera_from_object: Pose,
+    next_from_current: Pose,
     trace: Option<f64>,
     render_ms: f64,
     estimate_ms: f64,
@@ -75,6 +81,8 @@ struct Job {
 pub struct NbvPlanner {
     params: NbvParams,
     library: ModelLibrary,
+    /// Each library object's symmetries (BOP discretisation).
+    symmetries: Vec<SymmetrySet>,
     pipelines: Vec<PosePipeline>,
 }
 
@@ -92,7 +100,9 @@ impl NbvPlanner {
                 )
             })
             .collect::<Result<_, _>>()?;
-        Ok(Self { params, library, pipelines })
+        let symmetries =
+            library.objects.iter().map(|o| SymmetrySet::from_model_info(&o.info, BOP_MAX_SYMMETRY_STEP)).collect();
+        Ok(Self { params, library, symmetries, pipelines })
     }
 
     pub fn params(&self) -> &NbvParams {
@@ -117,7 +127,8 @@ impl NbvPlanner {
             object: obj_id,
             detail: "the Estimate has no kept hypothesis".into(),
         })?;
-        let (low, high) = find_model(&self.library, &self.params, frame, obj_id)?.mesh.bounds();
+        let index = find_object(&self.library, &self.params, frame, obj_id)?;
+        let (low, high) = self.library.objects[index].model.mesh.bounds();
         let centre = best.transform_point(&Point3::from((low.coords + high.coords).cast::<f64>() / 2.0));
         Ok(candidate_views(&centre, up, &self.params.sphere))
     }
@@ -125,20 +136,22 @@ impl NbvPlanner {
     /// Ranks the candidate views around the object at `hypotheses[0]` (and
     /// the current viewpoint first, when `include_current`) for object
     /// `obj_id` seen in frame `frame`; `up` is the world's up direction in
-    /// the current camera frame (unit).
+    /// the current camera frame (unit); `occluders`, the frame's observed
+    /// surface, when known.
     pub fn plan(
         &mut self,
         frame: u64,
         obj_id: u32,
         hypotheses: &[Pose],
         up: &Vector3<f64>,
+        occluders: Option<&Occluders>,
     ) -> Result<NextViewPlan, NbvError> {
         let started = Instant::now();
         let mut views = self.candidates(frame, obj_id, hypotheses, up)?;
         if self.params.include_current {
             views.insert(0, Pose::identity());
         }
-        let mut plan = self.score_views(frame, obj_id, &views, hypotheses)?;
+        let mut plan = self.score_views(frame, obj_id, &views, hypotheses, occluders)?;
         plan.cost.wall_ms = started.elapsed().as_secs_f64() * 1e3;
         tracing::debug!(
             frame,
@@ -152,16 +165,19 @@ impl NbvPlanner {
 
     /// Scores `views` (poses of candidate cameras in the current one) by
     /// the mean tr Σ_R the pose stages leave on renderings under
-    /// `hypotheses` (spread evenly over them); lowest first.
+    /// `hypotheses` (spread evenly over them), hidden where `occluders`
+    /// cover them; lowest first.
     pub fn score_views(
         &mut self,
         frame: u64,
         obj_id: u32,
         views: &[Pose],
         hypotheses: &[Pose],
+        occluders: Option<&Occluders>,
     ) -> Result<NextViewPlan, NbvError> {
         let started = Instant::now();
-        let model = find_model(&self.library, &self.params, frame, obj_id)?;
+        let index = find_object(&self.library, &self.params, frame, obj_id)?;
+        let (model, symmetries) = (&self.library.objects[index].model, &self.symmetries[index]);
         let simulated = spread_evenly(hypotheses, self.params.hypotheses);
         let mut jobs: Vec<Job> = views
             .iter()
@@ -171,6 +187,7 @@ impl NbvPlanner {
                     candidate,
                     hypothesis,
                     camera_from_object: view.inverse() * *pose,
+                    next_from_current: view.inverse(),
                     trace: None,
                     render_ms: 0.0,
                     estimate_ms: 0.0,
@@ -195,7 +212,7 @@ impl NbvPlanner {
                 .map(|(pipeline, share)| {
                     scope.spawn(move || {
                         for job in share {
-                            run_job(pipeline, params, model, frame, obj_id, job)?;
+                            run_job(pipeline, params, (model, symmetries), (frame, obj_id), occluders, job)?;
                         }
                         Ok(())
                     })
@@ -236,14 +253,9 @@ impl NbvPlanner {
     }
 }
 
-fn find_model<'a>(
-    library: &'a ModelLibrary,
-    params: &NbvParams,
-    frame: u64,
-    obj_id: u32,
-) -> Result<&'a RenderModel, NbvError> {
-    let found = library.objects.iter().find(|o| o.obj_id == obj_id);
-    found.map(|o| &o.model).ok_or_else(|| NbvError::Frame {
+/// Index of `obj_id` in `library`.
+fn find_object(library: &ModelLibrary, params: &NbvParams, frame: u64, obj_id: u32) -> Result<usize, NbvError> {
+    library.objects.iter().position(|o| o.obj_id == obj_id).ok_or_else(|| NbvError::Frame {
         frame,
         object: obj_id,
         detail: format!("no model of object {obj_id} in {}", params.models.display()),
@@ -255,23 +267,20 @@ fn find_model<'a>(
 fn run_job(
     pipeline: &mut PosePipeline,
     params: &NbvParams,
-    model: &RenderModel,
-    frame: u64,
-    obj_id: u32,
+    (model, symmetries): (&RenderModel, &SymmetrySet),
+    (frame, obj_id): (u64, u32),
+    occluders: Option<&Occluders>,
     job: &mut Job,
 ) -> Result<(), NbvError> {
     let view_id = (frame << 20) | ((job.candidate as u64) << 8) | job.hypothesis as u64;
     let mut rng = seeded_rng(sample_seed(params.seed, view_id, obj_id));
     let started = Instant::now();
-    let simulated = simulated_view(
-        model,
-        obj_id,
-        &params.camera,
-        &job.camera_from_object,
-        view_id,
-        params.min_visible_pixels,
-        &mut rng,
-    );
+    let viewpoint = Viewpoint {
+        camera: &params.camera,
+        camera_from_object: job.camera_from_object,
+        occluders: occluders.map(|o| (o, job.next_from_current)),
+    };
+    let simulated = simulated_view(model, obj_id, &viewpoint, view_id, params.min_visible_pixels, &mut rng);
     job.render_ms = started.elapsed().as_secs_f64() * 1e3;
     let Some((rgbd, mask)) = simulated else {
         return Ok(());
@@ -280,7 +289,14 @@ fn run_job(
     let estimated = pipeline.estimate(&rgbd, &mask);
     job.estimate_ms = started.elapsed().as_secs_f64() * 1e3;
     match estimated {
-        Ok(estimate) => job.trace = Some(f64::from(estimate.header.rotation_trace)),
+        Ok(estimate) => {
+            let kept = estimate.header.kept_poses(&estimate.payload).map_err(PipelineError::from)?;
+            let rotations = kept
+                .map(|values| Pose::from_f32_row_major(values).map(|pose| pose.rotation))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| NbvError::Frame { frame, object: obj_id, detail: format!("simulated estimate: {e}") })?;
+            job.trace = Some(symmetries.folded_rotation_spread(&rotations));
+        }
         Err(PipelineError::Ingest(IngestError::Object { .. })) => {}
         Err(other) => return Err(other.into()),
     }

@@ -7,23 +7,39 @@ use poseflow_ingest::{ObjectMask, RgbdFrame};
 use poseflow_scene::bop::Raster;
 use poseflow_scene::{Camera, DepthNoise, Light, Placed, RenderModel, render};
 
+use crate::Occluders;
+
 /// Colour of pixels that see nothing: a neutral grey, as no scene behind
 /// the object is known.
 const BACKGROUND: [u8; 3] = [100, 100, 100];
 
+/// Where the candidate camera is and what may hide the object from it.
+#[derive(Debug, Clone, Copy)]
+pub struct Viewpoint<'a> {
+    pub camera: &'a Camera,
+    /// The object in the candidate camera's frame.
+    pub camera_from_object: Pose,
+    /// The candidate camera's pose relative to the current one, and the
+    /// current frame's observed surface.
+    pub occluders: Option<(&'a Occluders, Pose)>,
+}
+
 /// The rendered frame and the object's mask, or `None` when fewer than
-/// `min_pixels` object pixels are in view.
+/// `min_pixels` object pixels are in view (after the occluders hid theirs).
 pub fn simulated_view(
     model: &RenderModel,
     obj_id: u32,
-    camera: &Camera,
-    camera_from_object: &Pose,
+    viewpoint: &Viewpoint<'_>,
     frame_id: u64,
     min_pixels: usize,
     rng: &mut SeededRng,
 ) -> Option<(RgbdFrame, ObjectMask)> {
-    let rendered = render(camera, &[Placed { model, pose: camera_from_object }], &Light::default());
-    let mask: Vec<bool> = rendered.label.iter().map(|&l| l == 1).collect();
+    let camera = viewpoint.camera;
+    let mut rendered = render(camera, &[Placed { model, pose: &viewpoint.camera_from_object }], &Light::default());
+    let mut mask: Vec<bool> = rendered.label.iter().map(|&l| l == 1).collect();
+    if let Some((occluders, next_from_current)) = &viewpoint.occluders {
+        occluders.hide(camera, next_from_current, &mut rendered.depth, &mut mask);
+    }
     if mask.iter().filter(|&&m| m).count() < min_pixels.max(1) {
         return None;
     }

@@ -1,19 +1,89 @@
-//! The next-best-view stage: Estimate in, NextView out.
+//! The next-best-view stage: Estimate in, NextView out; the Frames as an
+//! optional side input tell it what may hide the object from a candidate.
 
-use poseflow_contracts::{CANDIDATE_LEN, EstimateHeader, NextViewHeader, Stage};
+use std::collections::VecDeque;
+
+use poseflow_contracts::{CANDIDATE_LEN, EstimateHeader, FrameHeader, NextViewHeader, Stage};
 use poseflow_geometry::Pose;
-use poseflow_runtime::{Emitter, Input, Transform};
+use poseflow_ingest::{ObjectMask, RgbdFrame, read_frame};
+use poseflow_runtime::{Emitter, Input, Joined, Transform};
 
-use crate::{NbvError, NbvPlanner, NextViewPlan};
+use crate::{NbvError, NbvPlanner, NextViewPlan, Occluders};
 
 #[derive(Debug)]
 pub struct NbvStage {
     planner: NbvPlanner,
+    /// The latest frames (depth and object masks; the colours dropped),
+    /// oldest first.
+    frames: VecDeque<(RgbdFrame, Vec<ObjectMask>)>,
+    /// Estimates planned without their frame (no side input, or the frame
+    /// was no longer kept).
+    without_frame: u64,
 }
 
 impl NbvStage {
     pub fn new(planner: NbvPlanner) -> Self {
-        Self { planner }
+        Self { planner, frames: VecDeque::new(), without_frame: 0 }
+    }
+
+    /// Keeps a frame for the Estimates of its objects.
+    pub fn keep_frame(&mut self, header: &FrameHeader, payload: &[f32]) -> Result<(), NbvError> {
+        let frame = header.header.frame_id;
+        let (mut rgbd, masks) = read_frame(header, payload).map_err(|e| NbvError::Frame {
+            frame,
+            object: 0,
+            detail: format!("side input: {e}"),
+        })?;
+        rgbd.rgb.pixels = Vec::new();
+        if self.frames.len() == self.planner.params().frames {
+            self.frames.pop_front();
+        }
+        self.frames.push_back((rgbd, masks));
+        Ok(())
+    }
+
+    /// The NextView (header without the common header, payload) of an
+    /// Estimate, with the occluders of its frame when that is kept.
+    pub fn next_view(
+        &mut self,
+        header: &EstimateHeader,
+        payload: &[f32],
+    ) -> Result<(NextViewHeader, Vec<f32>), NbvError> {
+        let (frame, object) = (header.header.frame_id, header.header.object_id);
+        let hypotheses = kept_hypotheses(header, payload)?;
+        let up = self.planner.params().up;
+        let occluders = self.occluders(frame, object);
+        if occluders.is_none() {
+            self.without_frame += 1;
+            if self.without_frame == 1 {
+                tracing::warn!(
+                    frame,
+                    object,
+                    "no frame for this Estimate (is `frames` a side input?): planning without occluders; counted as without_frame"
+                );
+            }
+        }
+        let plan = self.planner.plan(frame, object, &hypotheses, &up, occluders.as_ref())?;
+        tracing::info!(
+            frame,
+            object,
+            current = header.rotation_trace,
+            expected = plan.views[0].expected_trace,
+            views = plan.cost.views,
+            wall_ms = plan.cost.wall_ms,
+            occluders = occluders.as_ref().map_or(0, Occluders::len),
+            without_frame = self.without_frame,
+            "next view"
+        );
+        Ok(next_view_message(&plan, header.rotation_trace))
+    }
+
+    /// The observed surface of `frame` around `object`, when the frame is
+    /// kept and shows the object.
+    pub fn occluders(&self, frame: u64, object: u32) -> Option<Occluders> {
+        let (rgbd, masks) = self.frames.iter().find(|(f, _)| f.frame_id == frame)?;
+        let target = masks.iter().find(|m| m.obj_id == object)?;
+        Some(Occluders::from_depth(rgbd, target, self.planner.params().occluder_stride))
     }
 }
 
@@ -57,23 +127,19 @@ impl Transform for NbvStage {
         output: &mut dyn Emitter<NextViewHeader>,
     ) -> Result<(), NbvError> {
         let header = input.header;
-        let (frame, object) = (header.header.frame_id, header.header.object_id);
-        let _span = tracing::debug_span!("nbv", frame, object).entered();
-        let hypotheses = kept_hypotheses(header, input.payload)?;
-        let up = self.planner.params().up;
-        let plan = self.planner.plan(frame, object, &hypotheses, &up)?;
-        tracing::info!(
-            frame,
-            object,
-            current = header.rotation_trace,
-            expected = plan.views[0].expected_trace,
-            views = plan.cost.views,
-            wall_ms = plan.cost.wall_ms,
-            "next view"
-        );
-        let (next, payload) = next_view_message(&plan, header.rotation_trace);
+        let _span =
+            tracing::debug_span!("nbv", frame = header.header.frame_id, object = header.header.object_id).entered();
+        let (next, payload) = self.next_view(header, input.payload)?;
         let out = NextViewHeader { header: input.forward_header(), ..next };
         output.emit(out, payload.len(), &mut |buffer| buffer.copy_from_slice(&payload))?;
         Ok(())
+    }
+}
+
+impl Joined for NbvStage {
+    type Side = FrameHeader;
+
+    fn side(&mut self, input: Input<'_, FrameHeader>) -> Result<(), NbvError> {
+        self.keep_frame(input.header, input.payload)
     }
 }

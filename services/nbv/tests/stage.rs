@@ -7,8 +7,11 @@ use std::path::PathBuf;
 use nalgebra::{Point3, Rotation3, Vector3};
 use poseflow_contracts::{CANDIDATE_LEN, MessageHeader, NextViewHeader, POSE_LEN};
 use poseflow_geometry::Pose;
+use poseflow_ingest::{ObjectMask, RgbdFrame};
 use poseflow_nbv::stage::next_view_message;
-use poseflow_nbv::{NbvParams, NbvPlanner, NextViewPlan, PlanCost, ScoredView, UNIFORM_ROTATION_TRACE};
+use poseflow_nbv::{NbvParams, NbvPlanner, NextViewPlan, Occluders, PlanCost, ScoredView, UNIFORM_ROTATION_TRACE};
+use poseflow_scene::bop::Raster;
+use poseflow_scene::dataset::lmo_camera;
 use poseflow_scene::scene::look_at;
 
 fn root() -> PathBuf {
@@ -86,15 +89,71 @@ fn seeing_the_handle_is_expected_to_leave_less_uncertainty_than_hiding_it() {
     let next = |azimuth: f64| current * world.camera(azimuth).inverse();
     let views = [next(std::f64::consts::PI), next(std::f64::consts::FRAC_PI_2), next(-std::f64::consts::FRAC_PI_2)];
     let mut planner = mug_planner(2);
-    let plan = planner.score_views(1, 14, &views, &[truth]).unwrap();
+    let plan = planner.score_views(1, 14, &views, &[truth], None).unwrap();
     let hidden = plan.views.iter().find(|v| v.camera_from_next == views[0]).unwrap();
     assert_ne!(plan.views[0].camera_from_next, views[0], "{:?}", plan.views);
     assert!(plan.views[0].expected_trace < hidden.expected_trace, "{:?}", plan.views);
     assert!(plan.views.iter().all(|v| v.uninformative == 0 && v.expected_trace < UNIFORM_ROTATION_TRACE));
     assert_eq!(plan.cost.views, 3);
 
-    let again = mug_planner(1).score_views(1, 14, &views, &[truth]).unwrap();
+    let again = mug_planner(1).score_views(1, 14, &views, &[truth], None).unwrap();
     assert_eq!(again.views, plan.views);
+}
+
+/// The current camera's depth image of a wall (world plane y = `y`, 50 cm
+/// wide, 35 cm tall, standing on the table) and an empty target mask.
+fn wall_frame(camera_from_world: &Pose, y: f64) -> (RgbdFrame, ObjectMask) {
+    let camera = lmo_camera(640, 480);
+    let world_from_camera = camera_from_world.inverse();
+    let eye = world_from_camera.translation;
+    let depth: Vec<f32> = (0..640 * 480)
+        .map(|i| {
+            let ray = camera.ray_direction((i % 640) as f64 + 0.5, (i / 640) as f64 + 0.5);
+            let direction = world_from_camera.rotation * ray;
+            let s = (y - eye.y) / direction.y;
+            let hit = eye + direction * s;
+            let on_wall = s > 0.0 && hit.x.abs() < 0.25 && (0.0..0.35).contains(&hit.z);
+            if on_wall { (ray.z * s) as f32 } else { 0.0 }
+        })
+        .collect();
+    let raster = |pixels| Raster { width: 640, height: 480, pixels };
+    let frame = RgbdFrame {
+        frame_id: 3,
+        label: "wall".into(),
+        camera,
+        rgb: raster(vec![[0u8; 3]; 640 * 480]),
+        depth: Raster { width: 640, height: 480, pixels: depth },
+    };
+    (
+        frame,
+        ObjectMask {
+            obj_id: 14,
+            instance: 0,
+            mask: Raster { width: 640, height: 480, pixels: vec![false; 640 * 480] },
+        },
+    )
+}
+
+/// A wall the current camera sees between the mug and one of the two
+/// handle-side views makes that view uninformative (the rendering hidden
+/// behind the observed surface), so the other side wins.
+#[test]
+fn an_observed_wall_hides_the_view_behind_it() {
+    let world = MugWorld::new();
+    let current = world.camera(std::f64::consts::PI);
+    let truth = current * world.world_from_object;
+    let next = |azimuth: f64| current * world.camera(azimuth).inverse();
+    let (left, right) = (next(std::f64::consts::FRAC_PI_2), next(-std::f64::consts::FRAC_PI_2));
+    let (frame, target) = wall_frame(&current, 0.12);
+    let occluders = Occluders::from_depth(&frame, &target, 2);
+    assert!(occluders.len() > 1000, "the camera sees the wall: {} points", occluders.len());
+    let mut planner = mug_planner(2);
+    let plan = planner.score_views(3, 14, &[left, right], &[truth], Some(&occluders)).unwrap();
+    assert_eq!(plan.views[0].camera_from_next, right, "{:?}", plan.views);
+    assert_eq!((plan.views[1].expected_trace, plan.views[1].uninformative), (UNIFORM_ROTATION_TRACE, 1));
+    // Without the wall both sides show the mug.
+    let open = planner.score_views(3, 14, &[left, right], &[truth], None).unwrap();
+    assert!(open.views.iter().all(|v| v.uninformative == 0), "{:?}", open.views);
 }
 
 /// A view that shows too little of the object counts as a uniform
@@ -116,7 +175,7 @@ fn uninformative_views_count_as_uniform_and_unknown_objects_are_named() {
     let current = world.camera(0.3);
     let hypotheses = [current * world.world_from_object];
     let up = current.rotation * Vector3::z();
-    let plan = planner.plan(2, 14, &hypotheses, &up).unwrap();
+    let plan = planner.plan(2, 14, &hypotheses, &up, None).unwrap();
     let candidates = planner.candidates(2, 14, &hypotheses, &up).unwrap();
     // The current viewpoint first, then the sphere's four.
     assert_eq!((plan.views.len(), candidates.len()), (5, 4));
@@ -125,8 +184,8 @@ fn uninformative_views_count_as_uniform_and_unknown_objects_are_named() {
         assert_eq!(view.camera_from_next, candidate);
         assert_eq!((view.expected_trace, view.uninformative), (UNIFORM_ROTATION_TRACE, 1));
     }
-    let err = planner.plan(2, 99, &hypotheses, &up).unwrap_err().to_string();
+    let err = planner.plan(2, 99, &hypotheses, &up, None).unwrap_err().to_string();
     assert!(err.starts_with("frame 2 object 99: no model of object 99"), "{err}");
-    let err = planner.plan(2, 14, &[], &up).unwrap_err().to_string();
+    let err = planner.plan(2, 14, &[], &up, None).unwrap_err().to_string();
     assert!(err.contains("no kept hypothesis"), "{err}");
 }

@@ -94,6 +94,19 @@ impl SymmetrySet {
             .fold(f64::INFINITY, f64::min)
     }
 
+    /// The spread of `rotations` modulo the symmetries (rad²): the mean
+    /// squared angle from their medoid (the rotation whose sum of squared
+    /// symmetric distances to the others is least) to each rotation's twin
+    /// nearest it. For an asymmetric object it is tr Σ_R about the medoid,
+    /// for a symmetric one it does not count the symmetry as uncertainty.
+    /// 0 for no rotations.
+    pub fn folded_rotation_spread(&self, rotations: &[Rotation3<f64>]) -> f64 {
+        let squared_from =
+            |centre: &Rotation3<f64>| -> f64 { rotations.iter().map(|r| self.rotation_error(r, centre).powi(2)).sum() };
+        let least = rotations.iter().map(squared_from).fold(f64::INFINITY, f64::min);
+        if rotations.is_empty() { 0.0 } else { least / rotations.len() as f64 }
+    }
+
     /// Rotation error minimised over the set, and the translation error
     /// against the same twin (`t_truth + R_truth t_S`).
     pub fn pose_error(&self, estimate: &Pose, truth: &Pose) -> SymmetricError {
@@ -175,5 +188,28 @@ mod tests {
         let cylinder = ContinuousSymmetry { axis: Unit::new_normalize(Vector3::z()), offset: Vector3::zeros() };
         let set = SymmetrySet::from_model_info(&info(vec![flip], vec![cylinder]), 0.1);
         assert_eq!(set.transforms().len(), 2 * 32);
+    }
+
+    #[test]
+    fn folded_spread_ignores_the_symmetry_and_measures_the_rest() {
+        let half_turn = Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI);
+        let tilt = |deg: f64| Rotation3::from_axis_angle(&Vector3::x_axis(), deg.to_radians());
+        let plain = SymmetrySet::identity_only();
+        let twofold = SymmetrySet::from_model_info(&info(vec![Pose::new(half_turn, Vector3::zeros())], vec![]), 0.01);
+        assert_eq!(plain.folded_rotation_spread(&[]), 0.0);
+        assert_eq!(plain.folded_rotation_spread(&[tilt(30.0)]), 0.0);
+        // Two rotations a half turn apart: π²/2 about either as medoid,
+        // nothing for an object with that half turn as its symmetry.
+        let pair = [Rotation3::identity(), half_turn];
+        let half = std::f64::consts::PI.powi(2) / 2.0;
+        assert!((plain.folded_rotation_spread(&pair) - half).abs() < 1e-9);
+        assert!(twofold.folded_rotation_spread(&pair) < 1e-12);
+        // 0°, 10°, 20° about x: the medoid is 10°, spread (2·(10°)²)/3 —
+        // and the same when one of them is replaced by its twin.
+        let fan = [tilt(0.0), tilt(10.0), tilt(20.0)];
+        let expected = 2.0 * 10f64.to_radians().powi(2) / 3.0;
+        assert!((plain.folded_rotation_spread(&fan) - expected).abs() < 1e-9);
+        let twinned = [fan[0], fan[1] * half_turn, fan[2]];
+        assert!((twofold.folded_rotation_spread(&twinned) - expected).abs() < 1e-9);
     }
 }

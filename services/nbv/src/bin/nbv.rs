@@ -1,24 +1,30 @@
 //! The next-best-view stage process: `exe = "nbv"` in a graph file;
-//! Estimate in, NextView out.
+//! Estimate in, NextView out; the Frames as a side input (`side_inputs`)
+//! let it judge what hides the object from each candidate.
 
 use std::process::ExitCode;
 
+use poseflow_graph::StageWiring;
 use poseflow_nbv::stage::NbvStage;
 use poseflow_nbv::{NbvParams, NbvPlanner};
 
+fn make(wiring: &StageWiring) -> Result<NbvStage, String> {
+    let params = NbvParams::from_json(&wiring.params).map_err(|e| e.to_string())?;
+    let planner = NbvPlanner::load(params).map_err(|e| e.to_string())?;
+    let params = planner.params();
+    tracing::info!(
+        model = %params.inference.model.display(),
+        objects = ?planner.object_ids(),
+        candidates = params.sphere.candidates,
+        hypotheses = params.hypotheses,
+        workers = params.workers,
+        occluders = !wiring.side_inputs.is_empty(),
+        "next-best-view stage ready"
+    );
+    Ok(NbvStage::new(planner))
+}
+
 fn main() -> ExitCode {
-    poseflow_runtime::run_transform(|wiring| {
-        let params = NbvParams::from_json(&wiring.params).map_err(|e| e.to_string())?;
-        let planner = NbvPlanner::load(params).map_err(|e| e.to_string())?;
-        let params = planner.params();
-        tracing::info!(
-            model = %params.inference.model.display(),
-            objects = ?planner.object_ids(),
-            candidates = params.sphere.candidates,
-            hypotheses = params.hypotheses,
-            workers = params.workers,
-            "next-best-view stage ready"
-        );
-        Ok(NbvStage::new(planner))
-    })
+    let has_side_input = StageWiring::from_env().is_ok_and(|w| !w.side_inputs.is_empty());
+    if has_side_input { poseflow_runtime::run_joined(make) } else { poseflow_runtime::run_transform(make) }
 }

@@ -1,6 +1,7 @@
 //! `poseflow sim`: closed-loop simulations on rendered scenes, with the
 //! real pose stages run in-process ([`crate::pipeline`]).
 
+mod clutter;
 mod grasp;
 mod mug;
 mod nbv;
@@ -9,10 +10,14 @@ use std::path::Path;
 
 use anyhow::Context;
 use clap::{Args, Subcommand};
+use poseflow_geometry::sampling::SeededRng;
 use poseflow_inference::stage::InferenceParams;
 use poseflow_ingest::IngestParams;
+use poseflow_ingest::{ObjectMask, RgbdFrame};
 use poseflow_pipeline::PosePipeline;
 use poseflow_sampler::SamplerParams;
+use poseflow_scene::bop::Raster;
+use poseflow_scene::{Camera, DepthNoise, Frame};
 use poseflow_selector::SelectorParams;
 
 #[derive(Debug, Args)]
@@ -25,7 +30,7 @@ pub struct SimArgs {
 pub enum SimCommand {
     /// Grasp a mug with its handle visible or hidden: single pose hypothesis vs the marginalised grasp flow.
     Grasp(grasp::GraspSimArgs),
-    /// Start from a mug with its handle hidden: move to the next-best view, a random view, or stay; compare uncertainty and error.
+    /// Start from an ambiguous view (mug handle hidden, object in clutter): move to the next-best view, a random view, or stay; compare uncertainty and error.
     Nbv(nbv::NbvSimArgs),
 }
 
@@ -66,4 +71,27 @@ fn pose_pipeline(config: &Path, model: &Path, objects: &Path) -> anyhow::Result<
         serde_json::json!({"method": "sdf", "models": objects, "refine": true}),
     )?)?;
     Ok(PosePipeline::new(ingest, &inference, sampler, selector)?)
+}
+
+/// What a simulated camera delivers: `rendered` with the sensor's depth
+/// noise, labelled `label`, and the mask of the object (`obj_id`,
+/// `instance`) on the `visible` pixels.
+fn sensor_frame(
+    camera: Camera,
+    frame_id: u64,
+    label: String,
+    rendered: Frame,
+    (obj_id, instance, visible): (u32, usize, Vec<bool>),
+    rng: &mut SeededRng,
+) -> (RgbdFrame, ObjectMask) {
+    let depth = DepthNoise::default().apply(&rendered.depth, camera.width as usize, rng);
+    let (width, height) = (camera.width, camera.height);
+    let frame = RgbdFrame {
+        frame_id,
+        label,
+        camera,
+        rgb: Raster { width, height, pixels: rendered.rgb },
+        depth: Raster { width, height, pixels: depth },
+    };
+    (frame, ObjectMask { obj_id, instance, mask: Raster { width, height, pixels: visible } })
 }

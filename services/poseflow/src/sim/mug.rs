@@ -9,12 +9,13 @@ use nalgebra::{Point3, Rotation3, Vector3};
 use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::SeededRng;
 use poseflow_ingest::{ObjectMask, RgbdFrame};
-use poseflow_scene::bop::Raster;
 use poseflow_scene::dataset::lmo_camera;
 use poseflow_scene::primitives::support_plane;
 use poseflow_scene::scene::{Scene, SceneObject, look_at, random_light, render_view};
-use poseflow_scene::{DepthNoise, ModelLibrary, RenderModel};
+use poseflow_scene::{ModelLibrary, RenderModel};
 use rand::Rng;
+
+use super::sensor_frame;
 
 /// Object-frame x beyond which a surface point belongs to the handle.
 pub const HANDLE_X: f64 = 0.05;
@@ -87,17 +88,8 @@ fn view_mug_if(
     if !wanted(handle_pixels) {
         return None;
     }
-    let depth = DepthNoise::default().apply(&view.frame.depth, camera.width as usize, rng);
-    let (w, h) = (camera.width, camera.height);
-    let frame = RgbdFrame {
-        frame_id,
-        label: format!("mug trial {frame_id}"),
-        camera,
-        rgb: Raster { width: w, height: h, pixels: view.frame.rgb },
-        depth: Raster { width: w, height: h, pixels: depth },
-    };
-    let obj_id = scene.objects[0].obj_id;
-    let mask = ObjectMask { obj_id, instance: 0, mask: Raster { width: w, height: h, pixels: visible } };
+    let target = (scene.objects[0].obj_id, 0, visible);
+    let (frame, mask) = sensor_frame(camera, frame_id, format!("mug trial {frame_id}"), view.frame, target, rng);
     Some(MugView { frame, mask, camera_from_object, camera_from_world: *camera_from_world, handle_pixels })
 }
 

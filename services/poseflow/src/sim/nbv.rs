@@ -1,43 +1,62 @@
 //! `poseflow sim nbv`: active perception in simulation. Each trial starts
-//! from a view of the mug with its handle hidden, estimates its pose
-//! distribution, then moves the camera twice under each policy — the
-//! next-best view, a random candidate view, or staying put — estimating
-//! again after each move.
+//! from an ambiguous view (the mug with its handle hidden, or an LM-O
+//! object mostly hidden in clutter), estimates its pose distribution, then
+//! moves the camera twice under each policy — the next-best view, a random
+//! candidate view, or staying put — estimating again after each move.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use clap::Args;
+use clap::{Args, ValueEnum};
 use nalgebra::Vector3;
 use poseflow_geometry::Pose;
-use poseflow_geometry::sampling::seeded_rng;
+use poseflow_geometry::sampling::{SeededRng, seeded_rng};
 use poseflow_geometry::so3::geodesic_angle;
+use poseflow_geometry::symmetry::{BOP_MAX_SYMMETRY_STEP, SymmetrySet};
+use poseflow_ingest::{IngestError, ObjectMask, RgbdFrame};
 use poseflow_nbv::stage::kept_hypotheses;
-use poseflow_nbv::{NbvParams, NbvPlanner};
-use poseflow_pipeline::{Estimated, PosePipeline};
+use poseflow_nbv::{NbvParams, NbvPlanner, Occluders};
+use poseflow_pipeline::{Estimated, PipelineError, PosePipeline};
 use poseflow_scene::ModelLibrary;
 use poseflow_scene::scene::Scene;
 use rand::Rng;
 use serde::Serialize;
 
+use super::clutter::{ClutterView, render_occluded, view_clutter};
 use super::mug::{Handle, MugView, render_mug, view_mug};
 use super::{pose_pipeline, stage_params};
 
+/// Where the trials start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum StartScene {
+    /// The YCB-V mug alone, its handle hidden behind its body.
+    Mug,
+    /// One of the LM-O objects in a crowded scene, 15–45 % of it visible.
+    Clutter,
+}
+
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root (reads config/*.toml as the graph does).\n\n\
-    Each trial renders the YCB-V mug alone on a table with its handle turned away from the camera (hidden behind \
-    the body; camera 0.45–0.65 m away, 15–35° above the table) and estimates its pose distribution with the pose \
-    stages (N = 50 samples, K = 5 steps, SDF selection with refinement). Then, per policy, the camera moves twice \
-    and the pose is estimated afresh from each new view:\n  \
+    --scene mug (default): each trial renders the YCB-V mug alone on a table with its handle turned away from the \
+    camera (hidden behind the body; camera 0.45–0.65 m away, 15–35° above the table). --scene clutter: the LM-O \
+    objects of --objects among distractors (heavy occlusion), seen 0.4–0.8 m away so that the trial's target (the \
+    objects in turn) shows 15–45 % of its silhouette. The pose stages (N = 50 samples, K = 5 steps, SDF selection \
+    with refinement) estimate the target's pose distribution. Then, per policy, the camera moves twice and the pose \
+    is estimated afresh from each new view:\n  \
     nbv     the next-best view: the candidate (config/nbv.toml: sphere, elevation band, count) whose views simulated \
-    under the current Estimate's hypotheses leave the least rotational uncertainty, or staying put when the current \
-    viewpoint scores best (include_current);\n  \
-    random  a candidate drawn uniformly from the same set;\n  \
+    under the current Estimate's hypotheses (hidden where the current frame's observed surface lies in front) leave \
+    the least rotational uncertainty, or staying put when the current viewpoint scores best (include_current);\n  \
+    random  a candidate drawn uniformly from the same sphere;\n  \
     stay    the same camera (a new frame: new light and sensor noise).\n\
-    Each new estimate stands alone (no fusion with the earlier views' hypotheses).\n\n\
+    Each new estimate stands alone (no fusion with the earlier views' hypotheses). A view that shows too little of \
+    the target to estimate is `lost`: the camera goes back and the previous estimate stands. Rotation errors are \
+    symmetry-aware (BOP symmetries of models_info.json).\n\n\
     --json prints {\"trials\": n, \"start\": {...}, \"nbv\": {...}, \"random\": {...}, \"stay\": {...}}: per \
     policy the means over trials of rot_trace_1, rot_trace_2 (tr Σ_R of the kept hypotheses after one and two \
-    moves, rad²) and rot_err_deg_1, rot_err_deg_2 (rotation error of the selected pose, degrees).\n\n\
+    moves, rad²) and rot_err_deg_1, rot_err_deg_2 (rotation error of the selected pose, degrees), the same spread \
+    modulo the object's symmetries (folded_trace_1, folded_trace_2: what the planner minimises), the share of \
+    views revealing what the start hid (revealed_1, revealed_2, %: the mug's handle in view, ≥ 150 pixels; ≥ 75 % of \
+    the cluttered target visible) and the lost views.\n\n\
     Example:\n  poseflow sim nbv --trials 20 --seed 0")]
 pub struct NbvSimArgs {
     /// Trials (each runs every policy from the same start).
@@ -48,13 +67,16 @@ pub struct NbvSimArgs {
     /// Print one JSON object instead of the table.
     #[arg(long)]
     pub json: bool,
+    /// Where the trials start.
+    #[arg(long, value_enum, default_value_t = StartScene::Mug)]
+    pub scene: StartScene,
     /// Pose model directory.
     #[arg(long, default_value = "models/poseflow-lmo10")]
     pub model: PathBuf,
-    /// BOP models directory holding the mug.
-    #[arg(long, default_value = "objects/ycbv/models")]
-    pub objects: PathBuf,
-    /// The mug's object id there.
+    /// BOP models directory [default: objects/ycbv/models for the mug, objects/lmo for clutter].
+    #[arg(long)]
+    pub objects: Option<PathBuf>,
+    /// The mug's object id (--scene mug).
     #[arg(long, default_value_t = 14)]
     pub mug: u32,
     /// Stage parameter files (the graph's; the planner reads nbv.toml).
@@ -63,6 +85,84 @@ pub struct NbvSimArgs {
     /// Also write one row per trial, policy and move to <out>/trials.csv.
     #[arg(long)]
     pub out: Option<PathBuf>,
+}
+
+/// What a camera sees of the target: the frame the pipeline reads, the
+/// truth, and whether the view reveals what the start hid.
+#[derive(Debug, Clone)]
+struct Seen {
+    frame: RgbdFrame,
+    mask: ObjectMask,
+    camera_from_object: Pose,
+    camera_from_world: Pose,
+    revealed: bool,
+    /// Handle pixels (mug) or visible share of the silhouette, % (clutter).
+    detail: f64,
+}
+
+impl From<MugView> for Seen {
+    fn from(v: MugView) -> Self {
+        Self {
+            revealed: v.handle_pixels >= 150,
+            detail: v.handle_pixels as f64,
+            frame: v.frame,
+            mask: v.mask,
+            camera_from_object: v.camera_from_object,
+            camera_from_world: v.camera_from_world,
+        }
+    }
+}
+
+impl From<ClutterView> for Seen {
+    fn from(v: ClutterView) -> Self {
+        Self {
+            revealed: v.visible_share >= 0.75,
+            detail: 100.0 * v.visible_share,
+            frame: v.frame,
+            mask: v.mask,
+            camera_from_object: v.camera_from_object,
+            camera_from_world: v.camera_from_world,
+        }
+    }
+}
+
+/// A trial's scene and its target (library index).
+struct TrialScene {
+    kind: StartScene,
+    scene: Scene,
+    target: usize,
+}
+
+impl TrialScene {
+    /// Trial `trial`'s scene and its ambiguous start view.
+    fn draw(
+        kind: StartScene,
+        library: &ModelLibrary,
+        trial: usize,
+        frame_id: u64,
+        rng: &mut SeededRng,
+    ) -> (Self, Seen) {
+        match kind {
+            StartScene::Mug => {
+                let (scene, view) = render_mug(library, Handle::Occluded, frame_id, rng);
+                (Self { kind, scene, target: 0 }, view.into())
+            }
+            StartScene::Clutter => {
+                let target = trial % library.objects.len();
+                let (scene, view) = render_occluded(library, target, frame_id, rng);
+                (Self { kind, scene, target }, view.into())
+            }
+        }
+    }
+
+    fn view(&self, library: &ModelLibrary, camera_from_world: &Pose, frame_id: u64, rng: &mut SeededRng) -> Seen {
+        match self.kind {
+            StartScene::Mug => view_mug(library, &self.scene, camera_from_world, frame_id, rng).into(),
+            StartScene::Clutter => {
+                view_clutter(library, &self.scene, self.target, camera_from_world, frame_id, rng).into()
+            }
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -87,11 +187,18 @@ impl Policy {
 /// One estimate's outcome.
 #[derive(Debug, Clone, Copy)]
 struct Outcome {
-    /// tr Σ_R of the kept hypotheses (rad²).
+    /// tr Σ_R of the kept hypotheses (rad²), as the Estimate reports it.
     trace: f64,
-    /// Rotation error of the selected pose (degrees).
+    /// Their spread modulo the object's symmetries (rad²; what the planner
+    /// minimises).
+    folded: f64,
+    /// Rotation error of the selected pose (degrees, symmetry-aware).
     error_deg: f64,
-    handle_pixels: usize,
+    revealed: bool,
+    /// [`Seen::detail`] of the view.
+    detail: f64,
+    /// The view showed too little to estimate: the previous estimate stands.
+    lost: bool,
     /// The planner's expected trace for the view moved to (nbv only).
     expected_trace: Option<f64>,
     /// Wall time of the plan (nbv only).
@@ -107,20 +214,26 @@ struct PolicyMeans {
     rot_trace_2: f64,
     rot_err_deg_1: f64,
     rot_err_deg_2: f64,
-    /// Share of views (%) that show the handle (≥ 150 pixels).
-    handle_seen_1: f64,
-    handle_seen_2: f64,
+    folded_trace_1: f64,
+    folded_trace_2: f64,
+    /// Share of views (%) revealing what the start hid.
+    revealed_1: f64,
+    revealed_2: f64,
+    /// Moves whose view showed too little to estimate.
+    lost: usize,
 }
 
 #[derive(Debug, Default, Serialize)]
 struct StartMeans {
     rot_trace: f64,
+    folded_trace: f64,
     rot_err_deg: f64,
 }
 
 #[derive(Debug, Serialize)]
 struct Report {
     trials: usize,
+    scene: &'static str,
     start: StartMeans,
     nbv: PolicyMeans,
     random: PolicyMeans,
@@ -130,67 +243,97 @@ struct Report {
 /// A trial's start and its moves under each policy.
 #[derive(Debug)]
 struct Trial {
+    obj_id: u32,
     start: Outcome,
     moves: Vec<(Policy, [Outcome; 2])>,
 }
 
-fn outcome(view: &MugView, estimate: &Estimated) -> anyhow::Result<Outcome> {
-    let best = Pose::from_f32_row_major(&estimate.header.best)?;
-    Ok(Outcome {
-        trace: f64::from(estimate.header.rotation_trace),
-        error_deg: geodesic_angle(&best.rotation, &view.camera_from_object.rotation).to_degrees(),
-        handle_pixels: view.handle_pixels,
-        expected_trace: None,
-        plan_ms: None,
-        turn_deg: 0.0,
-    })
-}
-
-/// What the simulation needs besides the policy.
+/// What the simulation needs besides the trial and the policy.
 struct World<'a> {
     library: &'a ModelLibrary,
     pipeline: &'a mut PosePipeline,
     planner: &'a mut NbvPlanner,
-    mug: u32,
 }
 
-/// Two moves under `policy` from the start view and its estimate.
+impl World<'_> {
+    /// The estimate from `seen` and its outcome; `None` when the view shows
+    /// too little of the target (the ingest rejects it).
+    fn estimate(&mut self, seen: &Seen, symmetries: &SymmetrySet) -> anyhow::Result<Option<(Estimated, Outcome)>> {
+        let estimate = match self.pipeline.estimate(&seen.frame, &seen.mask) {
+            Ok(estimate) => estimate,
+            Err(PipelineError::Ingest(IngestError::Object { .. })) => return Ok(None),
+            Err(other) => return Err(other.into()),
+        };
+        let best = Pose::from_f32_row_major(&estimate.header.best)?;
+        let kept = kept_hypotheses(&estimate.header, &estimate.payload)?;
+        let rotations: Vec<_> = kept.iter().map(|pose| pose.rotation).collect();
+        let outcome = Outcome {
+            trace: f64::from(estimate.header.rotation_trace),
+            folded: symmetries.folded_rotation_spread(&rotations),
+            error_deg: symmetries.rotation_error(&best.rotation, &seen.camera_from_object.rotation).to_degrees(),
+            revealed: seen.revealed,
+            detail: seen.detail,
+            lost: false,
+            expected_trace: None,
+            plan_ms: None,
+            turn_deg: 0.0,
+        };
+        Ok(Some((estimate, outcome)))
+    }
+}
+
+/// Two moves under `policy` from the start view, its estimate and outcome.
 fn run_policy(
     world: &mut World<'_>,
-    scene: &Scene,
-    start: (&MugView, &Estimated),
+    trial: &TrialScene,
+    symmetries: &SymmetrySet,
+    start: (&Seen, &Estimated, Outcome),
     policy: Policy,
     seed: u64,
 ) -> anyhow::Result<[Outcome; 2]> {
     let mut rng = seeded_rng(seed);
-    let (mut view, mut estimate) = (start.0.clone(), start.1.clone());
+    let (mut seen, mut estimate, mut last) = (start.0.clone(), start.1.clone(), start.2);
+    let obj_id = seen.mask.obj_id;
     let mut outcomes = Vec::with_capacity(2);
     for step in 1..=2u64 {
-        let frame = view.frame.frame_id;
+        let frame = seen.frame.frame_id;
         let kept = kept_hypotheses(&estimate.header, &estimate.payload)?;
         // The world's up (+z) in the current camera: what a robot's
         // kinematics would tell the stage.
-        let up = view.camera_from_world.rotation * Vector3::z();
+        let up = seen.camera_from_world.rotation * Vector3::z();
         let (camera_from_next, expected_trace, plan_ms) = match policy {
             Policy::Stay => (Pose::identity(), None, None),
             Policy::Random => {
-                let candidates = world.planner.candidates(frame, world.mug, &kept, &up)?;
+                let candidates = world.planner.candidates(frame, obj_id, &kept, &up)?;
                 (candidates[rng.random_range(0..candidates.len())], None, None)
             }
             Policy::Nbv => {
-                let plan = world.planner.plan(frame, world.mug, &kept, &up)?;
+                // What may hide the target: the current frame's surface.
+                let stride = world.planner.params().occluder_stride;
+                let occluders = Occluders::from_depth(&seen.frame, &seen.mask, stride);
+                let plan = world.planner.plan(frame, obj_id, &kept, &up, Some(&occluders))?;
                 let best = plan.views[0];
                 (best.camera_from_next, Some(best.expected_trace), Some(plan.cost.wall_ms))
             }
         };
-        let camera_from_world = camera_from_next.inverse() * view.camera_from_world;
-        view = view_mug(world.library, scene, &camera_from_world, frame + 1, &mut rng);
-        estimate = world
-            .pipeline
-            .estimate(&view.frame, &view.mask)
-            .with_context(|| format!("{} move {step}: pose estimation", policy.name()))?;
         let turn_deg = geodesic_angle(&camera_from_next.rotation, &nalgebra::Rotation3::identity()).to_degrees();
-        outcomes.push(Outcome { expected_trace, plan_ms, turn_deg, ..outcome(&view, &estimate)? });
+        let camera_from_world = camera_from_next.inverse() * seen.camera_from_world;
+        let next = trial.view(world.library, &camera_from_world, frame + 1, &mut rng);
+        let moved = Outcome { expected_trace, plan_ms, turn_deg, ..last };
+        match world.estimate(&next, symmetries).with_context(|| format!("move {step}: pose estimation"))? {
+            Some((next_estimate, outcome)) => {
+                last = Outcome { expected_trace, plan_ms, turn_deg, ..outcome };
+                (seen, estimate) = (next, next_estimate);
+            }
+            // Nothing to estimate from: back to the previous camera, whose
+            // estimate stands.
+            None => {
+                last = Outcome { lost: true, revealed: next.revealed, detail: next.detail, ..moved };
+                seen.frame.frame_id = frame + 1;
+            }
+        }
+        outcomes.push(last);
+        last.lost = false;
     }
     Ok([outcomes[0], outcomes[1]])
 }
@@ -202,38 +345,46 @@ fn mean(values: impl Iterator<Item = f64>) -> f64 {
 
 fn policy_means(trials: &[Trial], policy: Policy) -> PolicyMeans {
     let moves = || trials.iter().flat_map(|t| t.moves.iter().filter(move |(p, _)| *p == policy).map(|(_, m)| m));
-    let seen = |o: &Outcome| if o.handle_pixels >= 150 { 100.0 } else { 0.0 };
+    let revealed = |o: &Outcome| if o.revealed { 100.0 } else { 0.0 };
     PolicyMeans {
         rot_trace_1: mean(moves().map(|m| m[0].trace)),
         rot_trace_2: mean(moves().map(|m| m[1].trace)),
         rot_err_deg_1: mean(moves().map(|m| m[0].error_deg)),
         rot_err_deg_2: mean(moves().map(|m| m[1].error_deg)),
-        handle_seen_1: mean(moves().map(|m| seen(&m[0]))),
-        handle_seen_2: mean(moves().map(|m| seen(&m[1]))),
+        folded_trace_1: mean(moves().map(|m| m[0].folded)),
+        folded_trace_2: mean(moves().map(|m| m[1].folded)),
+        revealed_1: mean(moves().map(|m| revealed(&m[0]))),
+        revealed_2: mean(moves().map(|m| revealed(&m[1]))),
+        lost: moves().flat_map(|m| m.iter()).filter(|o| o.lost).count(),
     }
 }
 
 fn write_trials(out: &Path, trials: &[Trial]) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
-    let mut text =
-        String::from("trial,policy,move,rot_trace,rot_err_deg,handle_pixels,turn_deg,expected_trace,plan_ms\n");
-    let row = |text: &mut String, trial: usize, policy: &str, step: usize, o: &Outcome| {
-        let optional = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.4e}"));
+    let mut text = String::from(
+        "trial,object,policy,move,rot_trace,folded_trace,rot_err_deg,revealed,detail,lost,turn_deg,expected_trace,\
+         plan_ms\n",
+    );
+    let row = |text: &mut String, trial: usize, object: u32, policy: &str, step: usize, o: &Outcome| {
+        let optional = |v: Option<f64>, f: fn(f64) -> String| v.map_or(String::new(), f);
         *text += &format!(
-            "{trial},{policy},{step},{:.4e},{:.2},{},{:.1},{},{}\n",
+            "{trial},{object},{policy},{step},{:.4e},{:.4e},{:.2},{},{:.1},{},{:.1},{},{}\n",
             o.trace,
+            o.folded,
             o.error_deg,
-            o.handle_pixels,
+            u8::from(o.revealed),
+            o.detail,
+            u8::from(o.lost),
             o.turn_deg,
-            optional(o.expected_trace),
-            o.plan_ms.map_or(String::new(), |v| format!("{v:.0}"))
+            optional(o.expected_trace, |v| format!("{v:.4e}")),
+            optional(o.plan_ms, |v| format!("{v:.0}"))
         );
     };
     for (i, trial) in trials.iter().enumerate() {
-        row(&mut text, i, "start", 0, &trial.start);
+        row(&mut text, i, trial.obj_id, "start", 0, &trial.start);
         for (policy, moves) in &trial.moves {
             for (step, o) in moves.iter().enumerate() {
-                row(&mut text, i, policy.name(), step + 1, o);
+                row(&mut text, i, trial.obj_id, policy.name(), step + 1, o);
             }
         }
     }
@@ -245,40 +396,51 @@ pub fn run(args: &NbvSimArgs) -> anyhow::Result<()> {
     if args.trials == 0 {
         bail!("--trials 0: expected at least one trial");
     }
-    let library = ModelLibrary::load(&args.objects, &[args.mug])?;
-    let mut pipeline = pose_pipeline(&args.config, &args.model, &args.objects)?;
-    let nbv = stage_params(&args.config, "nbv", serde_json::json!({"models": args.objects, "seed": args.seed}))?;
+    let (objects, ids) = match args.scene {
+        StartScene::Mug => (args.objects.clone().unwrap_or_else(|| "objects/ycbv/models".into()), vec![args.mug]),
+        StartScene::Clutter => (args.objects.clone().unwrap_or_else(|| "objects/lmo".into()), Vec::new()),
+    };
+    let library = ModelLibrary::load(&objects, &ids)?;
+    let mut pipeline = pose_pipeline(&args.config, &args.model, &objects)?;
+    let nbv = stage_params(&args.config, "nbv", serde_json::json!({"models": objects, "seed": args.seed}))?;
     let mut nbv = NbvParams::from_json(&nbv)?;
     nbv.inference.model.clone_from(&args.model);
     let mut planner = NbvPlanner::load(nbv)?;
-    let mut world = World { library: &library, pipeline: &mut pipeline, planner: &mut planner, mug: args.mug };
+    let mut world = World { library: &library, pipeline: &mut pipeline, planner: &mut planner };
 
     let mut trials = Vec::with_capacity(args.trials);
     for trial in 0..args.trials {
         // Frame ids: 100 per trial, the start at its first.
         let frame_id = 100 * trial as u64;
         let mut rng = seeded_rng(args.seed.wrapping_mul(1_000_003).wrapping_add(trial as u64));
-        let (scene, start) = render_mug(&library, Handle::Occluded, frame_id, &mut rng);
-        let estimate = world
-            .pipeline
-            .estimate(&start.frame, &start.mask)
-            .with_context(|| format!("trial {trial}: pose estimation at the start"))?;
+        let (scene, seen) = TrialScene::draw(args.scene, &library, trial, frame_id, &mut rng);
+        let object = &library.objects[scene.target];
+        let symmetries = SymmetrySet::from_model_info(&object.info, BOP_MAX_SYMMETRY_STEP);
+        let (estimate, start) = world
+            .estimate(&seen, &symmetries)
+            .with_context(|| format!("trial {trial}: pose estimation at the start"))?
+            .with_context(|| format!("trial {trial}: the start view shows too little of object {}", object.obj_id))?;
         let mut moves = Vec::new();
         for (p, policy) in Policy::ALL.into_iter().enumerate() {
             let seed = rng.random::<u64>() ^ p as u64;
-            let outcomes = run_policy(&mut world, &scene, (&start, &estimate), policy, seed)
+            let outcomes = run_policy(&mut world, &scene, &symmetries, (&seen, &estimate, start), policy, seed)
                 .with_context(|| format!("trial {trial}, policy {}", policy.name()))?;
             moves.push((policy, outcomes));
         }
-        trials.push(Trial { start: outcome(&start, &estimate)?, moves });
+        trials.push(Trial { obj_id: object.obj_id, start, moves });
     }
     if let Some(out) = &args.out {
         write_trials(out, &trials)?;
     }
     let report = Report {
         trials: args.trials,
+        scene: match args.scene {
+            StartScene::Mug => "mug",
+            StartScene::Clutter => "clutter",
+        },
         start: StartMeans {
             rot_trace: mean(trials.iter().map(|t| t.start.trace)),
+            folded_trace: mean(trials.iter().map(|t| t.start.folded)),
             rot_err_deg: mean(trials.iter().map(|t| t.start.error_deg)),
         },
         nbv: policy_means(&trials, Policy::Nbv),
@@ -289,58 +451,62 @@ pub fn run(args: &NbvSimArgs) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string(&report)?);
         return Ok(());
     }
-    print_table(args, &trials, &report);
+    print_table(args, &objects, &trials, &report);
     Ok(())
 }
 
-fn print_table(args: &NbvSimArgs, trials: &[Trial], report: &Report) {
+fn print_table(args: &NbvSimArgs, objects: &Path, trials: &[Trial], report: &Report) {
+    let (start, detail) = match args.scene {
+        StartScene::Mug => ("the mug's handle hidden", "handle px"),
+        StartScene::Clutter => ("the target 15–45 % visible in clutter", "visible %"),
+    };
+    println!("next-best-view simulation: {start} ({}), {} trials, seed {}", objects.display(), args.trials, args.seed);
     println!(
-        "next-best-view simulation: mug {} ({}), handle hidden at the start, {} trials, seed {}",
-        args.mug,
-        args.objects.display(),
-        args.trials,
-        args.seed
+        "{:<6} {:>6} {:<7} {:>10} {:>8} {:>10} | {:>10} {:>8} {:>10}",
+        "trial", "object", "policy", "trace 1", "err 1", detail, "trace 2", "err 2", detail
     );
-    println!(
-        "{:<6} {:<7} {:>12} {:>9} {:>10} | {:>12} {:>9} {:>10}",
-        "trial", "policy", "trace 1", "err 1", "handle 1", "trace 2", "err 2", "handle 2"
-    );
+    let lost = |o: &Outcome| if o.lost { " lost" } else { "" };
     for (i, trial) in trials.iter().enumerate() {
         let s = &trial.start;
-        println!("{i:<6} {:<7} {:>12.2e} {:>8.1}° {:>10} |", "start", s.trace, s.error_deg, s.handle_pixels);
+        println!(
+            "{i:<6} {:>6} {:<7} {:>10.2e} {:>7.1}° {:>10.0} |",
+            trial.obj_id, "start", s.trace, s.error_deg, s.detail
+        );
         for (policy, [one, two]) in &trial.moves {
             println!(
-                "{:<6} {:<7} {:>12.2e} {:>8.1}° {:>10} | {:>12.2e} {:>8.1}° {:>10}",
+                "{:<6} {:>6} {:<7} {:>10.2e} {:>7.1}° {:>10.0} | {:>10.2e} {:>7.1}° {:>10.0}{}{}",
+                "",
                 "",
                 policy.name(),
                 one.trace,
                 one.error_deg,
-                one.handle_pixels,
+                one.detail,
                 two.trace,
                 two.error_deg,
-                two.handle_pixels
+                two.detail,
+                lost(one),
+                lost(two)
             );
         }
     }
-    let plans: Vec<f64> =
+    let mut plans: Vec<f64> =
         trials.iter().flat_map(|t| t.moves.iter().flat_map(|(_, m)| m.iter().filter_map(|o| o.plan_ms))).collect();
-    let mut sorted = plans.clone();
-    sorted.sort_by(f64::total_cmp);
-    if let Some(median) = sorted.get(sorted.len() / 2) {
+    plans.sort_by(f64::total_cmp);
+    if let Some(median) = plans.get(plans.len() / 2) {
         println!("\nnext-view plans: {}, median wall time {median:.0} ms", plans.len());
     }
     println!(
-        "\nmeans over trials (start: tr Σ_R {:.5} rad², rotation error {:.1}°):",
+        "\nmeans over trials (start: tr Σ_R {:.2e} rad², rotation error {:.1}°):",
         report.start.rot_trace, report.start.rot_err_deg
     );
     println!(
-        "{:<8} {:>12} {:>12} {:>10} {:>10} {:>9} {:>9}",
-        "policy", "trace 1", "trace 2", "err 1", "err 2", "handle 1", "handle 2"
+        "{:<8} {:>10} {:>10} {:>8} {:>8} {:>10} {:>10} {:>5}",
+        "policy", "trace 1", "trace 2", "err 1", "err 2", "revealed 1", "revealed 2", "lost"
     );
     for (name, m) in [("nbv", &report.nbv), ("random", &report.random), ("stay", &report.stay)] {
         println!(
-            "{name:<8} {:>12.2e} {:>12.2e} {:>9.1}° {:>9.1}° {:>8.0}% {:>8.0}%",
-            m.rot_trace_1, m.rot_trace_2, m.rot_err_deg_1, m.rot_err_deg_2, m.handle_seen_1, m.handle_seen_2
+            "{name:<8} {:>10.2e} {:>10.2e} {:>7.1}° {:>7.1}° {:>9.0}% {:>9.0}% {:>5}",
+            m.rot_trace_1, m.rot_trace_2, m.rot_err_deg_1, m.rot_err_deg_2, m.revealed_1, m.revealed_2, m.lost
         );
     }
 }
