@@ -528,8 +528,8 @@ fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
 }
 
 /// `sim nbv --json`: every policy's four means, traces within [0, the
-/// uniform distribution's], errors within [0°, 180°]; the table and the
-/// per-trial CSV (a start row and two moves per policy) otherwise.
+/// uniform distribution's], errors within [0°, 180°]; the per-trial CSV (a
+/// start row and two moves per policy); the cluttered start too.
 #[test]
 fn sim_nbv_reports_each_policy_after_one_and_two_moves() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
@@ -556,7 +556,14 @@ fn sim_nbv_reports_each_policy_after_one_and_two_moves() {
     }
     let csv = std::fs::read_to_string(out_dir.join("trials.csv")).unwrap();
     assert_eq!(csv.lines().count(), 1 + 1 + 3 * 2, "{csv}");
-    assert!(csv.lines().nth(2).unwrap().starts_with("0,nbv,1,"), "{csv}");
+    assert!(csv.lines().nth(2).unwrap().starts_with("0,14,nbv,1,"), "{csv}");
+    // The cluttered start: the first LM-O object of objects/lmo (ape).
+    let out = sim(&["--scene", "clutter", "--trials", "1", "--json", "--out", out_dir.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!((report["scene"].as_str(), report["trials"].as_u64()), (Some("clutter"), Some(1)), "{report}");
+    let csv = std::fs::read_to_string(out_dir.join("trials.csv")).unwrap();
+    assert!(csv.lines().nth(1).unwrap().starts_with("0,1,start,0,"), "{csv}");
     let _ = std::fs::remove_dir_all(&out_dir);
     let none = sim(&["--trials", "0"]);
     assert_eq!(none.status.code(), Some(1));

@@ -16,14 +16,15 @@ pub const CANDIDATE_LEN: usize = POSE_LEN + 1;
 /// |-------:|-----:|-------------------------|-----------|---------|
 /// | 0      | 80   | header                  | [`Header`] | |
 /// | 80     | 48   | chosen                  | [f32; 12] | pose of the next camera in the current camera frame (`x_current = R x_next + t`) |
-/// | 128    | 4    | expected_rotation_trace | f32       | E[tr Σ_R] after moving there (rad²) |
-/// | 132    | 4    | current_rotation_trace  | f32       | tr Σ_R now (rad²) |
+/// | 128    | 4    | expected_rotation_trace | f32       | E[tr Σ_R] after moving there (rad²), as the stage measures it (its own cheaper pose stages; modulo the object's symmetries) |
+/// | 132    | 4    | current_rotation_trace  | f32       | tr Σ_R now: the Estimate's `rotation_trace` (rad²) |
 /// | 136    | 4    | candidate_count         | u32       | C |
 /// | 140    | 4    | reserved                | u32       | 0 |
 ///
 /// Payload (`f32`): C candidates × 13 (camera pose as `chosen`, expected
 /// trace), sorted best (lowest expected trace) first, so the first is
-/// `chosen`.
+/// `chosen`; the current viewpoint (the identity pose) is among them when
+/// the stage scores it, so compare expected traces with each other.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
 #[type_name("poseflow/NextView/v1")]
