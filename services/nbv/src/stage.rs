@@ -71,6 +71,8 @@ impl NbvStage {
             expected = plan.views[0].expected_trace,
             views = plan.cost.views,
             wall_ms = plan.cost.wall_ms,
+            render_ms = plan.cost.render_ms,
+            estimate_ms = plan.cost.estimate_ms,
             occluders = occluders.as_ref().map_or(0, Occluders::len),
             without_frame = self.without_frame,
             "next view"

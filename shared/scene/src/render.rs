@@ -138,7 +138,9 @@ fn first_hit(
     best
 }
 
-/// Renders `objects` (mutually occluding) as seen by `camera`.
+/// Renders `objects` (mutually occluding) as seen by `camera`. Rays are
+/// cast only inside the box the objects' projected boxes span (a lone
+/// object costs its own pixels, not the image's).
 pub fn render(camera: &Camera, objects: &[Placed<'_>], light: &Light) -> Frame {
     let placed: Vec<(Isometry3<f32>, &RenderModel)> = objects.iter().map(|o| (isometry(o.pose), o.model)).collect();
     let to_light = light.direction.normalize().cast::<f32>();
@@ -146,22 +148,28 @@ pub fn render(camera: &Camera, objects: &[Placed<'_>], light: &Light) -> Frame {
     let mut depth = vec![0.0f32; w * h];
     let mut label = vec![0u16; w * h];
     let mut rgb = vec![[0u8; 3]; w * h];
-    depth.par_chunks_mut(w).zip(label.par_chunks_mut(w)).zip(rgb.par_chunks_mut(w)).enumerate().for_each(
-        |(v, ((depth_row, label_row), rgb_row))| {
-            for u in 0..w {
-                let direction = camera.ray_direction(u as f64, v as f64).cast::<f32>();
-                let Some((k, toi, normal, color)) = first_hit(&placed, &direction) else {
-                    continue;
-                };
-                depth_row[u] = toi * direction.z;
-                label_row[u] = k as u16 + 1;
-                // Two-sided Lambert: the normal is flipped to face the camera.
-                let n = if normal.dot(&direction) > 0.0 { -normal } else { normal };
-                let shade = light.ambient as f32 + (1.0 - light.ambient as f32) * n.dot(&to_light).max(0.0);
-                rgb_row[u] = color.map(|c| (c * shade * 255.0).round().clamp(0.0, 255.0) as u8);
-            }
-        },
-    );
+    let window = objects
+        .iter()
+        .filter_map(|o| projected_box(camera, o))
+        .reduce(|a, b| (a.0.min(b.0), a.1.min(b.1), a.2.max(b.2), a.3.max(b.3)));
+    let Some((u0, v0, u1, v1)) = window else {
+        return Frame { width: camera.width, height: camera.height, depth, label, rgb };
+    };
+    let rows = depth.par_chunks_mut(w).zip(label.par_chunks_mut(w)).zip(rgb.par_chunks_mut(w)).enumerate();
+    rows.skip(v0).take(v1 + 1 - v0).for_each(|(v, ((depth_row, label_row), rgb_row))| {
+        for u in u0..=u1 {
+            let direction = camera.ray_direction(u as f64, v as f64).cast::<f32>();
+            let Some((k, toi, normal, color)) = first_hit(&placed, &direction) else {
+                continue;
+            };
+            depth_row[u] = toi * direction.z;
+            label_row[u] = k as u16 + 1;
+            // Two-sided Lambert: the normal is flipped to face the camera.
+            let n = if normal.dot(&direction) > 0.0 { -normal } else { normal };
+            let shade = light.ambient as f32 + (1.0 - light.ambient as f32) * n.dot(&to_light).max(0.0);
+            rgb_row[u] = color.map(|c| (c * shade * 255.0).round().clamp(0.0, 255.0) as u8);
+        }
+    });
     Frame { width: camera.width, height: camera.height, depth, label, rgb }
 }
 
