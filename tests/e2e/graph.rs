@@ -89,6 +89,29 @@ impl Scratch {
         path
     }
 
+    /// The relay graph with `tests/stages/fault_relay.rs` as the relay,
+    /// failing with `fault` once at frame `at_frame`; `extra` more params.
+    fn fault_graph(
+        &self,
+        frames: u64,
+        rate_hz: f64,
+        overflow: &str,
+        fault: &str,
+        at_frame: u64,
+        extra: &str,
+    ) -> PathBuf {
+        let path = self.graph(frames, rate_hz, overflow);
+        let params = format!(
+            "params = {{ fault = \"{fault}\", at_frame = {at_frame}, marker = \"{}\"{extra} }}",
+            self.dir.join("fault-marker").display()
+        );
+        let text = std::fs::read_to_string(&path)
+            .unwrap()
+            .replace("exe = \"smoke-relay\"", &format!("exe = \"fault-relay\"\n{params}"));
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
     fn report_path(&self) -> PathBuf {
         self.dir.join("sink-report.json")
     }
@@ -203,6 +226,134 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     assert_eq!(report.received + report.gaps, 1500 - first, "{report:?}");
     eprintln!("sink: {report:?}");
 
+    assert_nothing_leaked(&before);
+}
+
+/// The fault-injection relay's checks common to the tests where it
+/// recovers: every stage finished, the sink saw nothing corrupted, traffic
+/// resumed to the last frame, and what was lost is counted as gaps.
+fn assert_recovered(summary: &serde_json::Value, report: &SinkReport, frames: u64) {
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "finished", "{summary}");
+    }
+    assert_eq!(report.corrupted, 0, "{report:?}");
+    assert_eq!(report.intact, report.received, "{report:?}");
+    assert_eq!(report.last_frame, Some(frames - 1), "traffic did not resume: {report:?}");
+    assert_eq!(report.received + report.gaps, frames - report.first_frame.unwrap(), "{report:?}");
+}
+
+/// A relay that panics in the middle of a frame (input taken, nothing
+/// emitted) is restarted with backoff; the sink sees no corrupted frame.
+#[test]
+fn a_stage_crashing_mid_frame_is_restarted_and_nothing_corrupted_passes() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("crash");
+    let graph = scratch.fault_graph(1500, 500.0, "drop-oldest", "crash", 300, "");
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
+    let summary = summary(&output);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{summary}\n{stderr}");
+    assert!(stderr.contains("injected crash at frame 300"), "{stderr}");
+    assert_eq!(summary["stages"]["relay"]["restarts"], 1, "{summary}");
+    let report = scratch.report();
+    assert_recovered(&summary, &report, 1500);
+    eprintln!("crash: {report:?}, restart latency {} ms", summary["stages"]["relay"]["restart_latency_ms"][0]);
+    assert_nothing_leaked(&before);
+}
+
+/// A relay stuck in one frame is found by its heartbeat deadline
+/// (`heartbeat_timeout_ms`), killed and restarted; traffic resumes.
+#[test]
+fn a_hung_stage_is_killed_at_its_heartbeat_deadline_and_restarted() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("hang");
+    let graph = scratch.fault_graph(2500, 500.0, "drop-oldest", "hang", 300, "");
+    let text =
+        std::fs::read_to_string(&graph).unwrap().replace("heartbeat_timeout_ms = 3000", "heartbeat_timeout_ms = 1000");
+    std::fs::write(&graph, text).unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
+    let summary = summary(&output);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{summary}\n{stderr}");
+    let relay = &summary["stages"]["relay"];
+    assert_eq!((relay["hangs"].as_u64(), relay["restarts"].as_u64()), (Some(1), Some(1)), "{summary}");
+    assert!(stderr.contains("busy in one message longer than graph.heartbeat_timeout_ms"), "{stderr}");
+    let report = scratch.report();
+    assert_recovered(&summary, &report, 2500);
+    assert!(report.gaps > 0, "frames were lost while the relay hung: {report:?}");
+    eprintln!("hang: {report:?}, restart latency {} ms", relay["restart_latency_ms"][0]);
+    assert_nothing_leaked(&before);
+}
+
+/// At shutdown, a stage that ignores SIGTERM (and is stuck) is SIGKILLed
+/// after the grace period, reported as such, and leaves nothing behind;
+/// the others stop normally.
+#[test]
+fn a_stage_ignoring_sigterm_is_killed_after_the_grace_period() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("sigterm");
+    // A long stream and a generous heartbeat deadline: only shutdown ends
+    // the stuck relay.
+    let graph = scratch.fault_graph(1_000_000, 200.0, "drop-oldest", "ignore-sigterm", 50, "");
+    let text =
+        std::fs::read_to_string(&graph).unwrap().replace("heartbeat_timeout_ms = 3000", "heartbeat_timeout_ms = 60000");
+    std::fs::write(&graph, text).unwrap();
+    let instance = format!("sigterm-{}", std::process::id());
+    let (run, _) = start_and_wait_for(&graph, &instance, "sink");
+    let marker = scratch.dir.join("fault-marker");
+    let waiting = Instant::now();
+    while !marker.exists() && waiting.elapsed() < Duration::from_secs(20) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(marker.exists(), "the relay never reached its faulty frame");
+    std::thread::sleep(Duration::from_millis(300));
+    let stopping = Instant::now();
+    // SAFETY: signalling the poseflow process this test started.
+    assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGINT) }, 0);
+    let output = run.wait_with_output().unwrap();
+    let stopped_after = stopping.elapsed();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    assert_eq!(summary["stages"]["relay"]["killed_at_stop"], true, "{summary}");
+    for stage in ["source", "sink"] {
+        assert_eq!(summary["stages"][stage]["killed_at_stop"], false, "{summary}");
+    }
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "stopped", "{summary}");
+        assert!(find_stage_pid(&instance, stage).is_none(), "{stage} still running");
+    }
+    // The grace period (5 s) passed before the SIGKILL.
+    assert!(stopped_after >= Duration::from_secs(5), "{stopped_after:?}");
+    eprintln!("sigterm ignored: the graph stopped {stopped_after:?} after SIGINT");
+    assert_eq!(scratch.report().corrupted, 0);
+    assert_nothing_leaked(&before);
+}
+
+/// A relay that floods its bounded, drop-oldest output queue (100 copies of
+/// every frame from frame 100 on): the queue stays bounded, the sink
+/// receives fewer messages than were sent (the difference is counted: the
+/// relay's frames out minus the sink's frames in) and none corrupted.
+#[test]
+fn a_flooding_stage_overflows_a_bounded_queue_with_counted_losses() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = iceoryx_files();
+    let scratch = Scratch::new("flood");
+    let graph = scratch.fault_graph(400, 200.0, "drop-oldest", "flood", 100, ", copies = 100");
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
+    let relay_out = summary["stages"]["relay"]["frames_out"].as_u64().unwrap();
+    let sink_in = summary["stages"]["sink"]["frames_in"].as_u64().unwrap();
+    // Frames 0–99 once, 100–399 a hundred times each.
+    assert_eq!(relay_out, 100 + 300 * 100, "{summary}");
+    let report = scratch.report();
+    assert_eq!(report.received, sink_in, "{summary}");
+    assert!(sink_in < relay_out, "nothing overflowed: {summary}");
+    eprintln!("flood: relay sent {relay_out}, sink received {sink_in}, {} lost in the queue", relay_out - sink_in);
+    assert_eq!((report.corrupted, report.last_frame), (0, Some(399)), "{report:?}");
     assert_nothing_leaked(&before);
 }
 

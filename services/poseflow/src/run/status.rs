@@ -37,6 +37,8 @@ pub struct StageReport {
     pub outcome: Outcome,
     pub restarts: u32,
     pub hangs: u32,
+    /// Still running `STOP_GRACE` after SIGTERM at shutdown: SIGKILLed.
+    pub killed_at_stop: bool,
     /// From a death being noticed to the replacement being started.
     pub restart_latency_ms: Vec<f64>,
     pub heartbeat: Option<Heartbeat>,
@@ -50,6 +52,7 @@ impl StageReport {
             outcome: Outcome::Running,
             restarts: 0,
             hangs: 0,
+            killed_at_stop: false,
             restart_latency_ms: Vec::new(),
             heartbeat: None,
         }
@@ -79,6 +82,7 @@ impl StageReport {
             "failure": match &self.outcome { Outcome::Failed(why) => Some(why.as_str()), _ => None },
             "restarts": self.restarts,
             "hangs": self.hangs,
+            "killed_at_stop": self.killed_at_stop,
             "restart_latency_ms": self.restart_latency_ms,
             "frames_in": beat.frames_in,
             "frames_out": beat.frames_out,

@@ -289,6 +289,7 @@ fn stop_all(stages: &mut [Supervised<'_>]) {
                 _ => {
                     tracing::warn!(stage = %s.stage.name, "did not stop after SIGTERM; killing");
                     s.kill(libc::SIGKILL);
+                    s.report.killed_at_stop = true;
                     if let Some(mut child) = s.child.take() {
                         let _ = child.wait();
                     }
