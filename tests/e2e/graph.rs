@@ -89,25 +89,27 @@ impl Scratch {
         path
     }
 
-    /// The relay graph with `tests/stages/fault_relay.rs` as the relay,
-    /// failing with `fault` once at frame `at_frame`; `extra` more params.
+    /// The relay graph (drop-oldest queues, `rate_hz`) with
+    /// `tests/stages/fault_relay.rs` as the relay, failing with `fault` once
+    /// at frame `at_frame` (`extra`: more params), and this heartbeat
+    /// deadline.
     fn fault_graph(
         &self,
-        frames: u64,
-        rate_hz: f64,
-        overflow: &str,
+        (frames, rate_hz): (u64, f64),
         fault: &str,
         at_frame: u64,
         extra: &str,
+        deadline_ms: u64,
     ) -> PathBuf {
-        let path = self.graph(frames, rate_hz, overflow);
+        let path = self.graph(frames, rate_hz, "drop-oldest");
         let params = format!(
             "params = {{ fault = \"{fault}\", at_frame = {at_frame}, marker = \"{}\"{extra} }}",
             self.dir.join("fault-marker").display()
         );
         let text = std::fs::read_to_string(&path)
             .unwrap()
-            .replace("exe = \"smoke-relay\"", &format!("exe = \"fault-relay\"\n{params}"));
+            .replace("exe = \"smoke-relay\"", &format!("exe = \"fault-relay\"\n{params}"))
+            .replace("heartbeat_timeout_ms = 3000", &format!("heartbeat_timeout_ms = {deadline_ms}"));
         std::fs::write(&path, text).unwrap();
         path
     }
@@ -229,6 +231,16 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     assert_nothing_leaked(&before);
 }
 
+/// Runs a graph to its end; its JSON summary and stderr, checking it
+/// succeeded.
+fn run_to_end(graph: &Path) -> (serde_json::Value, String) {
+    let output = run_graph(&["--json", "--status-ms", "0"], graph).output().unwrap();
+    let summary = summary(&output);
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    assert!(output.status.success(), "{summary}\n{stderr}");
+    (summary, stderr)
+}
+
 /// The fault-injection relay's checks common to the tests where it
 /// recovers: every stage finished, the sink saw nothing corrupted, traffic
 /// resumed to the last frame, and what was lost is counted as gaps.
@@ -249,11 +261,7 @@ fn a_stage_crashing_mid_frame_is_restarted_and_nothing_corrupted_passes() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let before = iceoryx_files();
     let scratch = Scratch::new("crash");
-    let graph = scratch.fault_graph(1500, 500.0, "drop-oldest", "crash", 300, "");
-    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
-    let summary = summary(&output);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{summary}\n{stderr}");
+    let (summary, stderr) = run_to_end(&scratch.fault_graph((1500, 500.0), "crash", 300, "", 3000));
     assert!(stderr.contains("injected crash at frame 300"), "{stderr}");
     assert_eq!(summary["stages"]["relay"]["restarts"], 1, "{summary}");
     let report = scratch.report();
@@ -269,14 +277,7 @@ fn a_hung_stage_is_killed_at_its_heartbeat_deadline_and_restarted() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let before = iceoryx_files();
     let scratch = Scratch::new("hang");
-    let graph = scratch.fault_graph(2500, 500.0, "drop-oldest", "hang", 300, "");
-    let text =
-        std::fs::read_to_string(&graph).unwrap().replace("heartbeat_timeout_ms = 3000", "heartbeat_timeout_ms = 1000");
-    std::fs::write(&graph, text).unwrap();
-    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
-    let summary = summary(&output);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{summary}\n{stderr}");
+    let (summary, stderr) = run_to_end(&scratch.fault_graph((2500, 500.0), "hang", 300, "", 1000));
     let relay = &summary["stages"]["relay"];
     assert_eq!((relay["hangs"].as_u64(), relay["restarts"].as_u64()), (Some(1), Some(1)), "{summary}");
     assert!(stderr.contains("busy in one message longer than graph.heartbeat_timeout_ms"), "{stderr}");
@@ -297,10 +298,7 @@ fn a_stage_ignoring_sigterm_is_killed_after_the_grace_period() {
     let scratch = Scratch::new("sigterm");
     // A long stream and a generous heartbeat deadline: only shutdown ends
     // the stuck relay.
-    let graph = scratch.fault_graph(1_000_000, 200.0, "drop-oldest", "ignore-sigterm", 50, "");
-    let text =
-        std::fs::read_to_string(&graph).unwrap().replace("heartbeat_timeout_ms = 3000", "heartbeat_timeout_ms = 60000");
-    std::fs::write(&graph, text).unwrap();
+    let graph = scratch.fault_graph((1_000_000, 200.0), "ignore-sigterm", 50, "", 60_000);
     let instance = format!("sigterm-{}", std::process::id());
     let (run, _) = start_and_wait_for(&graph, &instance, "sink");
     let marker = scratch.dir.join("fault-marker");
@@ -341,10 +339,7 @@ fn a_flooding_stage_overflows_a_bounded_queue_with_counted_losses() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let before = iceoryx_files();
     let scratch = Scratch::new("flood");
-    let graph = scratch.fault_graph(400, 200.0, "drop-oldest", "flood", 100, ", copies = 100");
-    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
-    let summary = summary(&output);
-    assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
+    let (summary, _) = run_to_end(&scratch.fault_graph((400, 200.0), "flood", 100, ", copies = 100", 3000));
     let relay_out = summary["stages"]["relay"]["frames_out"].as_u64().unwrap();
     let sink_in = summary["stages"]["sink"]["frames_in"].as_u64().unwrap();
     // Frames 0–99 once, 100–399 a hundred times each.
