@@ -16,6 +16,9 @@ pub enum NbvError {
     #[error("frame {frame} object {object}: {detail}")]
     Frame { frame: u64, object: u32, detail: String },
 
+    #[error("frame {frame} (side input): {detail}; planning without its occluders")]
+    SideFrame { frame: u64, detail: String },
+
     #[error(transparent)]
     Emit(#[from] poseflow_runtime::EmitError),
 }

@@ -29,11 +29,8 @@ impl NbvStage {
     /// Keeps a frame for the Estimates of its objects.
     pub fn keep_frame(&mut self, header: &FrameHeader, payload: &[f32]) -> Result<(), NbvError> {
         let frame = header.header.frame_id;
-        let (mut rgbd, masks) = read_frame(header, payload).map_err(|e| NbvError::Frame {
-            frame,
-            object: 0,
-            detail: format!("side input: {e}"),
-        })?;
+        let (mut rgbd, masks) =
+            read_frame(header, payload).map_err(|e| NbvError::SideFrame { frame, detail: e.to_string() })?;
         rgbd.rgb.pixels = Vec::new();
         if self.frames.len() == self.planner.params().frames {
             self.frames.pop_front();

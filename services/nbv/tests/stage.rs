@@ -189,3 +189,18 @@ fn uninformative_views_count_as_uniform_and_unknown_objects_are_named() {
     let err = planner.plan(2, 14, &[], &up, None).unwrap_err().to_string();
     assert!(err.contains("no kept hypothesis"), "{err}");
 }
+
+/// A frame on the side input that does not match its header is an error
+/// naming the frame; the stage keeps nothing from it and plans that
+/// frame's objects without occluders.
+#[test]
+fn a_bad_side_frame_is_named_and_leaves_no_occluders() {
+    use poseflow_contracts::{FrameHeader, Header};
+    use poseflow_nbv::stage::NbvStage;
+
+    let mut stage = NbvStage::new(mug_planner(1));
+    let header = FrameHeader { header: Header::new(5, 0), detection_count: 1, ..Default::default() };
+    let err = stage.keep_frame(&header, &[0.0; 7]).unwrap_err().to_string();
+    assert!(err.starts_with("frame 5 (side input):") && err.contains("without its occluders"), "{err}");
+    assert!(stage.occluders(5, 14).is_none());
+}
