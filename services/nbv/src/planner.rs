@@ -178,6 +178,10 @@ impl NbvPlanner {
         let started = Instant::now();
         let index = find_object(&self.library, &self.params, frame, obj_id)?;
         let (model, symmetries) = (&self.library.objects[index].model, &self.symmetries[index]);
+        if hypotheses.is_empty() {
+            let detail = "the Estimate has no kept hypothesis".to_string();
+            return Err(NbvError::Frame { frame, object: obj_id, detail });
+        }
         let simulated = spread_evenly(hypotheses, self.params.hypotheses);
         let mut jobs: Vec<Job> = views
             .iter()

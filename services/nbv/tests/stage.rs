@@ -179,6 +179,7 @@ fn uninformative_views_count_as_uniform_and_unknown_objects_are_named() {
     let candidates = planner.candidates(2, 14, &hypotheses, &up).unwrap();
     // The current viewpoint first, then the sphere's four.
     assert_eq!((plan.views.len(), candidates.len()), (5, 4));
+    let candidates_again = candidates.clone();
     let expected = std::iter::once(Pose::identity()).chain(candidates);
     for (view, candidate) in plan.views.iter().zip(expected) {
         assert_eq!(view.camera_from_next, candidate);
@@ -187,6 +188,8 @@ fn uninformative_views_count_as_uniform_and_unknown_objects_are_named() {
     let err = planner.plan(2, 99, &hypotheses, &up, None).unwrap_err().to_string();
     assert!(err.starts_with("frame 2 object 99: no model of object 99"), "{err}");
     let err = planner.plan(2, 14, &[], &up, None).unwrap_err().to_string();
+    assert!(err.contains("no kept hypothesis"), "{err}");
+    let err = planner.score_views(2, 14, &candidates_again, &[], None).unwrap_err().to_string();
     assert!(err.contains("no kept hypothesis"), "{err}");
 }
 
