@@ -41,7 +41,36 @@ pub struct StageReport {
     pub killed_at_stop: bool,
     /// From a death being noticed to the replacement being started.
     pub restart_latency_ms: Vec<f64>,
+    /// The latest heartbeat of the current process.
     pub heartbeat: Option<Heartbeat>,
+    /// Counters of the stage's earlier processes (restarted ones), as their
+    /// last heartbeats had them: what a process did after its last
+    /// heartbeat is not counted.
+    pub earlier: Counters,
+}
+
+/// Frame counters summed over processes.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Counters {
+    pub frames_in: u64,
+    pub frames_out: u64,
+    pub dropped: u64,
+    pub errors: u64,
+}
+
+impl Counters {
+    fn of(beat: &Heartbeat) -> Self {
+        Self { frames_in: beat.frames_in, frames_out: beat.frames_out, dropped: beat.dropped, errors: beat.errors }
+    }
+
+    fn plus(self, other: Self) -> Self {
+        Self {
+            frames_in: self.frames_in + other.frames_in,
+            frames_out: self.frames_out + other.frames_out,
+            dropped: self.dropped + other.dropped,
+            errors: self.errors + other.errors,
+        }
+    }
 }
 
 impl StageReport {
@@ -55,7 +84,22 @@ impl StageReport {
             killed_at_stop: false,
             restart_latency_ms: Vec::new(),
             heartbeat: None,
+            earlier: Counters::default(),
         }
+    }
+
+    /// Takes a heartbeat; one from a new process first adds the previous
+    /// process's last counters to [`Self::earlier`].
+    pub fn beat(&mut self, beat: Heartbeat) {
+        if let Some(previous) = self.heartbeat.filter(|p| p.pid != beat.pid) {
+            self.earlier = self.earlier.plus(Counters::of(&previous));
+        }
+        self.heartbeat = Some(beat);
+    }
+
+    /// Counters over every process of the stage.
+    pub fn total(&self) -> Counters {
+        self.earlier.plus(self.heartbeat.as_ref().map(Counters::of).unwrap_or_default())
     }
 
     fn line(&self, width: usize) -> String {
@@ -77,6 +121,7 @@ impl StageReport {
 
     fn to_json(&self) -> serde_json::Value {
         let beat = self.heartbeat.unwrap_or_default();
+        let total = self.total();
         json!({
             "outcome": self.outcome.label(),
             "failure": match &self.outcome { Outcome::Failed(why) => Some(why.as_str()), _ => None },
@@ -91,6 +136,12 @@ impl StageReport {
             "p50_us": beat.latency_p50_us,
             "p99_us": beat.latency_p99_us,
             "blocked_us": beat.blocked_us,
+            "total": {
+                "frames_in": total.frames_in,
+                "frames_out": total.frames_out,
+                "dropped": total.dropped,
+                "errors": total.errors,
+            },
         })
     }
 }
@@ -136,5 +187,31 @@ impl Report {
             "recorded": self.recording.as_ref().map(|edges| edges.iter().cloned().collect::<BTreeMap<_, _>>()),
             "stages": self.stages.iter().map(|(name, s)| (name.clone(), s.to_json())).collect::<serde_json::Map<_, _>>(),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn beat(pid: u32, frames_in: u64, frames_out: u64) -> Heartbeat {
+        Heartbeat { pid, frames_in, frames_out, dropped: 1, ..Default::default() }
+    }
+
+    #[test]
+    fn counters_add_up_over_restarted_processes() {
+        let mut report = StageReport::new("relay");
+        assert_eq!(report.total(), Counters::default());
+        // The first process: later heartbeats replace earlier ones.
+        report.beat(beat(10, 5, 5));
+        report.beat(beat(10, 300, 299));
+        assert_eq!(report.total(), Counters { frames_in: 300, frames_out: 299, dropped: 1, errors: 0 });
+        // Its replacement starts from zero; the first one's last counts stay.
+        report.beat(beat(11, 20, 20));
+        report.beat(beat(11, 1000, 1000));
+        assert_eq!(report.earlier, Counters { frames_in: 300, frames_out: 299, dropped: 1, errors: 0 });
+        assert_eq!(report.total(), Counters { frames_in: 1300, frames_out: 1299, dropped: 2, errors: 0 });
+        assert_eq!(report.to_json()["total"]["frames_out"], 1299);
+        assert_eq!(report.to_json()["frames_out"], 1000);
     }
 }

@@ -91,7 +91,7 @@ impl Supervised<'_> {
         loop {
             match self.heartbeats.receive() {
                 Ok(Some(beat)) => {
-                    self.report.heartbeat = Some(*beat.header());
+                    self.report.beat(*beat.header());
                     self.last_heartbeat_at = Instant::now();
                 }
                 Ok(None) => break,
