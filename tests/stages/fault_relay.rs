@@ -1,6 +1,6 @@
 //! A negating relay (the smoke relay) that misbehaves once, for the fault
-//! injection tests: at frame `at_frame`, unless the `marker` file exists
-//! (it is created first, so a restarted process behaves),
+//! injection tests: at frame `at_frame`, unless the `marker` directory
+//! exists (it is created first, so a restarted process behaves),
 //!
 //! - `fault = "crash"`: panics mid-frame (input taken, nothing emitted;
 //!   the process exits with status 101);
