@@ -150,6 +150,10 @@ fn three_processes_pass_every_frame_intact() {
         assert_eq!(summary["stages"][stage]["restarts"], 0, "{summary}");
     }
     assert_eq!(summary["stages"]["relay"]["frames_in"], 1000, "{summary}");
+    for edge in ["raw", "negated"] {
+        let flow = &summary["edges"][edge];
+        assert_eq!((flow["sent"].as_u64(), flow["lost"].as_u64()), (Some(1000), Some(0)), "{summary}");
+    }
 
     // Back-pressure ("block") loses nothing: every frame, intact, in order.
     let report = scratch.report();
@@ -355,6 +359,13 @@ fn a_flooding_stage_overflows_a_bounded_queue_with_counted_losses() {
     let report = scratch.report();
     assert_eq!(report.received, sink_in, "{summary}");
     assert!(sink_in < relay_out, "nothing overflowed: {summary}");
+    // The launcher counts the loss on the edge.
+    let negated = &summary["edges"]["negated"];
+    assert_eq!(
+        (negated["sent"].as_u64(), negated["lost"].as_u64()),
+        (Some(relay_out), Some(relay_out - sink_in)),
+        "{summary}"
+    );
     eprintln!("flood: relay sent {relay_out}, sink received {sink_in}, {} lost in the queue", relay_out - sink_in);
     assert_eq!((report.corrupted, report.last_frame), (0, Some(399)), "{report:?}");
     assert_nothing_leaked(&before);

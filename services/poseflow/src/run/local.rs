@@ -11,7 +11,7 @@ use poseflow_graph::{Graph, OverflowPolicy, Stage};
 use poseflow_runtime::{LocalGraph, LocalOverflow};
 use poseflow_smoke::{CheckingSink, CountingSource, NegatingRelay};
 
-use super::status::{Outcome, Report, StageReport};
+use super::status::{Outcome, Report, StageReport, edge_flows};
 
 /// Stages that can run in-process, by executable name.
 const BUILT_IN: [&str; 3] = ["smoke-source", "smoke-relay", "smoke-sink"];
@@ -104,6 +104,7 @@ pub fn run(graph: &Graph, instance: &str) -> anyhow::Result<Report> {
         instance: instance.to_string(),
         elapsed: started.elapsed(),
         stale_nodes_removed_at_exit: 0,
+        edges: edge_flows(graph, &stages),
         stages,
         recording: None,
     })

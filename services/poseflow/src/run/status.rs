@@ -4,6 +4,7 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use poseflow_contracts::Heartbeat;
+use poseflow_graph::Graph;
 use serde_json::json;
 
 #[derive(Debug, Clone, PartialEq)]
@@ -157,6 +158,48 @@ pub fn status_lines<'a>(instance: &str, elapsed: Duration, stages: impl Iterator
     out
 }
 
+/// Messages through one edge whose counts are attributable: its writer
+/// has no other output and each reader no other input, so the writer's
+/// `frames_out` all went into it and each reader's `frames_in` came from
+/// it (totals over restarted processes).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EdgeFlow {
+    pub writer: String,
+    pub sent: u64,
+    pub received: BTreeMap<String, u64>,
+}
+
+impl EdgeFlow {
+    /// Sent but not received by the reader that received least: dropped
+    /// by a full drop-oldest queue, or lost with a dead process.
+    pub fn lost(&self) -> u64 {
+        self.received.values().map(|r| self.sent.saturating_sub(*r)).max().unwrap_or(0)
+    }
+}
+
+/// The attributable edges of `graph` (see [`EdgeFlow`]).
+pub fn edge_flows(graph: &Graph, stages: &BTreeMap<String, StageReport>) -> BTreeMap<String, EdgeFlow> {
+    let total = |name: &str| stages.get(name).map(StageReport::total).unwrap_or_default();
+    graph
+        .edges
+        .keys()
+        .filter_map(|edge| {
+            let mut writers = graph.stages.values().filter(|s| s.outputs.iter().any(|o| o == edge));
+            let writer = writers.next().filter(|w| w.outputs.len() == 1)?;
+            if writers.next().is_some() {
+                return None;
+            }
+            let readers: Vec<_> = graph.stages.values().filter(|s| s.reads(edge)).collect();
+            let attributable =
+                !readers.is_empty() && readers.iter().all(|r| r.inputs.len() == 1 && r.side_inputs.is_empty());
+            attributable.then(|| {
+                let received = readers.iter().map(|r| (r.name.clone(), total(&r.name).frames_in)).collect();
+                (edge.clone(), EdgeFlow { writer: writer.name.clone(), sent: total(&writer.name).frames_out, received })
+            })
+        })
+        .collect()
+}
+
 #[derive(Debug)]
 pub struct Report {
     pub graph: String,
@@ -164,6 +207,8 @@ pub struct Report {
     pub elapsed: Duration,
     pub stale_nodes_removed_at_exit: usize,
     pub stages: BTreeMap<String, StageReport>,
+    /// Counted flow through the attributable edges.
+    pub edges: BTreeMap<String, EdgeFlow>,
     /// Messages recorded per edge, with `--record`.
     pub recording: Option<Vec<(String, u64)>>,
 }
@@ -186,6 +231,14 @@ impl Report {
             "stale_nodes_removed_at_exit": self.stale_nodes_removed_at_exit,
             "recorded": self.recording.as_ref().map(|edges| edges.iter().cloned().collect::<BTreeMap<_, _>>()),
             "stages": self.stages.iter().map(|(name, s)| (name.clone(), s.to_json())).collect::<serde_json::Map<_, _>>(),
+            "edges": self
+                .edges
+                .iter()
+                .map(|(name, e)| {
+                    let flow = json!({"writer": e.writer, "sent": e.sent, "received": e.received, "lost": e.lost()});
+                    (name.clone(), flow)
+                })
+                .collect::<serde_json::Map<_, _>>(),
         })
     }
 }

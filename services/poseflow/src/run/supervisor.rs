@@ -11,7 +11,7 @@ use poseflow_contracts::Heartbeat;
 use poseflow_graph::{Graph, RestartPolicy, Stage, WIRING_ENV};
 use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Overflow, create_node, remove_dead_nodes};
 
-use super::status::{Outcome, Report, StageReport};
+use super::status::{Outcome, Report, StageReport, edge_flows};
 use crate::logging::LogFormat;
 
 /// How often children are checked for exit and heartbeats are read. This is
@@ -232,13 +232,15 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
         return Err(err);
     }
     let removed = remove_dead_nodes()?;
+    let stages = stages.into_iter().map(|s| (s.stage.name.clone(), s.report)).collect::<BTreeMap<_, _>>();
     Ok(Report {
         graph: graph.name.clone(),
         instance: options.instance.clone(),
         elapsed: started.elapsed(),
         stale_nodes_removed_at_exit: removed,
         recording,
-        stages: stages.into_iter().map(|s| (s.stage.name.clone(), s.report)).collect::<BTreeMap<_, _>>(),
+        edges: edge_flows(graph, &stages),
+        stages,
     })
 }
 
