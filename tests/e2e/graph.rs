@@ -230,6 +230,7 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     assert_eq!(report.last_frame, Some(1499), "traffic did not resume: {report:?}");
     let first = report.first_frame.unwrap();
     assert_eq!(report.received + report.gaps, 1500 - first, "{report:?}");
+    assert_eq!(report.restart_notices, 1, "the sink was told of the restart: {report:?}");
     eprintln!("sink: {report:?}");
 
     assert_nothing_leaked(&before);
@@ -247,11 +248,13 @@ fn run_to_end(graph: &Path) -> (serde_json::Value, String) {
 
 /// The fault-injection relay's checks common to the tests where it
 /// recovers: every stage finished, the sink saw nothing corrupted, traffic
-/// resumed to the last frame, and what was lost is counted as gaps.
+/// resumed to the last frame, what was lost is counted as gaps, and each
+/// restart of the relay reached the sink as one `UPSTREAM_RESTARTED` frame.
 fn assert_recovered(summary: &serde_json::Value, report: &SinkReport, frames: u64) {
     for stage in ["source", "relay", "sink"] {
         assert_eq!(summary["stages"][stage]["outcome"], "finished", "{summary}");
     }
+    assert_eq!(Some(report.restart_notices), summary["stages"]["relay"]["restarts"].as_u64(), "{report:?}");
     assert_eq!(report.corrupted, 0, "{report:?}");
     assert_eq!(report.intact, report.received, "{report:?}");
     assert_eq!(report.last_frame, Some(frames - 1), "traffic did not resume: {report:?}");

@@ -79,9 +79,11 @@ impl<F: VelocityField> SamplerStage<F> {
     }
 
     /// Records an estimate (camera frame) that later frames of the object
-    /// start from in tracking mode.
+    /// start from in tracking mode. An id below the object's latest means
+    /// the source restarted its numbering: the later ids are another run's.
     pub fn remember(&mut self, frame_id: u64, object_id: u32, pose: Pose) {
         let estimates = self.previous.entry(object_id).or_default();
+        estimates.split_off(&frame_id);
         estimates.insert(frame_id, pose);
         while estimates.len() > KEPT_ESTIMATES {
             estimates.pop_first();
@@ -134,6 +136,11 @@ impl<F: VelocityField> Transform for SamplerStage<F> {
         let handle = input.header;
         let _span =
             tracing::debug_span!("sample", frame = handle.header.frame_id, object = handle.header.object_id).entered();
+        if handle.header.has_flag(flags::UPSTREAM_RESTARTED) && !self.previous.is_empty() {
+            // A restarted source may show another scene under the same ids.
+            tracing::info!("an upstream stage restarted: tracks start again from the prior");
+            self.previous.clear();
+        }
         let (header, poses) = self.hypotheses(handle)?;
         output.emit(header, poses.len() * POSE_LEN, &mut |buffer| write_poses(poses, buffer))?;
         Ok(())

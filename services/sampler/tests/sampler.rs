@@ -121,6 +121,42 @@ fn tracking_starts_from_the_previous_estimate_late_in_the_flow() {
     assert!((times[0] - 0.8).abs() < 1e-6 && (times[1] - 0.9).abs() < 1e-6, "{times:?}");
 }
 
+/// A restarted source numbers its frames from 0 again and may show another
+/// scene: its restart notice drops every track, and estimates of the old
+/// numbering never seed the new frames.
+#[test]
+fn an_upstream_restart_drops_the_tracks() {
+    let params = SamplerParams {
+        samples: 2,
+        tracking: TrackingParams { enabled: true, ..Default::default() },
+        ..Default::default()
+    };
+    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), String> {
+        out.fill(0.0);
+        Ok(())
+    };
+    let mut stage = SamplerStage::new(params, zero);
+    let mut out = Collect(Vec::new());
+    stage.remember(500, 5, target());
+    assert_eq!(stage.start_for(&handle(501)), Start::Track(target()));
+
+    let mut restarted = handle(0);
+    restarted.header.flags |= flags::UPSTREAM_RESTARTED;
+    stage.process(Input { header: &restarted, payload: &[] }, &mut out).unwrap();
+    let (first, _) = &out.0[0];
+    assert!(!first.header.has_flag(flags::TRACKING), "started from the prior");
+    assert!(first.header.has_flag(flags::UPSTREAM_RESTARTED), "the notice travels on");
+    assert_eq!(stage.start_for(&handle(501)), Start::Prior, "the old track is gone");
+
+    // An estimate of the old numbering still in flight, then the new frame 0's:
+    // the lower id wins and the old one is forgotten.
+    stage.remember(502, 5, target());
+    let other = Pose::new(target().rotation, target().translation + Vector3::new(0.0, 0.1, 0.0));
+    stage.remember(0, 5, other);
+    assert_eq!(stage.start_for(&handle(1)), Start::Track(other));
+    assert_eq!(stage.start_for(&handle(503)), Start::Prior);
+}
+
 struct Collect(Vec<(poseflow_contracts::HypothesesHeader, Vec<f32>)>);
 
 impl Emitter<poseflow_contracts::HypothesesHeader> for Collect {

@@ -7,7 +7,7 @@
 
 use std::path::PathBuf;
 
-use poseflow_contracts::{Header, HypothesesHeader, MessageHeader, POSE_LEN, Stage};
+use poseflow_contracts::{Header, HypothesesHeader, MessageHeader, POSE_LEN, Stage, flags};
 use poseflow_graph::StageWiring;
 use poseflow_runtime::{Emitter, Input, Sink, Source, SourceStep, Transform};
 
@@ -110,6 +110,10 @@ pub struct SinkReport {
     pub gaps: u64,
     /// Received frames that passed through the relay stamp.
     pub relayed: u64,
+    /// Frames flagged `UPSTREAM_RESTARTED`: one per restart of a stage
+    /// upstream whose first output got through.
+    #[serde(default)]
+    pub restart_notices: u64,
 }
 
 /// Checks that every frame carries `-value(f, i)` (one negating relay).
@@ -162,6 +166,9 @@ impl Sink for CheckingSink {
         report.last_frame = Some(frame);
         if input.header.header().stamps.get(Stage::Sampler).is_some() {
             report.relayed += 1;
+        }
+        if input.header.header().has_flag(flags::UPSTREAM_RESTARTED) {
+            report.restart_notices += 1;
         }
         match Self::check(&input) {
             Ok(()) => {

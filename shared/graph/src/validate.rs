@@ -447,6 +447,7 @@ impl Graph {
                 .map_err(invalid_instance)?,
             heartbeat_ms: self.heartbeat.as_millis() as u64,
             params: stage.params.clone(),
+            incarnation: 0,
         })
     }
 }

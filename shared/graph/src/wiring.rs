@@ -57,6 +57,11 @@ pub struct StageWiring {
     pub heartbeat_ms: u64,
     /// The stage's parameters (config file merged with inline params).
     pub params: serde_json::Value,
+    /// How many processes of this stage ran before this one: 0 at the
+    /// graph's start, n after the n-th restart. A restarted stage flags its
+    /// first output `UPSTREAM_RESTARTED` so downstream caches are dropped.
+    #[serde(default)]
+    pub incarnation: u32,
 }
 
 impl StageWiring {

@@ -6,11 +6,11 @@
 //! `busy_us`, the time spent in the stage's own code, not at silence.
 
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
 use hdrhistogram::Histogram;
-use poseflow_contracts::{Header, Heartbeat, StageState, monotonic_ns};
+use poseflow_contracts::{Header, Heartbeat, StageState, flags, monotonic_ns};
 
 #[derive(Debug)]
 pub(crate) struct Liveness {
@@ -28,6 +28,8 @@ pub(crate) struct Liveness {
     /// Monotonic ns at which the current send began; 0 when not sending.
     send_started_ns: AtomicU64,
     latency_us: Mutex<Histogram<u64>>,
+    /// This process replaced a dead one and has not yet said so downstream.
+    restart_unannounced: AtomicBool,
 }
 
 fn micros(ns: u64) -> u32 {
@@ -48,7 +50,25 @@ impl Liveness {
             send_started_ns: AtomicU64::new(0),
             // 1 µs .. 60 s at 3 significant digits.
             latency_us: Mutex::new(Histogram::new_with_bounds(1, 60_000_000, 3).expect("valid histogram bounds")),
+            restart_unannounced: AtomicBool::new(false),
         }
+    }
+
+    /// A restarted process flags its first output so that stages downstream
+    /// drop what they cached from the frames before the restart.
+    pub fn restarted(&self) {
+        self.restart_unannounced.store(true, Relaxed);
+    }
+
+    /// Flags `header` [`flags::UPSTREAM_RESTARTED`] if this process has not
+    /// announced its restart yet; returns whether it did, so a send that
+    /// fails can [`Self::restarted`] again.
+    pub fn announce_restart(&self, header: &mut Header) -> bool {
+        let announce = self.restart_unannounced.swap(false, Relaxed);
+        if announce {
+            header.flags |= flags::UPSTREAM_RESTARTED;
+        }
+        announce
     }
 
     pub fn set_state(&self, state: StageState) {
@@ -149,6 +169,19 @@ mod tests {
         assert_eq!(beat.dropped, 2);
         assert_eq!(beat.frames_in, 7);
         assert_eq!(beat.header.frame_id, 1);
+    }
+
+    #[test]
+    fn a_restart_is_announced_on_one_output_only() {
+        let liveness = Liveness::new();
+        let mut header = Header::new(0, 1);
+        assert!(!liveness.announce_restart(&mut header), "a first process has nothing to announce");
+        liveness.restarted();
+        assert!(liveness.announce_restart(&mut header));
+        assert!(header.has_flag(flags::UPSTREAM_RESTARTED));
+        let mut next = Header::new(1, 1);
+        assert!(!liveness.announce_restart(&mut next));
+        assert_eq!(next.flags, 0);
     }
 
     #[test]

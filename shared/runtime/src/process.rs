@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::{CallbackProgression, SynchronousMultiplexing, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
-use poseflow_contracts::{MessageHeader, Stage, StageState};
+use poseflow_contracts::{MessageHeader, Stage, StageState, flags};
 use poseflow_graph::StageWiring;
 use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, RequestServer, Responder, TransportError, create_node};
 
@@ -65,6 +65,10 @@ impl StageProcess {
         }
         let node = create_node(&wiring.stage)?;
         let liveness = Arc::new(Liveness::new());
+        if wiring.incarnation > 0 {
+            tracing::info!(stage = %wiring.stage, incarnation = wiring.incarnation, "restarted; the first output says so");
+            liveness.restarted();
+        }
         let period = Duration::from_millis(wiring.heartbeat_ms);
         let heartbeat = HeartbeatThread::spawn(&wiring.stage, &wiring.heartbeat_service, period, liveness.clone())?;
         Ok(Self { wiring, node, liveness, heartbeat })
@@ -171,6 +175,9 @@ fn drain<H: MessageHeader>(
             continue;
         }
         liveness.count_received(frame);
+        if header.header().has_flag(flags::UPSTREAM_RESTARTED) {
+            tracing::warn!(edge = input.name(), frame, "a stage upstream restarted before this frame");
+        }
         let _span = tracing::debug_span!("frame", id = frame).entered();
         let started = Instant::now();
         liveness.work_started();
@@ -192,9 +199,13 @@ impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
         if let Some(slot) = self.slot {
             header.header_mut().stamps.stamp(slot);
         }
+        let announced = self.liveness.announce_restart(header.header_mut());
         self.liveness.send_started();
         let sent = self.publisher.publish(header, len, fill);
         self.liveness.send_finished();
+        if sent.is_err() && announced {
+            self.liveness.restarted();
+        }
         let receivers = sent.map_err(|e| EmitError(e.to_string()))?;
         tracing::trace!(receivers, "published");
         self.liveness.count_sent();
@@ -303,13 +314,17 @@ impl<H: MessageHeader> HeldOutputs<H> {
     /// Publishes the held outputs in order, calling `meanwhile` while a
     /// full queue holds a send back.
     fn publish(&mut self, output: &Publisher<H>, liveness: &Liveness, meanwhile: &mut dyn FnMut()) {
-        for (header, payload) in self.outputs.drain(..) {
+        for (mut header, payload) in self.outputs.drain(..) {
+            let announced = liveness.announce_restart(header.header_mut());
             liveness.send_started();
             let sent = output.publish_serving(header, payload.len(), |out| out.copy_from_slice(&payload), meanwhile);
             liveness.send_finished();
             match sent {
                 Ok(_) => liveness.count_sent(),
                 Err(err) => {
+                    if announced {
+                        liveness.restarted();
+                    }
                     liveness.count_error();
                     tracing::warn!(%err, "output not sent; frame skipped");
                 }

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use poseflow_contracts::Heartbeat;
-use poseflow_graph::{Graph, RestartPolicy, Stage, WIRING_ENV};
+use poseflow_graph::{Graph, RestartPolicy, Stage, StageWiring, WIRING_ENV};
 use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Overflow, create_node, remove_dead_nodes};
 
 use super::status::{Outcome, Report, StageReport, edge_flows};
@@ -32,7 +32,7 @@ pub struct Options {
 /// One supervised stage.
 struct Supervised<'g> {
     stage: &'g Stage,
-    wiring_json: String,
+    wiring: StageWiring,
     heartbeats: EdgeSubscriber<Heartbeat>,
     child: Option<Child>,
     started: Instant,
@@ -45,10 +45,12 @@ struct Supervised<'g> {
 
 impl Supervised<'_> {
     fn spawn(&mut self, log_format: LogFormat) -> anyhow::Result<()> {
+        // Each process learns how many ran before it (see StageWiring::incarnation).
+        self.wiring.incarnation = self.report.restarts;
         let mut command = Command::new(&self.stage.exe);
         command
             .args(&self.stage.args)
-            .env(WIRING_ENV, &self.wiring_json)
+            .env(WIRING_ENV, self.wiring.to_json())
             .env(
                 "POSEFLOW_LOG_FORMAT",
                 match log_format {
@@ -184,7 +186,7 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
         )?;
         stages.push(Supervised {
             stage,
-            wiring_json: wiring.to_json(),
+            wiring,
             heartbeats,
             child: None,
             started: Instant::now(),
