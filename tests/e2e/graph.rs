@@ -8,6 +8,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use poseflow_smoke::SinkReport;
+use poseflow_transport::shared_memory_files;
 
 /// Tests here compare shared-memory listings before and after, so they must
 /// not overlap.
@@ -39,30 +40,8 @@ fn run_graph(args: &[&str], graph: &Path) -> Command {
 
 /// Fails if a run left iceoryx2 files behind that were not there `before`.
 fn assert_nothing_leaked(before: &BTreeSet<PathBuf>) {
-    let leaked: Vec<_> = iceoryx_files().difference(before).cloned().collect();
+    let leaked: Vec<_> = shared_memory_files().difference(before).cloned().collect();
     assert!(leaked.is_empty(), "stale iceoryx2 files: {leaked:?}");
-}
-
-/// Every file iceoryx2 keeps in shared memory or under /tmp/iceoryx2.
-fn iceoryx_files() -> BTreeSet<PathBuf> {
-    fn walk(dir: &Path, out: &mut BTreeSet<PathBuf>) {
-        for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
-            let path = entry.path();
-            if path.is_dir() {
-                walk(&path, out);
-            } else {
-                out.insert(path);
-            }
-        }
-    }
-    let mut files = BTreeSet::new();
-    walk(Path::new("/tmp/iceoryx2"), &mut files);
-    for entry in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
-        if entry.file_name().to_string_lossy().starts_with("iox2_") {
-            files.insert(entry.path());
-        }
-    }
-    files
 }
 
 struct Scratch {
@@ -139,7 +118,7 @@ fn summary(output: &Output) -> serde_json::Value {
 #[test]
 fn three_processes_pass_every_frame_intact() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("intact");
     let graph = scratch.graph(1000, 0.0, "block");
     let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
@@ -199,7 +178,7 @@ fn find_stage_pid(instance: &str, stage: &str) -> Option<u32> {
 #[test]
 fn a_killed_stage_is_restarted_and_traffic_resumes() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("kill");
     // 1,500 frames at 500 Hz: three seconds of traffic; drop-oldest so the
     // source never waits for the dead relay.
@@ -266,7 +245,7 @@ fn assert_recovered(summary: &serde_json::Value, report: &SinkReport, frames: u6
 #[test]
 fn a_stage_crashing_mid_frame_is_restarted_and_nothing_corrupted_passes() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("crash");
     let (summary, stderr) = run_to_end(&scratch.fault_graph((1500, 500.0), "crash", 300, "", 3000));
     assert!(stderr.contains("injected crash at frame 300"), "{stderr}");
@@ -290,7 +269,7 @@ fn a_stage_crashing_mid_frame_is_restarted_and_nothing_corrupted_passes() {
 #[test]
 fn a_hung_stage_is_killed_at_its_heartbeat_deadline_and_restarted() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("hang");
     let (summary, stderr) = run_to_end(&scratch.fault_graph((2500, 500.0), "hang", 300, "", 1000));
     let relay = &summary["stages"]["relay"];
@@ -309,7 +288,7 @@ fn a_hung_stage_is_killed_at_its_heartbeat_deadline_and_restarted() {
 #[test]
 fn a_stage_ignoring_sigterm_is_killed_after_the_grace_period() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("sigterm");
     // A long stream and a generous heartbeat deadline: only shutdown ends
     // the stuck relay.
@@ -352,7 +331,7 @@ fn a_stage_ignoring_sigterm_is_killed_after_the_grace_period() {
 #[test]
 fn a_flooding_stage_overflows_a_bounded_queue_with_counted_losses() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("flood");
     let (summary, _) = run_to_end(&scratch.fault_graph((400, 200.0), "flood", 100, ", copies = 100", 3000));
     let relay_out = summary["stages"]["relay"]["frames_out"].as_u64().unwrap();
@@ -403,7 +382,7 @@ fn plugin_python() -> PathBuf {
 #[test]
 fn a_python_stage_replaces_a_rust_one() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("python");
     let graph = scratch.graph(500, 0.0, "block");
     let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/negating_relay.py");
@@ -425,7 +404,7 @@ fn a_python_stage_replaces_a_rust_one() {
 #[test]
 fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("sigint");
     // A stream far longer than the test: only SIGINT ends it.
     let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
@@ -451,7 +430,7 @@ fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
 #[test]
 fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("failing");
     let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
     // A "relay" that dies at once, every time.
@@ -484,13 +463,53 @@ fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
             assert!(output.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&output.stderr));
         }
     }
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let output = run_graph(&["--json", "--status-ms", "0"], &deploy.join("smoke.toml")).output().unwrap();
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
     assert_eq!(summary["stages"]["source"]["frames_out"], 3000, "{summary}");
     assert_eq!(summary["stages"]["sink"]["errors"], 0, "{summary}");
     assert_nothing_leaked(&before);
+}
+
+/// `poseflow bench soak`, short: the tracking graph on the default model
+/// with every stage SIGKILLed once; each comes back, no estimate is
+/// corrupted, nothing is left in shared memory, and the report has memory
+/// samples of every process.
+#[test]
+fn a_short_soak_of_the_tracking_graph_survives_a_kill_of_every_stage() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let repository = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
+    let output = poseflow()
+        .current_dir(repository)
+        .args(["bench", "soak", "--json", "--duration-s", "33", "--kill-every-s", "6", "--sample-every-s", "3"])
+        .args(["--warmup-s", "5", "--set", "frames.frames_per_scene=100000", "--set", "frames.orbit_step_deg=2"])
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(report["ended_early"], serde_json::Value::Null, "{report}");
+    let stages = ["frames", "inference", "ingest", "sampler", "selector"];
+    let killed: Vec<&str> = report["kills"].as_array().unwrap().iter().map(|k| k["stage"].as_str().unwrap()).collect();
+    assert_eq!(killed, stages, "every stage killed once, in name order");
+    for stage in stages {
+        assert_eq!(report["stages"][stage]["restarts"], 1, "{stage}: {report}");
+    }
+    let estimates = &report["estimates"];
+    assert_eq!(estimates["corrupted"], 0, "{report}");
+    assert!(estimates["checked"].as_u64().unwrap() > 0 && estimates["tracked"].as_u64().unwrap() > 0, "{report}");
+    assert!(estimates["restart_notices"].as_u64().unwrap() > 0, "downstream was told: {report}");
+    assert_eq!(report["leaked_shared_memory_files"], 0, "{report}");
+    let samples = report["rss_mib"]["samples"].as_array().unwrap();
+    assert!(samples.len() >= 10, "{report}");
+    let last = samples.last().unwrap();
+    for process in stages.iter().chain(&["supervisor"]) {
+        assert!(last[process].as_f64().is_some_and(|mib| mib > 1.0), "{process}: {last}");
+    }
+    eprintln!("{}", serde_json::to_string_pretty(&report["stages"]).unwrap());
 }
 
 /// `--in-process`: the same stage libraries as threads, same results.
@@ -654,7 +673,7 @@ fn recorded_observations(recording: &Path) -> Vec<(u64, u32)> {
 #[test]
 fn a_python_detector_plugs_in_between_frames_and_ingest() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("detector");
     let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/detector_template.py");
     let graph = ingest_graph(&scratch, "detector.toml", &corpus_frames(), Some((plugin, "{ min_area = 150 }")));
@@ -676,7 +695,7 @@ fn a_python_detector_plugs_in_between_frames_and_ingest() {
 #[test]
 fn the_ingest_stage_survives_the_bad_input_corpus() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("ingest");
     let graph = ingest_graph(&scratch, "ingest.toml", &corpus_frames(), None);
     let recording = scratch.dir.join("observations.rec");
@@ -762,7 +781,7 @@ fn the_inference_stage_answers_velocity_requests_over_shared_memory() {
     use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("inference");
     let model = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models/test-tiny"));
     let report = scratch.dir.join("velocities.jsonl");
@@ -850,7 +869,7 @@ fn the_estimation_grasp_and_next_view_graph_matches_the_in_process_run_bit_for_b
     use poseflow_selector::stage::{SelectorStage, estimate_header, estimate_payload_len, write_estimate_payload};
 
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let before = iceoryx_files();
+    let before = shared_memory_files();
     let scratch = Scratch::new("estimation");
     let root = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
     let model = root.join("models/test-tiny");

@@ -7,6 +7,7 @@
 //! parameters) in the environment variable [`WIRING_ENV`].
 
 mod error;
+mod overrides;
 mod resolve;
 mod spec;
 mod validate;

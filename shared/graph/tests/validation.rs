@@ -224,3 +224,29 @@ fn message_names_match_the_contracts() {
     ];
     assert_eq!(PUBLISH_SUBSCRIBE_MESSAGES, names);
 }
+
+#[test]
+fn set_changes_one_parameter_for_one_run() {
+    let mut graph = check(CHAIN).unwrap();
+    graph.set_param("middle.factor=3").unwrap();
+    graph.set_param("middle.tracking.enabled=false").unwrap();
+    graph.set_param("source.dataset=data/lmo test").unwrap();
+    graph.set_param("source.scenes=[0, 2]").unwrap();
+    assert_eq!(graph.stages["middle"].params["factor"], 3);
+    assert_eq!(graph.stages["middle"].params["tracking"]["enabled"], false);
+    assert_eq!(graph.stages["source"].params["dataset"], "data/lmo test", "not TOML: a plain string");
+    assert_eq!(graph.stages["source"].params["scenes"], serde_json::json!([0, 2]));
+    let wiring = graph.wiring(&graph.stages["middle"], "g7").unwrap();
+    assert_eq!(wiring.params["factor"], 3, "the stage process is told");
+
+    for (assignment, expected) in [
+        ("middle.factor", "expected STAGE.KEY=VALUE, found no `=`"),
+        ("middle=3", "expected STAGE.KEY=VALUE, found key path `middle`"),
+        ("middle..x=3", "key path `middle..x`"),
+        ("nowhere.x=1", "expected one of the graph's stages (middle, sink, source), found `nowhere`"),
+        ("middle.factor.x=1", "`stages.middle.params.factor`: expected a table to set `x` in, found 3"),
+    ] {
+        let err = graph.set_param(assignment).unwrap_err().to_string();
+        assert!(err.contains(expected) && err.starts_with(FILE), "{assignment}: {err}");
+    }
+}

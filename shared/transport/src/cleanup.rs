@@ -30,3 +30,27 @@ pub fn remove_dead_nodes() -> Result<usize, TransportError> {
         None => Ok(removed),
     }
 }
+
+/// Every file iceoryx2 keeps in shared memory (`/dev/shm/iox2_*`) or under
+/// `/tmp/iceoryx2` (the roots `config/iceoryx2.toml` leaves at their
+/// defaults): compare two snapshots to find what a run leaked.
+pub fn shared_memory_files() -> std::collections::BTreeSet<std::path::PathBuf> {
+    fn walk(dir: &std::path::Path, out: &mut std::collections::BTreeSet<std::path::PathBuf>) {
+        for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let path = entry.path();
+            if path.is_dir() {
+                walk(&path, out);
+            } else {
+                out.insert(path);
+            }
+        }
+    }
+    let mut files = std::collections::BTreeSet::new();
+    walk(std::path::Path::new("/tmp/iceoryx2"), &mut files);
+    for entry in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
+        if entry.file_name().to_string_lossy().starts_with("iox2_") {
+            files.insert(entry.path());
+        }
+    }
+    files
+}

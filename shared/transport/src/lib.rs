@@ -14,7 +14,7 @@ mod naming;
 mod pubsub;
 mod request;
 
-pub use cleanup::remove_dead_nodes;
+pub use cleanup::{remove_dead_nodes, shared_memory_files};
 pub use error::TransportError;
 pub use naming::{edge_service_name, heartbeat_service_name, validate_name};
 pub use pubsub::{EdgeOptions, EdgeSubscriber, EndOfStream, Overflow, Publisher, Received, events};

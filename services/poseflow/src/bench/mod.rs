@@ -3,6 +3,7 @@
 mod ingest;
 mod ipc;
 mod model;
+mod soak;
 
 use std::process::ExitCode;
 
@@ -29,6 +30,10 @@ pub enum BenchCommand {
     /// End-to-end frames per second and per-stage latency of the estimation
     /// and tracking graphs.
     Pipeline,
+    /// A graph run for minutes (`poseflow run`) while its stages are
+    /// SIGKILLed in turn: frames, restarts, drops, corrupted estimates,
+    /// leaked shared memory and every process's resident memory over time.
+    Soak(soak::SoakArgs),
     /// Internal: the receiving process of `bench ipc`.
     #[command(hide = true)]
     IpcReceive(ipc::ReceiveArgs),
@@ -42,6 +47,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
         BenchCommand::Ipc(args) => ipc::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::Ingest(args) => ingest::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::Model(args) => model::run(&args).map(|()| ExitCode::SUCCESS),
+        BenchCommand::Soak(args) => soak::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::IpcReceive(args) => ipc::receive(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::Pipeline => {
             tracing::error!(

@@ -50,6 +50,12 @@ pub struct RunArgs {
     #[arg(long, value_delimiter = ',', requires = "record")]
     pub record_edges: Vec<String>,
 
+    /// Change one stage parameter for this run, e.g. `--set
+    /// frames.frames_per_scene=5000` or `--set sampler.tracking.enabled=false`
+    /// (a TOML value; anything else is a string). Repeatable.
+    #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+    pub set: Vec<String>,
+
     /// Validate the graph file and exit without starting anything.
     #[arg(long)]
     pub check: bool,
@@ -60,9 +66,10 @@ pub struct RunArgs {
     pub json: bool,
 }
 
-/// Where bare executable names are looked up, in order.
-fn search_path(args: &RunArgs) -> Vec<PathBuf> {
-    let mut dirs = args.stage_path.clone();
+/// Where bare executable names are looked up, in order: `stage_path`
+/// (`--stage-path`), POSEFLOW_STAGE_PATH, poseflow's own directory.
+pub(crate) fn search_path(stage_path: &[PathBuf]) -> Vec<PathBuf> {
+    let mut dirs = stage_path.to_vec();
     if let Some(env) = std::env::var_os("POSEFLOW_STAGE_PATH") {
         dirs.extend(std::env::split_paths(&env));
     }
@@ -73,7 +80,10 @@ fn search_path(args: &RunArgs) -> Vec<PathBuf> {
 }
 
 pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
-    let graph = poseflow_graph::load(&args.graph, &search_path(&args))?;
+    let mut graph = poseflow_graph::load(&args.graph, &search_path(&args.stage_path))?;
+    for assignment in &args.set {
+        graph.set_param(assignment)?;
+    }
     let instance = args.instance.clone().unwrap_or_else(|| format!("{}-{}", graph.name, std::process::id()));
     poseflow_transport::validate_name("graph instance", &instance).context("--instance")?;
     if args.check {
