@@ -43,6 +43,7 @@
 //! | Heartbeat | [`Heartbeat`] | none | every stage → supervisor |
 //! | Tensor | [`TensorHeader`] | values ∏shape | plug-ins, benchmarks |
 
+mod bytes;
 mod condition;
 mod error;
 mod estimate;
@@ -60,6 +61,7 @@ mod visit;
 #[cfg(test)]
 mod tests;
 
+pub use bytes::{header_bytes, header_from_bytes};
 pub use condition::ConditionHandle;
 pub use error::ContractError;
 pub use estimate::{EstimateHeader, EstimateView, HypothesesHeader, SelectionMethod, WEIGHTED_POSE_LEN};

@@ -192,6 +192,8 @@ struct IpcEmitter<'a, H: MessageHeader> {
     publisher: &'a Publisher<H>,
     slot: Option<Stage>,
     liveness: &'a Liveness,
+    /// Called while a full queue holds a send back.
+    while_blocked: &'a mut dyn FnMut(),
 }
 
 impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
@@ -201,7 +203,7 @@ impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
         }
         let announced = self.liveness.announce_restart(header.header_mut());
         self.liveness.send_started();
-        let sent = self.publisher.publish(header, len, fill);
+        let sent = self.publisher.publish_serving(header, len, fill, self.while_blocked);
         self.liveness.send_finished();
         if sent.is_err() && announced {
             self.liveness.restarted();
@@ -252,7 +254,7 @@ pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, 
         tracing::info!(input = input.name(), output = output.name(), "running");
         let liveness = &process.liveness;
         let end = process.event_loop(&input, |message| {
-            let mut emitter = IpcEmitter { publisher: &output, slot: T::SLOT, liveness };
+            let mut emitter = IpcEmitter { publisher: &output, slot: T::SLOT, liveness, while_blocked: &mut || {} };
             transform_one(&mut stage, message, &mut emitter, liveness)
         })?;
         finish_transform(process, &input, &output, end, || Ok(()))
@@ -452,10 +454,7 @@ pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String
         // waiting on its own output's readers (this stage): answer its
         // handshake meanwhile, remembering an end of stream seen on the way.
         let side_ended_early = std::cell::Cell::new(false);
-        let output = process.output_serving::<J::Out>(&mut || match side.take_events() {
-            Ok(ended) => side_ended_early.set(side_ended_early.get() | ended),
-            Err(err) => tracing::warn!(%err, "side input's handshake not answered"),
-        })?;
+        let output = process.output_serving::<J::Out>(&mut || answer_handshake(&side, &side_ended_early))?;
         tracing::info!(input = input.name(), side = side.name(), output = output.name(), "running");
         let liveness = process.liveness.clone();
         let liveness = &*liveness;
@@ -482,7 +481,12 @@ pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String
                 if let Err(err) = drain_side(&side, &mut **stage, liveness) {
                     tracing::warn!(%err, "side input not read");
                 }
-                let mut emitter = IpcEmitter { publisher: &output, slot: J::SLOT, liveness };
+                // The reader of a full output may be the side input's writer,
+                // restarted and waiting for this stage's READY before it
+                // reads again: answer it while blocked.
+                let mut answer_side = || answer_handshake(&side, &side_ended_early);
+                let mut emitter =
+                    IpcEmitter { publisher: &output, slot: J::SLOT, liveness, while_blocked: &mut answer_side };
                 transform_one(&mut **stage, message, &mut emitter, liveness)
             },
             Some(attachment),
@@ -494,6 +498,15 @@ pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String
         }
         finish_transform(process, &input, &output, end, on_side)
     })())
+}
+
+/// Answers a new writer's handshake on `side` without reading its messages,
+/// remembering an end of stream seen on the way in `ended`.
+fn answer_handshake<H: MessageHeader>(side: &EdgeSubscriber<H>, ended: &std::cell::Cell<bool>) {
+    match side.take_events() {
+        Ok(end) => ended.set(ended.get() | end),
+        Err(err) => tracing::warn!(%err, "side input's handshake not answered"),
+    }
 }
 
 /// Hands every queued side message to the stage. Side messages are not
@@ -557,7 +570,7 @@ pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String
         tracing::info!(output = output.name(), ?rate_hz, "running");
         let liveness = &process.liveness;
         let mut step = || -> SourceStep {
-            let mut emitter = IpcEmitter { publisher: &output, slot: S::SLOT, liveness };
+            let mut emitter = IpcEmitter { publisher: &output, slot: S::SLOT, liveness, while_blocked: &mut || {} };
             let started = Instant::now();
             liveness.work_started();
             let result = source.next(&mut emitter);

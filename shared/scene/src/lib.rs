@@ -23,6 +23,6 @@ pub mod scene;
 
 pub use error::SceneError;
 pub use library::{LibraryObject, ModelLibrary, model_file_name};
-pub use mesh::{MeshFormat, ObjectMesh, load_mesh, oriented_trimesh};
+pub use mesh::{MeshFormat, ObjectMesh, load_mesh, oriented_trimesh, parse_mesh};
 pub use noise::DepthNoise;
 pub use render::{Camera, Frame, Light, Placed, RenderModel, object_depth, render, silhouettes};

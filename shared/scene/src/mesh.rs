@@ -40,14 +40,21 @@ impl MeshFormat {
 pub fn load_mesh(path: &Path, scale: f32) -> Result<ObjectMesh, SceneError> {
     let format = MeshFormat::of(path).ok_or_else(|| SceneError::UnknownFormat { path: path.to_path_buf() })?;
     let bytes = std::fs::read(path).map_err(|source| SceneError::Io { path: path.to_path_buf(), source })?;
-    let mut mesh = match format {
-        MeshFormat::Ply => crate::ply::parse(&bytes, path)?,
-        MeshFormat::Obj => crate::obj::parse(&bytes, path)?,
-    };
-    mesh.validate(path)?;
+    let mut mesh = parse_mesh(&bytes, format, path)?;
     for v in &mut mesh.vertices {
         *v *= scale;
     }
+    Ok(mesh)
+}
+
+/// Parses and validates a mesh file's contents, in the file's units;
+/// `path` names the file in errors.
+pub fn parse_mesh(bytes: &[u8], format: MeshFormat, path: &Path) -> Result<ObjectMesh, SceneError> {
+    let mesh = match format {
+        MeshFormat::Ply => crate::ply::parse(bytes, path)?,
+        MeshFormat::Obj => crate::obj::parse(bytes, path)?,
+    };
+    mesh.validate(path)?;
     Ok(mesh)
 }
 

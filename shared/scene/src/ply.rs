@@ -194,12 +194,16 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<ObjectMesh, SceneError>
             if !(has("x") && has("y") && has("z")) {
                 return Err(malformed("element vertex".into(), "expected properties x, y and z".into()));
             }
-            mesh.vertices.reserve(element.count);
+            // The count comes from the file: reserve no more records than the
+            // body could hold (each takes at least a byte), so a corrupt
+            // count fails at the end of the data, not in the allocator.
+            let capacity = element.count.min(bytes.len().saturating_sub(body_start));
+            mesh.vertices.reserve(capacity);
             if has("nx") && has("ny") && has("nz") {
-                mesh.normals = Some(Vec::with_capacity(element.count));
+                mesh.normals = Some(Vec::with_capacity(capacity));
             }
             if has("red") && has("green") && has("blue") {
-                mesh.colors = Some(Vec::with_capacity(element.count));
+                mesh.colors = Some(Vec::with_capacity(capacity));
             }
         }
         for index in 0..element.count {

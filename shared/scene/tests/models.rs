@@ -89,33 +89,4 @@ fn binary_ply_matches_ascii_ply() {
     }
 }
 
-fn error_of(name: &str, contents: &[u8]) -> String {
-    let path = scratch(name);
-    std::fs::write(&path, contents).unwrap();
-    let err = load_mesh(&path, 1.0).unwrap_err().to_string();
-    std::fs::remove_file(&path).unwrap();
-    assert!(err.contains(name), "error does not name the file: {err}");
-    err
-}
-
-#[test]
-fn broken_files_are_named_with_where_and_why() {
-    let header = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n\
-                  element face 1\nproperty list uchar int vertex_indices\nend_header\n";
-    let err = error_of("truncated.ply", format!("{header}0 0 0\n1 0 0\n").as_bytes());
-    assert!(err.contains("file ends before all elements were read"), "{err}");
-    let err = error_of("badindex.ply", format!("{header}0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n").as_bytes());
-    assert!(err.contains("face 0") && err.contains("out of range"), "{err}");
-    let err = error_of("badnumber.ply", format!("{header}0 0 0\n1 zero 0\n0 1 0\n3 0 1 2\n").as_bytes());
-    assert!(err.contains("line 11 (vertex 1)") && err.contains("\"zero\""), "{err}");
-    let err = error_of("noheader.ply", b"ply\nformat ascii 1.0\n");
-    assert!(err.contains("end_header"), "{err}");
-    let err = error_of("png.ply", b"\x89PNG\r\n\x1a\nend_header\n");
-    assert!(err.contains("not a PLY file"), "{err}");
-    let err = error_of("face.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 3\n");
-    assert!(err.contains("line 3") && err.contains("out of range"), "{err}");
-    let err = error_of("empty.obj", b"# nothing\n");
-    assert!(err.contains("expected vertices and triangles"), "{err}");
-    let err = error_of("model.stl", b"solid");
-    assert!(err.contains("unknown mesh format"), "{err}");
-}
+// Broken mesh files: the bad-input corpus, tests/corpus/models (tests/e2e/corpus.rs).

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Args;
-use poseflow_contracts::{EstimateHeader, MessageHeader, flags};
+use poseflow_contracts::{EstimateHeader, MessageHeader, flags, monotonic_ns};
 use poseflow_geometry::Pose;
 use poseflow_graph::WIRING_ENV;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
@@ -99,6 +99,9 @@ struct EstimateCheck {
     tracked: u64,
     /// Flagged UPSTREAM_RESTARTED.
     restart_notices: u64,
+    /// Estimates received before the first kill, between consecutive kills
+    /// and after the last: a graph that stopped recovering shows zeros.
+    between_kills: Vec<u64>,
     first_problem: Option<String>,
 }
 
@@ -129,6 +132,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
 
     let before = poseflow_transport::shared_memory_files();
     let started = Instant::now();
+    let started_ns = monotonic_ns();
     let mut child = start_run(args, &recording, &log)?;
     let supervisor = child.id();
     tracing::info!(graph = %args.graph.display(), pid = supervisor, log = %log.display(), "soak started");
@@ -177,7 +181,8 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
         format!("`poseflow run` printed no JSON summary ({}); its log: {}", output.status, log.display())
     })?;
     let leaked: Vec<PathBuf> = poseflow_transport::shared_memory_files().difference(&before).cloned().collect();
-    let estimates = check_estimates(&recording, &args.check_edge)?;
+    let kill_times: Vec<f64> = kills.iter().map(|k| k.at_s).collect();
+    let estimates = check_estimates(&recording, &args.check_edge, started_ns, &kill_times)?;
     let report =
         report(args, (elapsed, ended_early.map(|s| s.to_string())), &kills, &samples, &estimates, &summary, &leaked);
     if args.json {
@@ -286,15 +291,18 @@ fn sample(supervisor: u32, at: Duration, before: &BTreeSet<PathBuf>) -> Sample {
 }
 
 /// Every Estimate recorded on `edge`: within its contract, finite, its best
-/// and mean poses and kept hypotheses proper rigid transforms.
-fn check_estimates(recording: &Path, edge: &str) -> anyhow::Result<EstimateCheck> {
+/// and mean poses and kept hypotheses proper rigid transforms; counted
+/// between the kills (seconds after `started_ns`, CLOCK_MONOTONIC).
+fn check_estimates(recording: &Path, edge: &str, started_ns: u64, kill_times: &[f64]) -> anyhow::Result<EstimateCheck> {
     let mut reader = RecordingReader::open(recording).with_context(|| format!("{}", recording.display()))?;
-    let mut check = EstimateCheck::default();
+    let mut check = EstimateCheck { between_kills: vec![0; kill_times.len() + 1], ..Default::default() };
     while let Some(message) = reader.next_message()? {
         if message.edge != edge {
             continue;
         }
         check.checked += 1;
+        let at_s = message.received_ns.saturating_sub(started_ns) as f64 * 1e-9;
+        check.between_kills[kill_times.partition_point(|&kill| kill <= at_s)] += 1;
         match estimate_problem(&message.header, &message.payload) {
             Ok(header) => {
                 check.tracked += u64::from(header.header.has_flag(flags::TRACKING));
@@ -395,6 +403,7 @@ fn report(
             "first_problem": estimates.first_problem,
             "tracked": estimates.tracked,
             "restart_notices": estimates.restart_notices,
+            "between_kills": estimates.between_kills,
         },
         "stages": per_stage,
         "restarts": stages.values().filter_map(|s| s["restarts"].as_u64()).sum::<u64>(),
@@ -446,6 +455,9 @@ fn table(report: &serde_json::Value, samples: &[Sample]) -> String {
         estimates["tracked"],
         estimates["restart_notices"]
     );
+    let between: Vec<String> =
+        estimates["between_kills"].as_array().into_iter().flatten().map(|n| n.to_string()).collect();
+    let _ = writeln!(out, "estimates before the first kill, between kills, after the last: {}", between.join(", "));
     if let Some(problem) = estimates["first_problem"].as_str() {
         let _ = writeln!(out, "first corrupted estimate: {problem}");
     }
