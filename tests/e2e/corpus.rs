@@ -11,6 +11,9 @@ use poseflow_geometry::SymmetrySet;
 use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_scene::bop::{ByImage, CameraEntry, GtEntry, read_json};
 
+/// Reads one corpus entry as a stage would; the error as text.
+type Reader = fn(&Path) -> Result<(), String>;
+
 fn corpus() -> PathBuf {
     PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/corpus"))
 }
@@ -99,7 +102,7 @@ fn every_bad_input_is_named_and_every_good_one_loads() {
         .remove("errors")
         .and_then(|errors| errors.try_into().ok())
         .expect("an [errors] table of file = [fragments]");
-    let readers: [(&str, fn(&Path) -> Result<(), String>); 5] =
+    let readers: [(&str, Reader); 5] =
         [("models", mesh), ("bop", bop_json), ("graphs", graph), ("messages", message), ("onnx", onnx_model)];
     let mut failures = Vec::new();
     let mut checked = 0;

@@ -339,7 +339,7 @@ fn growth_after_warmup(samples: &[Sample], warmup_s: f64) -> BTreeMap<String, f6
     names
         .into_iter()
         .filter_map(|name| {
-            let warm = samples.iter().filter(|s| s.at_s <= warmup_s).filter_map(|s| s.rss_mib.get(name)).last()?;
+            let warm = samples.iter().rev().filter(|s| s.at_s <= warmup_s).find_map(|s| s.rss_mib.get(name))?;
             let peak = samples
                 .iter()
                 .filter(|s| s.at_s > warmup_s)
