@@ -177,6 +177,11 @@ fn header(bytes: &[u8]) -> Result<(Encoding, Vec<Element>, usize, usize), String
         }
     }
     let encoding = encoding.ok_or("no `format` line in the header")?;
+    // Records without properties take no bytes, so nothing bounds how long
+    // reading a corrupt count of them would take (found by fuzzing).
+    if let Some(empty) = elements.iter().find(|e| e.count > 0 && e.properties.is_empty()) {
+        return Err(format!("element `{}` has {} records but no properties", empty.name, empty.count));
+    }
     let header_lines = text.lines().count() + 1;
     Ok((encoding, elements, body_start, header_lines))
 }

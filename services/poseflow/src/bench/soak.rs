@@ -524,13 +524,11 @@ mod tests {
             header: Header::new(7, 1),
             best: IDENTITY,
             mean: IDENTITY,
-            covariance: [0.0; 36],
-            rotation_trace: 0.0,
             selection: SelectionMethod::Sdf as u32,
-            mode_count: 0,
             hypothesis_count: 2,
             kept_count: 1,
             refined: 1,
+            ..Default::default()
         };
         let mut payload = Vec::new();
         for pose in [kept, IDENTITY] {
