@@ -575,6 +575,50 @@ fn a_short_soak_of_the_tracking_graph_survives_a_kill_of_every_stage() {
     eprintln!("{}", serde_json::to_string_pretty(&report["stages"]).unwrap());
 }
 
+/// `poseflow bench pipeline`: both graphs through processes and in one
+/// process on a short rendered sequence; every figure the issue asks for is
+/// there and every counted frame was estimated, by both.
+#[test]
+fn the_pipeline_benchmark_measures_both_graphs_through_processes_and_in_process() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let before = shared_memory_files();
+    let repository = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
+    let output = poseflow()
+        .current_dir(repository)
+        .args(["bench", "pipeline", "--json", "--frames", "8", "--warmup", "2"])
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    for key in ["estimation", "tracking", "estimation_in_process", "tracking_in_process"] {
+        let figures = &report[key];
+        let (fps, p50, p99) = (&figures["fps"], &figures["p50_ms"], &figures["p99_ms"]);
+        assert!(fps.as_f64().is_some_and(|f| f > 0.0), "{key}: {figures}");
+        assert!(p50.as_f64().is_some_and(|p| p > 0.0 && p <= p99.as_f64().unwrap()), "{key}: {figures}");
+        assert_eq!((&figures["frames"], &figures["expected_frames"]), (&6.into(), &6.into()), "{key}: {figures}");
+    }
+    for mode in ["estimation", "tracking"] {
+        assert_eq!((&report[format!("{mode}_restarts")], &report[format!("{mode}_errors")]), (&0.into(), &0.into()));
+        let path = &report[format!("{mode}_path")];
+        assert!(path["source→ingest"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{path}");
+        assert!(path["selector→received"]["p50_ms"].as_f64().is_some(), "{path}");
+        let in_process = &report[format!("{mode}_in_process_stages")];
+        assert!(in_process["encode"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{in_process}");
+    }
+    for stage in ["frames", "ingest", "inference", "sampler", "selector"] {
+        let latency = &report["stages"][stage];
+        assert!(latency["p50_us"].as_u64().is_some_and(|us| us > 0), "{stage}: {latency}");
+    }
+    assert_nothing_leaked(&before);
+
+    let output = poseflow().args(["bench", "pipeline", "--frames", "3", "--warmup", "5"]).output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success() && stderr.contains("--frames 3") && stderr.contains("--warmup"), "{stderr}");
+}
+
 /// `--in-process`: the same stage libraries as threads, same results.
 #[test]
 fn the_same_graph_runs_in_process() {

@@ -81,7 +81,7 @@ pub fn read_frame(header: &FrameHeader, payload: &[f32]) -> Result<(RgbdFrame, V
     let view =
         header.view(payload).map_err(|err| IngestError::Frame { frame: label.clone(), detail: err.to_string() })?;
     let camera = camera(&header.intrinsics);
-    let rgb = view.rgb.chunks_exact(3).map(|c| [0, 1, 2].map(|k| c[k].round().clamp(0.0, 255.0) as u8)).collect();
+    let rgb = view.rgb.chunks_exact(3).map(|c| [colour(c[0]), colour(c[1]), colour(c[2])]).collect();
     let depth = view.depth.iter().map(|&z| if z.is_finite() && z > 0.0 { z } else { 0.0 }).collect();
     let width = camera.width as usize;
     let objects = (0..view.detection_count())
@@ -108,10 +108,26 @@ pub fn read_frame(header: &FrameHeader, payload: &[f32]) -> Result<(RgbdFrame, V
     Ok((frame, objects))
 }
 
+/// A colour channel of a Frame as a byte: rounded half up, clamped; NaN is
+/// 0. Not `f32::round`: a libm call per channel cost more than the rest of
+/// reading the frame.
+fn colour(value: f32) -> u8 {
+    (value + 0.5).clamp(0.0, 255.0) as u8
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use poseflow_scene::Camera;
+
+    #[test]
+    fn colours_round_half_up_and_clamp() {
+        let cases = [(0.49, 0), (0.5, 1), (127.0, 127), (254.5, 255), (255.4, 255), (300.0, 255), (-3.0, 0)];
+        for (value, byte) in cases {
+            assert_eq!(colour(value), byte, "{value}");
+        }
+        assert_eq!(colour(f32::NAN), 0);
+    }
 
     #[test]
     fn frames_survive_the_message_round_trip() {

@@ -321,3 +321,34 @@ impl FrameSource for SyntheticFrames {
         }))
     }
 }
+
+/// Every frame of another source, read before the first is handed out: a
+/// stream whose pace depends on the pipeline only (benchmarks). Frames that
+/// failed to read stay errors, in their place.
+#[derive(Debug)]
+pub struct PreloadedFrames {
+    frames: std::collections::VecDeque<Result<LoadedFrame, IngestError>>,
+}
+
+impl PreloadedFrames {
+    pub fn read_all(mut source: Box<dyn FrameSource>) -> Self {
+        let started = std::time::Instant::now();
+        let frames: std::collections::VecDeque<_> = std::iter::from_fn(|| source.next_frame()).collect();
+        tracing::info!(frames = frames.len(), ms = started.elapsed().as_millis() as u64, "frames preloaded");
+        Self { frames }
+    }
+
+    pub fn len(&self) -> usize {
+        self.frames.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+}
+
+impl FrameSource for PreloadedFrames {
+    fn next_frame(&mut self) -> Option<Result<LoadedFrame, IngestError>> {
+        self.frames.pop_front()
+    }
+}

@@ -26,11 +26,11 @@ fn help_lists_every_subcommand() {
 }
 
 #[test]
-fn unavailable_subcommands_say_so_and_exit_2() {
-    let out = poseflow(&["bench", "pipeline"]);
-    assert_eq!(out.status.code(), Some(2));
+fn pipeline_benchmark_names_a_bad_option_before_running_anything() {
+    let out = poseflow(&["bench", "pipeline", "--latency-load", "1.5"]);
+    assert_eq!(out.status.code(), Some(1));
     let stderr = String::from_utf8(out.stderr).unwrap();
-    assert!(stderr.contains("`poseflow bench pipeline` is not available yet"), "{stderr}");
+    assert!(stderr.contains("--latency-load 1.5") && stderr.contains("(0, 1]"), "{stderr}");
 }
 
 #[test]

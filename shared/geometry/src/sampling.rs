@@ -69,6 +69,48 @@ pub fn initial_pose<R: Rng + ?Sized>(rng: &mut R, noise: &TranslationNoise) -> P
     Pose::new(rotation, noise.sample(rng))
 }
 
+/// Lanes of the farthest-point scan: independent running maxima the
+/// compiler keeps in one vector register.
+const LANES: usize = 8;
+
+/// Lowers each `distance` to the squared distance to `last` if closer and
+/// returns the index of the largest (the first, on ties). Branch-free per
+/// lane so the loop vectorises; one pass over the arrays.
+fn update_and_find_farthest(distance: &mut [f32], (xs, ys, zs): (&[f32], &[f32], &[f32]), last: [f32; 3]) -> usize {
+    let [lx, ly, lz] = last;
+    let mut best = [f32::NEG_INFINITY; LANES];
+    let mut best_index = [0u32; LANES];
+    let full = distance.len() / LANES * LANES;
+    let lanes = distance[..full]
+        .chunks_exact_mut(LANES)
+        .zip(xs.chunks_exact(LANES).zip(ys.chunks_exact(LANES)).zip(zs.chunks_exact(LANES)));
+    for (chunk, (base, ((x, y), z))) in lanes.enumerate().map(|(c, (d, xyz))| (d, (c * LANES, xyz))) {
+        for l in 0..LANES {
+            let (dx, dy, dz) = (x[l] - lx, y[l] - ly, z[l] - lz);
+            let d = chunk[l].min(dx * dx + dy * dy + dz * dz);
+            chunk[l] = d;
+            let farther = d > best[l];
+            best[l] = if farther { d } else { best[l] };
+            best_index[l] = if farther { (base + l) as u32 } else { best_index[l] };
+        }
+    }
+    let mut farthest = (usize::MAX, f32::NEG_INFINITY);
+    for l in 0..LANES {
+        let (i, d) = (best_index[l] as usize, best[l]);
+        if d > farthest.1 || (d == farthest.1 && i < farthest.0) {
+            farthest = (i, d);
+        }
+    }
+    for i in full..distance.len() {
+        let (dx, dy, dz) = (xs[i] - lx, ys[i] - ly, zs[i] - lz);
+        distance[i] = distance[i].min(dx * dx + dy * dy + dz * dz);
+        if distance[i] > farthest.1 {
+            farthest = (i, distance[i]);
+        }
+    }
+    farthest.0
+}
+
 /// Indices of `count` points chosen by farthest-point sampling, starting
 /// from the first point: each next point is the one farthest from those
 /// chosen. `count` must not exceed `points.len()`.
@@ -87,18 +129,7 @@ pub fn farthest_point_indices(points: &[Point3<f32>], count: usize) -> Vec<usize
     let mut next = 0;
     for _ in 0..count {
         chosen.push(next);
-        let (lx, ly, lz) = (xs[next], ys[next], zs[next]);
-        for (((d, x), y), z) in distance.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
-            let (dx, dy, dz) = (x - lx, y - ly, z - lz);
-            *d = d.min(dx * dx + dy * dy + dz * dz);
-        }
-        let mut farthest = (0, -1.0f32);
-        for (i, &d) in distance.iter().enumerate() {
-            if d > farthest.1 {
-                farthest = (i, d);
-            }
-        }
-        next = farthest.0;
+        next = update_and_find_farthest(&mut distance, (&xs, &ys, &zs), [xs[next], ys[next], zs[next]]);
     }
     chosen
 }

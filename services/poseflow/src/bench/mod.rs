@@ -1,8 +1,10 @@
 //! `poseflow bench`: latency and throughput measurements.
 
+mod graph_run;
 mod ingest;
 mod ipc;
 mod model;
+mod pipeline;
 mod soak;
 
 use std::process::ExitCode;
@@ -27,9 +29,10 @@ pub enum BenchCommand {
     /// Latency of a model's encoder (per observation) and velocity network
     /// (per batch of samples) through ONNX Runtime.
     Model(model::ModelArgs),
-    /// End-to-end frames per second and per-stage latency of the estimation
-    /// and tracking graphs.
-    Pipeline,
+    /// Frames per second and per-frame latency of the estimation and
+    /// tracking graphs through processes and in one process, with each
+    /// stage's process time, on the default model and a rendered sequence.
+    Pipeline(pipeline::PipelineArgs),
     /// A graph run for minutes (`poseflow run`) while its stages are
     /// SIGKILLed in turn: frames, restarts, drops, corrupted estimates,
     /// leaked shared memory and every process's resident memory over time.
@@ -39,9 +42,6 @@ pub enum BenchCommand {
     IpcReceive(ipc::ReceiveArgs),
 }
 
-/// Exit code of a benchmark that this build does not provide yet.
-const NOT_AVAILABLE: u8 = 2;
-
 pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
     match args.what {
         BenchCommand::Ipc(args) => ipc::run(&args).map(|()| ExitCode::SUCCESS),
@@ -49,11 +49,6 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
         BenchCommand::Model(args) => model::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::Soak(args) => soak::run(&args).map(|()| ExitCode::SUCCESS),
         BenchCommand::IpcReceive(args) => ipc::receive(&args).map(|()| ExitCode::SUCCESS),
-        BenchCommand::Pipeline => {
-            tracing::error!(
-                "`poseflow bench pipeline` is not available yet in this build: it needs the estimation and tracking graphs"
-            );
-            Ok(ExitCode::from(NOT_AVAILABLE))
-        }
+        BenchCommand::Pipeline(args) => pipeline::run(&args).map(|()| ExitCode::SUCCESS),
     }
 }

@@ -5,7 +5,6 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
@@ -14,6 +13,8 @@ use poseflow_contracts::{EstimateHeader, MessageHeader, flags, monotonic_ns};
 use poseflow_geometry::Pose;
 use poseflow_graph::WIRING_ENV;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+
+use super::graph_run::{GraphRun, Scratch, run_summary};
 use serde_json::json;
 
 /// How often the soak loop wakes to kill, sample or notice the run ended.
@@ -126,14 +127,21 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     if args.sample_every_s == 0 || args.duration_s == 0 {
         bail!("--duration-s and --sample-every-s: expected at least 1 second");
     }
-    let scratch = Scratch::new(args.out.as_deref())?;
+    let scratch = Scratch::new(args.out.as_deref(), "soak")?;
     let recording = scratch.dir.join("soak.rec");
     let log = scratch.dir.join("run.log");
 
     let before = poseflow_transport::shared_memory_files();
     let started = Instant::now();
     let started_ns = monotonic_ns();
-    let mut child = start_run(args, &recording, &log)?;
+    let run = GraphRun {
+        graph: &args.graph,
+        instance: format!("soak-{}", std::process::id()),
+        set: &args.set,
+        stage_path: &args.stage_path,
+        record: (&recording, &args.check_edge),
+    };
+    let mut child = run.start(&log)?;
     let supervisor = child.id();
     tracing::info!(graph = %args.graph.display(), pid = supervisor, log = %log.display(), "soak started");
     let duration = Duration::from_secs(args.duration_s);
@@ -176,10 +184,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
         // SAFETY: signalling the `poseflow run` child this soak started.
         unsafe { libc::kill(supervisor as i32, libc::SIGINT) };
     }
-    let output = child.wait_with_output().context("waiting for `poseflow run`")?;
-    let summary: serde_json::Value = serde_json::from_slice(&output.stdout).with_context(|| {
-        format!("`poseflow run` printed no JSON summary ({}); its log: {}", output.status, log.display())
-    })?;
+    let summary = run_summary(child, &log)?;
     let leaked: Vec<PathBuf> = poseflow_transport::shared_memory_files().difference(&before).cloned().collect();
     let kill_times: Vec<f64> = kills.iter().map(|k| k.at_s).collect();
     let estimates = check_estimates(&recording, &args.check_edge, started_ns, &kill_times)?;
@@ -192,54 +197,6 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     }
     scratch.finish();
     Ok(())
-}
-
-/// `poseflow run` of the soaked graph, recording the checked edge.
-fn start_run(args: &SoakArgs, recording: &Path, log: &Path) -> anyhow::Result<Child> {
-    let exe = std::env::current_exe().context("locating the poseflow executable")?;
-    let log_file = std::fs::File::create(log).with_context(|| format!("{}: cannot create", log.display()))?;
-    let mut command = Command::new(exe);
-    command
-        .arg("run")
-        .arg("--graph")
-        .arg(&args.graph)
-        .args(["--json", "--status-ms", "0", "--instance", &format!("soak-{}", std::process::id())])
-        .arg("--record")
-        .arg(recording)
-        .arg("--record-edges")
-        .arg(&args.check_edge);
-    for assignment in &args.set {
-        command.arg("--set").arg(assignment);
-    }
-    for dir in &args.stage_path {
-        command.arg("--stage-path").arg(dir);
-    }
-    command.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(log_file);
-    command.spawn().context("starting `poseflow run`")
-}
-
-/// The soak's working directory: `--out`, or a temporary one removed at the
-/// end.
-struct Scratch {
-    dir: PathBuf,
-    temporary: bool,
-}
-
-impl Scratch {
-    fn new(out: Option<&Path>) -> anyhow::Result<Self> {
-        let (dir, temporary) = match out {
-            Some(dir) => (dir.to_path_buf(), false),
-            None => (std::env::temp_dir().join(format!("poseflow-soak-{}", std::process::id())), true),
-        };
-        std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-        Ok(Self { dir, temporary })
-    }
-
-    fn finish(self) {
-        if self.temporary {
-            let _ = std::fs::remove_dir_all(&self.dir);
-        }
-    }
 }
 
 /// The stage processes of the `poseflow run` with pid `supervisor`, by

@@ -1,0 +1,79 @@
+//! A graph run by a benchmark: `poseflow run` as a child process with one
+//! edge recorded, its JSON summary read at the end, its log kept in a
+//! scratch directory.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use anyhow::Context;
+
+/// What to run: the graph, its instance name, `--set` overrides, where
+/// stage executables are, and the edge to record into which file.
+#[derive(Debug)]
+pub(super) struct GraphRun<'a> {
+    pub graph: &'a Path,
+    pub instance: String,
+    pub set: &'a [String],
+    pub stage_path: &'a [PathBuf],
+    /// (recording file, edge)
+    pub record: (&'a Path, &'a str),
+}
+
+impl GraphRun<'_> {
+    /// Starts `poseflow run --json` with stdout piped (the summary) and
+    /// stderr into `log`.
+    pub fn start(&self, log: &Path) -> anyhow::Result<Child> {
+        let exe = std::env::current_exe().context("locating the poseflow executable")?;
+        let log_file = std::fs::File::create(log).with_context(|| format!("{}: cannot create", log.display()))?;
+        let mut command = Command::new(exe);
+        command
+            .arg("run")
+            .arg("--graph")
+            .arg(self.graph)
+            .args(["--json", "--status-ms", "0", "--instance", &self.instance])
+            .arg("--record")
+            .arg(self.record.0)
+            .arg("--record-edges")
+            .arg(self.record.1);
+        for assignment in self.set {
+            command.arg("--set").arg(assignment);
+        }
+        for dir in self.stage_path {
+            command.arg("--stage-path").arg(dir);
+        }
+        command.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(log_file);
+        command.spawn().context("starting `poseflow run`")
+    }
+}
+
+/// Waits for a run started by [`GraphRun::start`] and parses its summary.
+pub(super) fn run_summary(child: Child, log: &Path) -> anyhow::Result<serde_json::Value> {
+    let output = child.wait_with_output().context("waiting for `poseflow run`")?;
+    serde_json::from_slice(&output.stdout).with_context(|| {
+        format!("`poseflow run` printed no JSON summary ({}); its log: {}", output.status, log.display())
+    })
+}
+
+/// A benchmark's working directory: `--out`, or a temporary one removed at
+/// the end.
+pub(super) struct Scratch {
+    pub dir: PathBuf,
+    temporary: bool,
+}
+
+impl Scratch {
+    pub fn new(out: Option<&Path>, name: &str) -> anyhow::Result<Self> {
+        let (dir, temporary) = match out {
+            Some(dir) => (dir.to_path_buf(), false),
+            None => (std::env::temp_dir().join(format!("poseflow-{name}-{}", std::process::id())), true),
+        };
+        std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+        Ok(Self { dir, temporary })
+    }
+
+    pub fn finish(self) {
+        if self.temporary {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
+    }
+}

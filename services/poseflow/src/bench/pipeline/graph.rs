@@ -1,0 +1,118 @@
+//! One graph run of the pipeline benchmark: `poseflow run` with the
+//! estimates edge recorded; per-frame latency from the frame source's
+//! stamp to the recorder receiving the frame's last Estimate.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use poseflow_contracts::{EstimateHeader, Stage};
+use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+
+use super::FrameLatencies;
+use crate::bench::graph_run::{GraphRun, run_summary};
+
+/// Process time per message of one stage, from its last heartbeat.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub(super) struct StageLatency {
+    pub p50_us: u64,
+    pub p99_us: u64,
+}
+
+/// What one graph run measured, warm-up frames left out.
+#[derive(Debug)]
+pub(super) struct GraphRunFigures {
+    pub frames: FrameLatencies,
+    /// Between the first and the last counted frame's last Estimate.
+    pub span: Duration,
+    pub stages: BTreeMap<String, StageLatency>,
+    pub restarts: u64,
+    pub errors: u64,
+    /// Per counted estimate, the time between consecutive stamps of its
+    /// path (`source→ingest`, …, `selector→received`): process time plus
+    /// queueing and transport, where the time goes in the graph.
+    pub path: BTreeMap<String, Vec<Duration>>,
+}
+
+/// Runs the graph to its end and reads what it recorded.
+pub(super) fn measure(run: &GraphRun<'_>, log: &Path, warmup: u64) -> anyhow::Result<GraphRunFigures> {
+    let child = run.start(log)?;
+    let summary = run_summary(child, log)?;
+    let stages = summary["stages"].as_object().context("the run's summary has no `stages`")?;
+    for (name, stage) in stages {
+        if stage["outcome"] != "finished" {
+            bail!(
+                "{}: stage `{name}` ended {} ({}); its log: {}",
+                run.graph.display(),
+                stage["outcome"],
+                stage["failure"],
+                log.display()
+            );
+        }
+    }
+    let latency = |stage: &serde_json::Value| StageLatency {
+        p50_us: stage["p50_us"].as_u64().unwrap_or(0),
+        p99_us: stage["p99_us"].as_u64().unwrap_or(0),
+    };
+    let total = |key: &str| stages.values().filter_map(|s| s[key].as_u64()).sum::<u64>();
+    let (frames, span, path) = frame_latencies(run.record.0, run.record.1, warmup)?;
+    Ok(GraphRunFigures {
+        frames,
+        span,
+        stages: stages.iter().map(|(name, s)| (name.clone(), latency(s))).collect(),
+        restarts: total("restarts"),
+        errors: stages.values().filter_map(|s| s["total"]["errors"].as_u64()).sum(),
+        path,
+    })
+}
+
+/// The stamps of an Estimate's path through the estimation graph, in order.
+const PATH: [Stage; 5] = [Stage::Source, Stage::Ingest, Stage::Encode, Stage::Sampler, Stage::Selector];
+
+/// Per frame id (from `warmup` on): estimates, latency from the source's
+/// stamp to the last one received; the time from the first counted
+/// frame's completion to the last's; the path's intervals per estimate.
+fn frame_latencies(
+    recording: &Path,
+    edge: &str,
+    warmup: u64,
+) -> anyhow::Result<(FrameLatencies, Duration, BTreeMap<String, Vec<Duration>>)> {
+    let mut reader = RecordingReader::open(recording).with_context(|| format!("{}", recording.display()))?;
+    // frame id → (source stamp, last received, estimates)
+    let mut frames: BTreeMap<u64, (u64, u64, usize)> = BTreeMap::new();
+    let mut path: BTreeMap<String, Vec<Duration>> = BTreeMap::new();
+    while let Some(message) = reader.next_message()? {
+        if message.edge != edge {
+            continue;
+        }
+        let header: EstimateHeader = header_from_bytes(&message.header)
+            .with_context(|| format!("{}: a message on `{edge}` is not an Estimate", recording.display()))?;
+        let frame = header.header.frame_id;
+        let source = header.header.stamps.get(Stage::Source).with_context(|| {
+            format!("{}: frame {frame}: the Estimate carries no frame-source stamp", recording.display())
+        })?;
+        let entry = frames.entry(frame).or_insert((source, 0, 0));
+        entry.1 = entry.1.max(message.received_ns);
+        entry.2 += 1;
+        if frame >= warmup {
+            let stamps: Vec<(&str, u64)> = PATH
+                .iter()
+                .filter_map(|&stage| Some((stage.name(), header.header.stamps.get(stage)?)))
+                .chain([("received", message.received_ns)])
+                .collect();
+            for pair in stamps.windows(2) {
+                let interval = Duration::from_nanos(pair[1].1.saturating_sub(pair[0].1));
+                path.entry(format!("{}→{}", pair[0].0, pair[1].0)).or_default().push(interval);
+            }
+        }
+    }
+    let mut latencies = FrameLatencies::default();
+    let counted: Vec<_> = frames.range(warmup..).collect();
+    for &(&frame, &(source, done, estimates)) in &counted {
+        latencies.record(frame, estimates, Duration::from_nanos(done.saturating_sub(source)));
+    }
+    let done = |entry: Option<&(&u64, &(u64, u64, usize))>| entry.map_or(0, |(_, e)| e.1);
+    let span = Duration::from_nanos(done(counted.last()).saturating_sub(done(counted.first())));
+    Ok((latencies, span, path))
+}

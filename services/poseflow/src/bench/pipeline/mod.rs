@@ -1,0 +1,435 @@
+//! `poseflow bench pipeline`: frames per second and per-frame latency of
+//! the estimation and tracking graphs, through the process graph and in
+//! one process, on the default model and a rendered sequence (one object,
+//! an orbiting camera, every frame rendered before the first is sent).
+//!
+//! Per mode (estimation, tracking):
+//! 1. **in-process**: the graph's pose stages as one pipeline, frame after
+//!    frame on one thread (the baseline: no transport, no pipelining);
+//! 2. **graph, saturated**: `poseflow run` with the frame source as fast as
+//!    the graph accepts: frames per second, stages overlapping across
+//!    frames;
+//! 3. **graph, paced**: the frame source at `--latency-load` × the
+//!    in-process frame rate, so frames rarely overlap: the per-frame
+//!    latency and per-stage process times;
+//! 4. **in-process, paced**: the pipeline at the same rate, the latency the
+//!    graph's is compared with (idle time between frames costs both: caches
+//!    and the network's thread pool go cold).
+//!
+//! Reported: `fps` of the graph from 2, of in-process from 1; `p50_ms`,
+//! `p99_ms` of both from the paced runs (3, 4).
+
+mod graph;
+mod in_process;
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::{Args, ValueEnum};
+use poseflow_ingest::sources::LoadedFrame;
+use serde::Serialize;
+use serde_json::json;
+
+use super::graph_run::{GraphRun, Scratch};
+use crate::timing::Timing;
+use graph::{GraphRunFigures, StageLatency};
+
+#[derive(Debug, Args)]
+pub struct PipelineArgs {
+    /// The estimation graph.
+    #[arg(long, default_value = "deploy/estimation.toml")]
+    pub estimation_graph: PathBuf,
+
+    /// The tracking graph.
+    #[arg(long, default_value = "deploy/tracking.toml")]
+    pub tracking_graph: PathBuf,
+
+    /// What to measure (comma-separated).
+    #[arg(long, value_delimiter = ',', default_values = ["estimation", "tracking"])]
+    pub modes: Vec<Mode>,
+
+    /// Frames of the rendered sequence.
+    #[arg(long, default_value_t = 110)]
+    pub frames: u32,
+
+    /// Leading frames run but not counted (model warm-up, signed distance
+    /// grids, stages still connecting).
+    #[arg(long, default_value_t = 10)]
+    pub warmup: u32,
+
+    /// The object in every frame (BOP id of the models in `--models`).
+    #[arg(long, default_value_t = 1)]
+    pub object: u32,
+
+    /// BOP models directory the sequence is rendered from.
+    #[arg(long, default_value = "objects/lmo")]
+    pub models: PathBuf,
+
+    /// Camera orbit per frame, degrees (a video: tracking follows it).
+    #[arg(long, default_value_t = 2.0)]
+    pub orbit_step_deg: f64,
+
+    /// Seed of the rendered scene.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+
+    /// The paced runs send frames at this share of the in-process frame
+    /// rate (0 < load ≤ 1).
+    #[arg(long, default_value_t = 0.5)]
+    pub latency_load: f64,
+
+    /// The edge of Estimates that is recorded.
+    #[arg(long, default_value = "estimates")]
+    pub estimates_edge: String,
+
+    /// Stage parameters for every run, as `poseflow run --set` (also
+    /// applied in-process).
+    #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+    pub set: Vec<String>,
+
+    /// Directories searched for stage executables (as `poseflow run`).
+    #[arg(long = "stage-path", value_name = "DIR")]
+    pub stage_path: Vec<PathBuf>,
+
+    /// Keep the recordings and the runs' logs here (default: a temporary
+    /// directory removed at the end).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+
+    /// Print the report as JSON on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Mode {
+    Estimation,
+    Tracking,
+}
+
+impl Mode {
+    fn name(self) -> &'static str {
+        match self {
+            Mode::Estimation => "estimation",
+            Mode::Tracking => "tracking",
+        }
+    }
+}
+
+/// Per counted frame: its id, the estimates it produced, its latency.
+#[derive(Debug, Default)]
+pub(super) struct FrameLatencies {
+    frames: Vec<(u64, usize, Duration)>,
+}
+
+impl FrameLatencies {
+    fn record(&mut self, frame_id: u64, estimates: usize, latency: Duration) {
+        self.frames.push((frame_id, estimates, latency));
+    }
+
+    /// Frames with at least one estimate.
+    fn estimated(&self) -> usize {
+        self.frames.iter().filter(|f| f.1 > 0).count()
+    }
+
+    fn estimates(&self) -> usize {
+        self.frames.iter().map(|f| f.1).sum()
+    }
+
+    fn timing(&self) -> Timing {
+        Timing::of(self.frames.iter().filter(|f| f.1 > 0).map(|f| f.2).collect())
+    }
+}
+
+/// One configuration's figures, as `--json` reports them.
+#[derive(Debug, Clone, Serialize)]
+struct Figures {
+    fps: f64,
+    p50_ms: f64,
+    p99_ms: f64,
+    mean_ms: f64,
+    /// Counted frames with an estimate, of `expected_frames`.
+    frames: usize,
+    expected_frames: usize,
+    estimates: usize,
+}
+
+impl Figures {
+    fn new(fps: f64, latencies: &FrameLatencies, expected_frames: usize) -> Self {
+        let timing = latencies.timing();
+        Self {
+            fps,
+            p50_ms: timing.p50_ms,
+            p99_ms: timing.p99_ms,
+            mean_ms: timing.mean_ms,
+            frames: latencies.estimated(),
+            expected_frames,
+            estimates: latencies.estimates(),
+        }
+    }
+}
+
+/// Everything measured for one mode.
+#[derive(Debug)]
+struct ModeFigures {
+    /// fps back to back, latency paced as the graph's.
+    in_process: Figures,
+    /// Frames back to back: fps and latency without idle time between.
+    back_to_back: Figures,
+    in_process_stages: serde_json::Value,
+    /// fps from the saturated run, latency from the paced run.
+    graph: Figures,
+    saturated: Figures,
+    paced_hz: f64,
+    stages: std::collections::BTreeMap<String, StageLatency>,
+    /// The paced run's path intervals, milliseconds.
+    path: serde_json::Value,
+    restarts: u64,
+    errors: u64,
+}
+
+pub fn run(args: &PipelineArgs) -> anyhow::Result<()> {
+    if args.frames <= args.warmup + 1 {
+        anyhow::bail!("--frames {}: expected more than --warmup + 1 ({})", args.frames, args.warmup + 1);
+    }
+    if !(args.latency_load > 0.0 && args.latency_load <= 1.0) {
+        anyhow::bail!("--latency-load {}: expected a share in (0, 1]", args.latency_load);
+    }
+    let scratch = Scratch::new(args.out.as_deref(), "bench-pipeline")?;
+    let mut measured = Vec::new();
+    for &mode in &args.modes {
+        tracing::info!(mode = mode.name(), "measuring");
+        measured.push((mode, measure_mode(args, mode, &scratch)?));
+    }
+    let report = report(args, &measured);
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", table(&measured));
+    }
+    scratch.finish();
+    Ok(())
+}
+
+/// `--set` assignments that make the graph's frame source the benchmark's
+/// sequence, then the user's own.
+fn sequence_sets(args: &PipelineArgs, source: &str) -> Vec<String> {
+    let models = toml::Value::String(args.models.display().to_string());
+    let mut sets: Vec<String> = [
+        "source=\"synthetic\"".to_string(),
+        format!("models={models}"),
+        format!("objects=[{}]", args.object),
+        "scenes=1".into(),
+        format!("frames_per_scene={}", args.frames),
+        format!("orbit_step_deg={:?}", args.orbit_step_deg),
+        format!("seed={}", args.seed),
+        "preload=true".into(),
+    ]
+    .iter()
+    .map(|assignment| format!("{source}.{assignment}"))
+    .collect();
+    sets.extend(args.set.iter().cloned());
+    sets
+}
+
+fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::Result<ModeFigures> {
+    let graph_file = match mode {
+        Mode::Estimation => &args.estimation_graph,
+        Mode::Tracking => &args.tracking_graph,
+    };
+    let search = crate::run::search_path(&args.stage_path);
+    let mut graph = poseflow_graph::load(graph_file, &search)?;
+    let source = graph
+        .stages
+        .values()
+        .find(|s| s.exe.file_name().is_some_and(|n| n == "frame-source"))
+        .map(|s| s.name.clone())
+        .with_context(|| format!("{}: no stage with exe = \"frame-source\"", graph_file.display()))?;
+    let sets = sequence_sets(args, &source);
+    for assignment in &sets {
+        graph.set_param(assignment)?;
+    }
+    let warmup = args.warmup as usize;
+    let expected = (args.frames - args.warmup) as usize;
+
+    let frames = render_sequence(&graph.stages[&source].params)?;
+    let mut pipeline = in_process::pipeline_of(&graph)?;
+    let local = in_process::measure(&mut pipeline, &frames, warmup, None);
+    let in_process_fps = local.frames.frames.len() as f64 / local.wall.as_secs_f64().max(1e-9);
+    let paced_hz = args.latency_load * in_process_fps;
+    let period = Duration::from_secs_f64(1.0 / paced_hz);
+    let local_paced = in_process::measure(&mut pipeline, &frames, warmup, Some(period));
+    drop((pipeline, frames));
+    tracing::info!(mode = mode.name(), fps = in_process_fps, "in-process measured");
+
+    let run = |label: &str, extra: Option<String>| -> anyhow::Result<GraphRunFigures> {
+        let mut run_sets = sets.clone();
+        run_sets.extend(extra);
+        let recording = scratch.dir.join(format!("{}-{label}.rec", mode.name()));
+        let log = scratch.dir.join(format!("{}-{label}.log", mode.name()));
+        let run = GraphRun {
+            graph: graph_file,
+            instance: format!("bench-{}-{label}-{}", mode.name(), std::process::id()),
+            set: &run_sets,
+            stage_path: &args.stage_path,
+            record: (&recording, &args.estimates_edge),
+        };
+        let figures = graph::measure(&run, &log, u64::from(args.warmup))?;
+        tracing::info!(mode = mode.name(), run = label, frames = figures.frames.estimated(), "graph measured");
+        Ok(figures)
+    };
+    let saturated = run("saturated", None)?;
+    let saturated_fps = saturated.frames.estimated().saturating_sub(1) as f64 / saturated.span.as_secs_f64().max(1e-9);
+    let paced = run("paced", Some(format!("{source}.rate_hz={paced_hz}")))?;
+
+    let mut graph_figures = Figures::new(saturated_fps, &paced.frames, expected);
+    graph_figures.frames = saturated.frames.estimated();
+    graph_figures.estimates = saturated.frames.estimates();
+    Ok(ModeFigures {
+        in_process: Figures::new(in_process_fps, &local_paced.frames, expected),
+        back_to_back: Figures::new(in_process_fps, &local.frames, expected),
+        in_process_stages: stage_breakdown(&local_paced.stage_times),
+        graph: graph_figures,
+        saturated: Figures::new(saturated_fps, &saturated.frames, expected),
+        paced_hz,
+        path: path_breakdown(&paced.path),
+        stages: paced.stages,
+        restarts: saturated.restarts + paced.restarts,
+        errors: saturated.errors + paced.errors,
+    })
+}
+
+/// The sequence's frames, rendered here for the in-process run.
+fn render_sequence(params: &serde_json::Value) -> anyhow::Result<Vec<LoadedFrame>> {
+    let mut source = poseflow_ingest::stage::frame_source(params)?;
+    std::iter::from_fn(|| source.next_frame()).map(|frame| frame.map_err(anyhow::Error::from)).collect()
+}
+
+/// p50 and p99 of each interval of the estimates' path, milliseconds.
+fn path_breakdown(path: &std::collections::BTreeMap<String, Vec<Duration>>) -> serde_json::Value {
+    path.iter()
+        .map(|(interval, durations)| {
+            let timing = Timing::of(durations.clone());
+            (interval.clone(), json!({"p50_ms": timing.p50_ms, "p99_ms": timing.p99_ms}))
+        })
+        .collect::<serde_json::Map<_, _>>()
+        .into()
+}
+
+/// Per-estimate time of each in-process stage, milliseconds.
+fn stage_breakdown(times: &[poseflow_pipeline::StageTimes]) -> serde_json::Value {
+    let of = |pick: fn(&poseflow_pipeline::StageTimes) -> Duration| {
+        let timing = Timing::of(times.iter().map(pick).collect());
+        json!({"p50_ms": timing.p50_ms, "p99_ms": timing.p99_ms, "mean_ms": timing.mean_ms})
+    };
+    json!({
+        "ingest": of(|t| t.ingest),
+        "encode": of(|t| t.encode),
+        "sample": of(|t| t.sample),
+        "select": of(|t| t.select),
+    })
+}
+
+fn cpu_model() -> Option<String> {
+    let info = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    info.lines().find_map(|l| l.strip_prefix("model name")).map(|v| v.trim_start_matches([' ', '\t', ':']).to_string())
+}
+
+fn report(args: &PipelineArgs, measured: &[(Mode, ModeFigures)]) -> serde_json::Value {
+    let mut report = json!({
+        "machine": {
+            "cores": std::thread::available_parallelism().map_or(0, |n| n.get()),
+            "cpu": cpu_model(),
+        },
+        "sequence": {
+            "object": args.object,
+            "models": args.models,
+            "frames": args.frames,
+            "warmup": args.warmup,
+            "orbit_step_deg": args.orbit_step_deg,
+            "seed": args.seed,
+        },
+        "latency_load": args.latency_load,
+    });
+    for (mode, figures) in measured {
+        let name = mode.name();
+        report[name] = json!(figures.graph);
+        report[format!("{name}_in_process")] = json!(figures.in_process);
+        report[format!("{name}_saturated")] = json!(figures.saturated);
+        report[format!("{name}_in_process_back_to_back")] = json!(figures.back_to_back);
+        report[format!("{name}_paced_hz")] = json!(figures.paced_hz);
+        report[format!("{name}_overhead_pct")] = json!({
+            "p50": 100.0 * (figures.graph.p50_ms / figures.in_process.p50_ms - 1.0),
+            "mean": 100.0 * (figures.graph.mean_ms / figures.in_process.mean_ms - 1.0),
+        });
+        report[format!("{name}_in_process_stages")] = figures.in_process_stages.clone();
+        report[format!("{name}_path")] = figures.path.clone();
+        report[format!("{name}_restarts")] = json!(figures.restarts);
+        report[format!("{name}_errors")] = json!(figures.errors);
+        // `stages` is the estimation graph's (the first mode run when both
+        // are); each mode's own is under `<mode>_stages`.
+        report[format!("{name}_stages")] = json!(figures.stages);
+        if report.get("stages").is_none() {
+            report["stages"] = json!(figures.stages);
+        }
+    }
+    report
+}
+
+/// `name p50, …` of a `{name: {"p50_ms": …}}` object.
+fn one_line(figures: &serde_json::Value) -> String {
+    figures
+        .as_object()
+        .map(|o| {
+            o.iter()
+                .map(|(name, f)| format!("{name} {:.2}", f["p50_ms"].as_f64().unwrap_or(f64::NAN)))
+                .collect::<Vec<_>>()
+                .join(", ")
+        })
+        .unwrap_or_default()
+}
+
+fn table(measured: &[(Mode, ModeFigures)]) -> String {
+    let mut out =
+        format!("{:<24} {:>8} {:>9} {:>9} {:>9}  {}\n", "", "fps", "p50 ms", "p99 ms", "mean ms", "frames (estimates)");
+    for (mode, f) in measured {
+        let rows = [
+            (format!("{} graph", mode.name()), &f.graph),
+            (format!("{} in-process", mode.name()), &f.in_process),
+            (format!("{} graph, saturated", mode.name()), &f.saturated),
+            (format!("{} in-process, b2b", mode.name()), &f.back_to_back),
+        ];
+        for (label, figures) in rows {
+            out.push_str(&format!(
+                "{label:<24} {:>8.1} {:>9.2} {:>9.2} {:>9.2}  {}/{} ({})\n",
+                figures.fps,
+                figures.p50_ms,
+                figures.p99_ms,
+                figures.mean_ms,
+                figures.frames,
+                figures.expected_frames,
+                figures.estimates
+            ));
+        }
+        out.push_str(&format!(
+            "  graph latency paced at {:.1} Hz; graph over in-process: p50 {:+.1} %, mean {:+.1} %; restarts {}, errors {}\n",
+            f.paced_hz,
+            100.0 * (f.graph.p50_ms / f.in_process.p50_ms - 1.0),
+            100.0 * (f.graph.mean_ms / f.in_process.mean_ms - 1.0),
+            f.restarts,
+            f.errors
+        ));
+        out.push_str("  stage process time (graph, paced): ");
+        let stages: Vec<String> = f
+            .stages
+            .iter()
+            .map(|(name, s)| format!("{name} {:.2}/{:.2} ms", s.p50_us as f64 / 1e3, s.p99_us as f64 / 1e3))
+            .collect();
+        out.push_str(&stages.join(", "));
+        out.push('\n');
+        out.push_str(&format!("  graph path (paced, p50 ms): {}\n", one_line(&f.path)));
+        out.push_str(&format!("  in-process per estimate (p50 ms): {}\n", one_line(&f.in_process_stages)));
+    }
+    out
+}
