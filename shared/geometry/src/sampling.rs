@@ -194,4 +194,34 @@ mod tests {
         let square = [[0.5, 0.5], [0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]].map(|[x, y]| Point3::new(x, y, 0.0));
         assert_eq!(farthest_point_indices(&square, 5), [0, 1, 2, 3, 4]);
     }
+
+    /// The textbook two-pass loop the lane-wise scan replaces.
+    fn farthest_point_reference(points: &[Point3<f32>], count: usize) -> Vec<usize> {
+        let mut distance = vec![f32::INFINITY; points.len()];
+        let mut chosen = Vec::new();
+        let mut next = 0;
+        for _ in 0..count {
+            chosen.push(next);
+            for (d, p) in distance.iter_mut().zip(points) {
+                *d = d.min((p - points[next]).norm_squared());
+            }
+            next = (0..points.len()).fold(0, |best, i| if distance[i] > distance[best] { i } else { best });
+        }
+        chosen
+    }
+
+    proptest::proptest! {
+        /// Any cloud size (lanes full, partial, none), duplicates and ties
+        /// included: the same picks in the same order as the reference.
+        #[test]
+        fn farthest_point_sampling_matches_the_reference(
+            coordinates in proptest::collection::vec((0u8..6, 0u8..6, 0u8..3), 1..60),
+            count in 1usize..20,
+        ) {
+            let points: Vec<Point3<f32>> =
+                coordinates.iter().map(|&(x, y, z)| Point3::new(f32::from(x), f32::from(y), f32::from(z) * 0.5)).collect();
+            let count = count.min(points.len());
+            proptest::prop_assert_eq!(farthest_point_indices(&points, count), farthest_point_reference(&points, count));
+        }
+    }
 }
