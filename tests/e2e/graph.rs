@@ -38,6 +38,24 @@ fn run_graph(args: &[&str], graph: &Path) -> Command {
     command
 }
 
+/// `poseflow bench ARGS --json` from the repository root with the
+/// workspace's stages; its report (the test fails with its log if it fails).
+fn bench_report(args: &[&str]) -> serde_json::Value {
+    let repository = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
+    let output = poseflow()
+        .current_dir(repository)
+        .arg("bench")
+        .args(args)
+        .arg("--json")
+        .arg("--stage-path")
+        .arg(bin_dir())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    serde_json::from_slice(&output.stdout).unwrap()
+}
+
 /// Fails if a run left iceoryx2 files behind that were not there `before`.
 fn assert_nothing_leaked(before: &BTreeSet<PathBuf>) {
     let leaked: Vec<_> = shared_memory_files().difference(before).cloned().collect();
@@ -533,22 +551,26 @@ fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
 #[test]
 fn a_short_soak_of_the_tracking_graph_survives_a_kill_of_every_stage() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let repository = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
-    let output = poseflow()
-        .current_dir(repository)
-        .args(["bench", "soak", "--json", "--duration-s", "42", "--kill-every-s", "6", "--sample-every-s", "3"])
+    let report = bench_report(&[
+        "soak",
+        "--duration-s",
+        "42",
+        "--kill-every-s",
+        "6",
+        "--sample-every-s",
+        "3",
         // The selector twice: its restart once deadlocked the tracking loop
         // (the sampler blocked on the selector's full queue, the restarted
         // selector waiting for the sampler's handshake before reading).
-        .args(["--kill", "selector,sampler,selector,inference,ingest,frames"])
-        .args(["--warmup-s", "5", "--set", "frames.frames_per_scene=100000", "--set", "frames.orbit_step_deg=2"])
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{stderr}");
-    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+        "--kill",
+        "selector,sampler,selector,inference,ingest,frames",
+        "--warmup-s",
+        "5",
+        "--set",
+        "frames.frames_per_scene=100000",
+        "--set",
+        "frames.orbit_step_deg=2",
+    ]);
     assert_eq!(report["ended_early"], serde_json::Value::Null, "{report}");
     let stages = ["frames", "inference", "ingest", "sampler", "selector"];
     let killed: Vec<&str> = report["kills"].as_array().unwrap().iter().map(|k| k["stage"].as_str().unwrap()).collect();
@@ -582,17 +604,7 @@ fn a_short_soak_of_the_tracking_graph_survives_a_kill_of_every_stage() {
 fn the_pipeline_benchmark_measures_both_graphs_through_processes_and_in_process() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let before = shared_memory_files();
-    let repository = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
-    let output = poseflow()
-        .current_dir(repository)
-        .args(["bench", "pipeline", "--json", "--frames", "8", "--warmup", "2"])
-        .arg("--stage-path")
-        .arg(bin_dir())
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{stderr}");
-    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let report = bench_report(&["pipeline", "--frames", "8", "--warmup", "2"]);
     for key in ["estimation", "tracking", "estimation_in_process", "tracking_in_process"] {
         let figures = &report[key];
         let (fps, p50, p99) = (&figures["fps"], &figures["p50_ms"], &figures["p99_ms"]);

@@ -6,6 +6,29 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 
 use anyhow::Context;
+use clap::Args;
+
+/// The options of every benchmark that runs graphs through `poseflow run`.
+#[derive(Debug, Args)]
+pub struct GraphRunOptions {
+    /// Stage parameters for the runs, passed to `poseflow run --set`, e.g.
+    /// `frames.frames_per_scene=100000` (repeatable).
+    #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+    pub set: Vec<String>,
+
+    /// Directories searched for stage executables (as `poseflow run`).
+    #[arg(long = "stage-path", value_name = "DIR")]
+    pub stage_path: Vec<PathBuf>,
+
+    /// Keep the recordings and the runs' logs here (default: a temporary
+    /// directory removed at the end).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+
+    /// Print the report as JSON on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
 
 /// What to run: the graph, its instance name, `--set` overrides, where
 /// stage executables are, and the edge to record into which file.

@@ -36,6 +36,8 @@ pub enum BenchCommand {
     /// A graph run for minutes (`poseflow run`) while its stages are
     /// SIGKILLed in turn: frames, restarts, drops, corrupted estimates,
     /// leaked shared memory and every process's resident memory over time.
+    /// The frame source must last the whole soak (e.g. `--set
+    /// frames.frames_per_scene=100000`).
     Soak(soak::SoakArgs),
     /// Internal: the receiving process of `bench ipc`.
     #[command(hide = true)]

@@ -14,7 +14,7 @@ use poseflow_geometry::Pose;
 use poseflow_graph::WIRING_ENV;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
-use super::graph_run::{GraphRun, Scratch, run_summary};
+use super::graph_run::{GraphRun, GraphRunOptions, Scratch, run_summary};
 use serde_json::json;
 
 /// How often the soak loop wakes to kill, sample or notice the run ended.
@@ -55,23 +55,8 @@ pub struct SoakArgs {
     #[arg(long, default_value = "estimates")]
     pub check_edge: String,
 
-    /// Stage parameters for this run, passed to `poseflow run --set`; the
-    /// frame source must last the whole soak (e.g. `frames.frames_per_scene=100000`).
-    #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
-    pub set: Vec<String>,
-
-    /// Directories searched for stage executables (as `poseflow run`).
-    #[arg(long = "stage-path", value_name = "DIR")]
-    pub stage_path: Vec<PathBuf>,
-
-    /// Keep the recording (`soak.rec`) and the run's log (`run.log`) here;
-    /// by default they go to a temporary directory removed at the end.
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-
-    /// Print the report as JSON on stdout.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub run: GraphRunOptions,
 }
 
 /// One stage killed by the soak.
@@ -108,8 +93,8 @@ struct EstimateCheck {
 
 pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     let graph = {
-        let mut graph = poseflow_graph::load(&args.graph, &crate::run::search_path(&args.stage_path))?;
-        for assignment in &args.set {
+        let mut graph = poseflow_graph::load(&args.graph, &crate::run::search_path(&args.run.stage_path))?;
+        for assignment in &args.run.set {
             graph.set_param(assignment)?;
         }
         graph
@@ -127,7 +112,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     if args.sample_every_s == 0 || args.duration_s == 0 {
         bail!("--duration-s and --sample-every-s: expected at least 1 second");
     }
-    let scratch = Scratch::new(args.out.as_deref(), "soak")?;
+    let scratch = Scratch::new(args.run.out.as_deref(), "soak")?;
     let recording = scratch.dir.join("soak.rec");
     let log = scratch.dir.join("run.log");
 
@@ -137,8 +122,8 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     let run = GraphRun {
         graph: &args.graph,
         instance: format!("soak-{}", std::process::id()),
-        set: &args.set,
-        stage_path: &args.stage_path,
+        set: &args.run.set,
+        stage_path: &args.run.stage_path,
         record: (&recording, &args.check_edge),
     };
     let mut child = run.start(&log)?;
@@ -190,7 +175,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     let estimates = check_estimates(&recording, &args.check_edge, started_ns, &kill_times)?;
     let report =
         report(args, (elapsed, ended_early.map(|s| s.to_string())), &kills, &samples, &estimates, &summary, &leaked);
-    if args.json {
+    if args.run.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         print!("{}", table(&report, &samples));

@@ -31,7 +31,7 @@ use poseflow_ingest::sources::LoadedFrame;
 use serde::Serialize;
 use serde_json::json;
 
-use super::graph_run::{GraphRun, Scratch};
+use super::graph_run::{GraphRun, GraphRunOptions, Scratch};
 use crate::timing::Timing;
 use graph::{GraphRunFigures, StageLatency};
 
@@ -83,23 +83,8 @@ pub struct PipelineArgs {
     #[arg(long, default_value = "estimates")]
     pub estimates_edge: String,
 
-    /// Stage parameters for every run, as `poseflow run --set` (also
-    /// applied in-process).
-    #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
-    pub set: Vec<String>,
-
-    /// Directories searched for stage executables (as `poseflow run`).
-    #[arg(long = "stage-path", value_name = "DIR")]
-    pub stage_path: Vec<PathBuf>,
-
-    /// Keep the recordings and the runs' logs here (default: a temporary
-    /// directory removed at the end).
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-
-    /// Print the report as JSON on stdout.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub run: GraphRunOptions,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -196,14 +181,14 @@ pub fn run(args: &PipelineArgs) -> anyhow::Result<()> {
     if !(args.latency_load > 0.0 && args.latency_load <= 1.0) {
         anyhow::bail!("--latency-load {}: expected a share in (0, 1]", args.latency_load);
     }
-    let scratch = Scratch::new(args.out.as_deref(), "bench-pipeline")?;
+    let scratch = Scratch::new(args.run.out.as_deref(), "bench-pipeline")?;
     let mut measured = Vec::new();
     for &mode in &args.modes {
         tracing::info!(mode = mode.name(), "measuring");
         measured.push((mode, measure_mode(args, mode, &scratch)?));
     }
     let report = report(args, &measured);
-    if args.json {
+    if args.run.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         print!("{}", table(&measured));
@@ -229,7 +214,7 @@ fn sequence_sets(args: &PipelineArgs, source: &str) -> Vec<String> {
     .iter()
     .map(|assignment| format!("{source}.{assignment}"))
     .collect();
-    sets.extend(args.set.iter().cloned());
+    sets.extend(args.run.set.iter().cloned());
     sets
 }
 
@@ -238,7 +223,7 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
         Mode::Estimation => &args.estimation_graph,
         Mode::Tracking => &args.tracking_graph,
     };
-    let search = crate::run::search_path(&args.stage_path);
+    let search = crate::run::search_path(&args.run.stage_path);
     let mut graph = poseflow_graph::load(graph_file, &search)?;
     let source = graph
         .stages
@@ -272,7 +257,7 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
             graph: graph_file,
             instance: format!("bench-{}-{label}-{}", mode.name(), std::process::id()),
             set: &run_sets,
-            stage_path: &args.stage_path,
+            stage_path: &args.run.stage_path,
             record: (&recording, &args.estimates_edge),
         };
         let figures = graph::measure(&run, &log, u64::from(args.warmup))?;
