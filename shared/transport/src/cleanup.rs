@@ -1,7 +1,7 @@
 //! Removal of what a killed process left behind in shared memory.
 
 use iceoryx2::config::Config;
-use iceoryx2::node::{NodeState, NodeView};
+use iceoryx2::node::{NodeCleanupFailure, NodeState, NodeView};
 use iceoryx2::prelude::CallbackProgression;
 
 use crate::{Ipc, TransportError};
@@ -18,6 +18,12 @@ pub fn remove_dead_nodes() -> Result<usize, TransportError> {
                 Ok(_) => {
                     tracing::info!(node = %name, "removed stale resources of a dead node");
                     removed += 1;
+                }
+                // Graphs starting side by side race for the same dead node:
+                // the other one removing it is what this call wanted.
+                Err(NodeCleanupFailure::AnotherInstanceIsCleaningUpTheNode)
+                | Err(NodeCleanupFailure::ResourcesAlreadyCleanedUp) => {
+                    tracing::debug!(node = %name, "stale resources removed by another process")
                 }
                 Err(e) => failure = Some(TransportError::iceoryx("remove stale resources of", &name, e)),
             }
