@@ -211,6 +211,8 @@ mod tests {
     }
 
     proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig { cases: 10_000, ..Default::default() })]
+
         /// Any cloud size (lanes full, partial, none), duplicates and ties
         /// included: the same picks in the same order as the reference.
         #[test]
