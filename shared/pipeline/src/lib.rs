@@ -70,12 +70,6 @@ pub struct StageTimes {
     pub select: Duration,
 }
 
-impl StageTimes {
-    pub fn total(&self) -> Duration {
-        self.ingest + self.encode + self.sample + self.select
-    }
-}
-
 /// One object's Estimate: header and payload as the selector publishes them.
 #[derive(Debug, Clone)]
 pub struct Estimated {
@@ -114,7 +108,7 @@ impl PosePipeline {
         let mut clock = Instant::now();
         let mut lap = || {
             let now = Instant::now();
-            std::mem::replace(&mut clock, now).elapsed()
+            now - std::mem::replace(&mut clock, now)
         };
         let mut rng = seeded_rng(sample_seed(0, frame_id, obj_id));
         let prepared = prepare(frame, object, &self.ingest, &mut rng)?;
