@@ -337,14 +337,6 @@ impl PreloadedFrames {
         tracing::info!(frames = frames.len(), ms = started.elapsed().as_millis() as u64, "frames preloaded");
         Self { frames }
     }
-
-    pub fn len(&self) -> usize {
-        self.frames.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.frames.is_empty()
-    }
 }
 
 impl FrameSource for PreloadedFrames {
