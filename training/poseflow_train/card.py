@@ -81,20 +81,77 @@ def learning_rate_text(config):
     return f"{config.get('lr')} cosine-decayed to {decay['final']} over {decay['over_s'] / 60:.0f} minutes (`lr_decay`)"
 
 
+def robustness_section(path, compare_path, compare_label, note):
+    """The robustness table: per variant the per-sample and coarse-pose
+    accuracy, and another run's per-sample 10°5cm when given."""
+    if not path:
+        return ""
+    result = json.loads(Path(path).read_text())
+    compare = json.loads(Path(compare_path).read_text())["variants"] if compare_path else {}
+    header = ["frames", "instances", "10°5cm %", "5°5cm %", "coarse pose 10°5cm %"]
+    if compare:
+        header.append(compare_label)
+    rows = [
+        (name, r["observations"], r["acc_10deg_5cm"], r["acc_5deg_5cm"], r["coarse"]["acc_10deg_5cm"],
+         *([compare[name]["acc_10deg_5cm"] if name in compare else "–"] if compare else []))
+        for name, r in result["variants"].items()
+    ]
+    return f"""## Robustness: frames less like the renders
+
+`python -m poseflow_train.robustness --model {result['model']} --dataset {result['dataset']} --split {result['split']}`:
+perturbed copies of a held-out split (what a real sensor and a real
+segmentation add), each turned into observations by the ingest stage's own
+code (`poseflow observe`, default parameters) and scored as above (N = 50,
+K = 5, per sample, no selection).
+
+{table(rows, header)}
+
+{note}
+"""
+
+
+def rewrite_robustness(args):
+    """The card with its Robustness section replaced (or put before the
+    Latency section): for robustness runs made after the rest of the card."""
+    if not args.robustness:
+        raise SystemExit("--robustness-only needs --robustness")
+    path = Path(args.model) / "MODEL_CARD.md"
+    text = path.read_text()
+    start = text.find("## Robustness")
+    latency = text.index("## Latency")
+    before = text[:start] if start >= 0 else text[:latency]
+    section = robustness_section(args.robustness, args.robustness_compare, args.robustness_compare_label,
+                                 args.robustness_note)
+    path.write_text(before + section + text[latency:])
+    print(f"wrote the Robustness section of {path}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", required=True)
+    parser.add_argument("--config")
     parser.add_argument("--model", required=True)
-    parser.add_argument("--eval", required=True)
-    parser.add_argument("--bench", required=True)
+    parser.add_argument("--eval")
+    parser.add_argument("--bench")
+    parser.add_argument("--robustness-only", action="store_true",
+                        help="only (re)write the card's Robustness section from --robustness (the rest stays)")
     parser.add_argument("--also-eval", nargs="*", default=[],
                         help="evaluate outputs on further held-out shards (e.g. one never used during training)")
     parser.add_argument("--earlier-logs", nargs="*", default=[],
                         help="log.jsonl of the runs this one continues, oldest first (for the learning curve)")
     parser.add_argument("--eval-note", default="", help="Markdown after the held-out table")
+    parser.add_argument("--robustness", help="`poseflow_train.robustness` output for this model")
+    parser.add_argument("--robustness-compare", help="another `robustness` output (e.g. other ingest settings), as a column")
+    parser.add_argument("--robustness-compare-label", default="compared 10°5cm %", help="that column's heading")
+    parser.add_argument("--robustness-note", default="", help="Markdown after the robustness table")
+    parser.add_argument("--data-note", default="", help="Markdown at the end of the Data section")
     parser.add_argument("--history", default="",
                         help="Markdown describing how the runs followed each other, for the Training section")
     args = parser.parse_args()
+    if args.robustness_only:
+        return rewrite_robustness(args)
+    missing = [flag for flag in ("config", "eval", "bench") if getattr(args, flag) is None]
+    if missing:
+        parser.error(f"--{missing[0]} is required (unless --robustness-only)")
     config = load_config(args.config)
     cfg = config["model"]
     out = Path(args.model)
@@ -108,6 +165,7 @@ def main():
     bench = json.loads(Path(args.bench).read_text())
     shards = [Shard(p) for p in config["train"]]
     train_observations = sum(len(s) for s in shards)
+    rendered_chunks = len({(s.info["dataset"], s.info["split"]) for s in shards})
     val_shard = Shard(config["val"][0])
     info = json.loads(val_shard.models_info.read_text())
     sizes = {f.name: f.stat().st_size for f in sorted(out.glob("*.onnx"))}
@@ -183,8 +241,8 @@ textured support plane with clutter primitives, random lights, the depth
 noise model, camera on the view hemisphere (0.35–1.5 m); occlusion low /
 medium / high by chunk; `poseflow observe` turns them into the ingest
 stage's own observations. Training: {len(shards)} shards, {train_observations:,} observations
-(seed 1, scenes 0–{20 * len(shards) - 1}). Held out: `test` split, seed 2, scenes 1000–1009,
-medium occlusion, never trained on.
+(seed 1, scenes 0–{20 * rendered_chunks - 1}). Held out: `test` split, seed 2, scenes 1000–1009,
+medium occlusion, never trained on. {args.data_note}
 
 ## Training
 
@@ -222,6 +280,7 @@ object's symmetries (`models_info.json`; continuous ones in 1° steps).
 
 {table(object_rows, ["object", "symmetric", "instances", "10°5cm %", "5°5cm %", "median rot °", "median trans cm"])}
 
+{robustness_section(args.robustness, args.robustness_compare, args.robustness_compare_label, args.robustness_note)}
 ## Latency (2 CPU cores, ONNX Runtime {bench['threads']} intra-op threads)
 
 `poseflow bench model --model {bench['model']} --json`:

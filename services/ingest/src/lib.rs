@@ -3,7 +3,8 @@
 //! Per object ([`prepare`], then [`Prepared::write_payload`] straight into
 //! the output buffer): the mask's box grown to a padded square and
 //! resampled to S×S, normalised; the P×P token mask of patches the mask
-//! touches; masked depth back-projected with the intrinsics, thinned,
+//! touches; mask pixels behind a nearer mask pixel (background past the
+//! outline) dropped; masked depth back-projected with the intrinsics, thinned,
 //! cleaned of outliers, farthest-point sampled to N (resampled with
 //! replacement, and flagged, when fewer), centred on its mean, which the
 //! header keeps so poses can be mapped back to the camera frame.
@@ -12,8 +13,10 @@
 //! as a live synthetic camera.
 
 mod crop;
+mod edges;
 mod error;
 mod frame_message;
+mod jitter;
 mod observe;
 mod params;
 mod points;
@@ -23,8 +26,10 @@ pub mod stage;
 pub mod truth_prior;
 
 pub use crop::{CropBox, Normalisation, write_crop, write_token_mask};
+pub use edges::EdgeFilter;
 pub use error::IngestError;
 pub use frame_message::{FrameLayout, read_frame};
+pub use jitter::MaskJitter;
 pub use observe::{ObjectMask, Prepared, RgbdFrame, check_frame, prepare};
 pub use params::IngestParams;
 pub use points::{OutlierFilter, back_project, centre, remove_outliers, sample_fixed, thin};

@@ -128,7 +128,14 @@ pub fn prepare<R: Rng + ?Sized>(
     let Some((u0, v0, u1, v1)) = bounds.filter(|_| pixels >= params.min_mask_pixels) else {
         return Err(reject(format!("mask has {pixels} pixels, expected at least {}", params.min_mask_pixels)));
     };
-    let observed = back_project(&frame.depth.pixels, &object.mask.pixels, camera, params.max_depth);
+    let mask = params.behind_edges.apply(
+        &frame.depth.pixels,
+        &object.mask.pixels,
+        camera.width as usize,
+        (u0, v0, u1, v1),
+        params.max_depth,
+    );
+    let observed = back_project(&frame.depth.pixels, &mask, camera, params.max_depth);
     if observed.len() < params.min_points {
         return Err(reject(format!(
             "{} of {pixels} mask pixels have a valid depth (0 < z ≤ {} m), expected at least {}",

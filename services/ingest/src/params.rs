@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::IngestError;
 use crate::crop::Normalisation;
+use crate::edges::EdgeFilter;
 use crate::points::OutlierFilter;
 
 /// Parameters of [`crate::prepare`]; every field has a default.
@@ -22,6 +23,9 @@ pub struct IngestParams {
     /// N: points per observation.
     pub point_count: usize,
     pub outliers: OutlierFilter,
+    /// Mask pixels behind a nearer mask pixel (background seen past the
+    /// object's outline) are dropped before back-projection.
+    pub behind_edges: EdgeFilter,
     /// Masks with more valid depth pixels are thinned to this many before
     /// outlier removal and sampling (bounds the cost for near objects).
     pub max_filter_points: usize,
@@ -47,6 +51,7 @@ impl Default for IngestParams {
             normalisation: Normalisation::default(),
             point_count: 1024,
             outliers: OutlierFilter::default(),
+            behind_edges: EdgeFilter::default(),
             max_filter_points: 4096,
             min_mask_pixels: 16,
             min_points: 16,
@@ -88,6 +93,13 @@ impl IngestParams {
         if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
             return bad("max_depth", format!("expected a positive number of metres, got {}", self.max_depth));
         }
+        let edges = &self.behind_edges;
+        if edges.radius > 64 {
+            return bad("behind_edges.radius", format!("expected 0 (off) to 64 pixels, got {}", edges.radius));
+        }
+        if !(edges.jump.is_finite() && edges.jump > 0.0) {
+            return bad("behind_edges.jump", format!("expected a positive number of metres, got {}", edges.jump));
+        }
         if self.max_filter_points < self.point_count {
             return bad(
                 "max_filter_points",
@@ -108,6 +120,12 @@ mod tests {
         assert!(err.starts_with("params: unknown field `image_sise`"), "{err}");
         let err = IngestParams::from_json(&serde_json::json!({ "patch_grid": 15 })).unwrap_err().to_string();
         assert!(err.contains("param `patch_grid`") && err.contains("divisor of image_size 224"), "{err}");
+        let err = IngestParams::from_json(&serde_json::json!({ "behind_edges": { "radius": 100 } })).unwrap_err();
+        assert!(err.to_string().contains("param `behind_edges.radius`"), "{err}");
+        let err = IngestParams::from_json(&serde_json::json!({ "behind_edges": { "jump": -0.1 } })).unwrap_err();
+        assert!(err.to_string().contains("param `behind_edges.jump`") && err.to_string().contains("-0.1"), "{err}");
+        let err = IngestParams::from_json(&serde_json::json!({ "behind_edges": { "radius_px": 2 } })).unwrap_err();
+        assert!(err.to_string().contains("unknown field `radius_px`"), "{err}");
         let ok = IngestParams::from_json(&serde_json::json!({ "image_size": 112, "patch_grid": 8 })).unwrap();
         assert_eq!((ok.image_size, ok.point_count), (112, 1024));
     }

@@ -31,9 +31,15 @@ use poseflow_scene::bop::{self, ByImage, GtEntry, GtInfoEntry, SceneDir};
 use serde::Serialize;
 
 use crate::sources::{FrameSource, LoadedFrame};
-use crate::{IngestError, IngestParams, Normalisation, ObjectMask, Prepared, prepare, write_crop, write_token_mask};
+use crate::{
+    IngestError, IngestParams, MaskJitter, Normalisation, ObjectMask, Prepared, prepare, write_crop, write_token_mask,
+};
 
 pub const MAGIC: &str = "POSEFLOW-OBS v1";
+
+/// Mixed into the frame id for the jitter's draws, so that they do not
+/// repeat the point sampling's (seeded by the frame id alone).
+const JITTER_SEED: u64 = 0x6a69_7474_6572;
 
 /// The JSON line after the magic.
 #[derive(Debug, Clone, Serialize)]
@@ -117,11 +123,13 @@ struct SceneTruth {
 
 /// Writes the observations of every frame of `frames` (a BOP source with
 /// ground-truth masks) and their ground truth to `out`, calling `progress`
-/// after each frame.
+/// after each frame. `jitter` imitates real masks and registration (its
+/// draws are seeded by frame id, apart from the point sampling's).
 pub fn write_shard(
     frames: &mut dyn FrameSource,
     split_dir: &Path,
     params: &IngestParams,
+    jitter: &MaskJitter,
     info: &ShardInfo,
     out: &Path,
     mut progress: impl FnMut(&ShardCounts),
@@ -152,6 +160,9 @@ pub fn write_shard(
             });
         }
         let SceneTruth { gts, infos, .. } = truth.as_ref().expect("read above");
+        let mut loaded = loaded;
+        let mut jitter_rng = seeded_rng(loaded.frame.frame_id ^ JITTER_SEED);
+        jitter.apply(&mut loaded.frame, &mut loaded.objects, &mut jitter_rng);
         let mut rng = seeded_rng(loaded.frame.frame_id);
         for object in &loaded.objects {
             let gt = gts.get(&loaded.image_id).and_then(|g| g.get(object.instance));

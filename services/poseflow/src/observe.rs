@@ -5,16 +5,17 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
-use poseflow_ingest::IngestParams;
 use poseflow_ingest::shard::{ShardInfo, record_bytes, write_shard};
 use poseflow_ingest::sources::{BopFrames, Masks};
+use poseflow_ingest::{IngestParams, MaskJitter};
 
 use crate::progress::Progress;
 
 #[derive(Debug, Args)]
 #[command(
     after_help = "Example:\n  poseflow observe --dataset data/lmo-synth --split train --out data/lmo-synth/train.obs \
-    --image-size 112 --patch-grid 8\n\nThe crops, token masks and points are made by the ingest stage's own code, so \
+    --image-size 112 --patch-grid 8\n  poseflow observe --dataset data/lmo-synth --split train --out data/lmo-synth/train-jittered.obs \
+    --image-size 112 --patch-grid 8 --grow-masks 4 --shrink-masks 2 --shift-depth 2\n\nThe crops, token masks and points are made by the ingest stage's own code, so \
     a network trained on them sees exactly what the running graph feeds it."
 )]
 pub struct ObserveArgs {
@@ -39,6 +40,17 @@ pub struct ObserveArgs {
     /// Points N.
     #[arg(long)]
     pub points: Option<usize>,
+    /// Training data: grow each object's mask by up to this many pixels (uniform with --shrink-masks), as a
+    /// detector's mask or depth misregistration puts background into it.
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub grow_masks: u32,
+    /// Training data: shrink each object's mask by up to this many pixels.
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub shrink_masks: u32,
+    /// Training data: move each frame's depth image by up to this many pixels along x and y against the colour
+    /// image and masks (a sensor's depth-to-colour registration error).
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub shift_depth: u32,
     /// Print the counts as JSON.
     #[arg(long)]
     pub json: bool,
@@ -72,7 +84,8 @@ pub fn run(args: &ObserveArgs) -> anyhow::Result<()> {
     };
     let mut progress = Progress::new("observe", frames.len() as u64);
     let split_dir = args.dataset.join(&args.split);
-    let counts = write_shard(&mut frames, &split_dir, &params, &info, &args.out, |c| {
+    let jitter = MaskJitter { grow: args.grow_masks, shrink: args.shrink_masks, shift: args.shift_depth };
+    let counts = write_shard(&mut frames, &split_dir, &params, &jitter, &info, &args.out, |c| {
         progress.update(c.frames, &format!("{} observations", c.records))
     })
     .with_context(|| format!("--out {}", args.out.display()))?;

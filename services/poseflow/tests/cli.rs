@@ -446,6 +446,26 @@ fn observe_writes_a_training_shard_with_the_ground_truth() {
 }
 
 #[test]
+fn observe_jitters_masks_and_registration_the_same_way_every_run() {
+    let dataset = scratch("observe-jitter");
+    render(&dataset, "3");
+    let write = |name: &str, jitter: &[&str]| {
+        let shard = dataset.join(name);
+        let args = ["observe", "--dataset", dataset.to_str().unwrap(), "--split", "train"];
+        let sizes = ["--out", shard.to_str().unwrap(), "--image-size", "32", "--patch-grid", "4", "--points", "64"];
+        let out = poseflow(&[&args[..], &sizes, jitter].concat());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        std::fs::read(&shard).unwrap()
+    };
+    let plain = write("plain.obs", &[]);
+    let jitter = ["--grow-masks", "4", "--shrink-masks", "2", "--shift-depth", "2"];
+    let jittered = write("jittered.obs", &jitter);
+    assert_ne!(jittered, plain, "the jitter changed no observation");
+    assert_eq!(write("again.obs", &jitter), jittered, "the same jitter gave another shard");
+    std::fs::remove_dir_all(dataset).unwrap();
+}
+
+#[test]
 fn bench_model_times_both_networks() {
     let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/test-tiny");
     let out = poseflow(&["bench", "model", "--model", model, "--runs", "3", "--samples", "8", "--json"]);
