@@ -107,6 +107,7 @@ K = 5, per sample, no selection).
 {table(rows, header)}
 
 {note}
+
 """
 
 
