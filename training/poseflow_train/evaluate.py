@@ -171,26 +171,40 @@ class OnnxPoseFlow:
         return torch.cat(v_rot), torch.cat(v_pos)
 
 
+def add_model_arguments(parser):
+    """The flags every scoring command shares: the exported model and how it
+    samples (N, K, threads, seed)."""
+    parser.add_argument("--model", required=True, help="directory with encoder.onnx and velocity.onnx")
+    parser.add_argument("--samples", type=int, default=50)
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=1)
+
+
+def load_model(args):
+    """The exported model of `add_model_arguments`' flags and the sampling
+    settings `accuracy` takes from its metadata."""
+    from types import SimpleNamespace
+
+    torch.set_num_threads(args.threads)
+    model = OnnxPoseFlow(args.model, args.threads)
+    cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std, translation_scale=model.translation_scale)
+    return model, cfg
+
+
 def main():
     import argparse
-    from types import SimpleNamespace
 
     from .data import Observations
 
     parser = argparse.ArgumentParser(description="Per-sample accuracy of an exported model on a held-out shard.")
-    parser.add_argument("--model", required=True, help="directory with encoder.onnx and velocity.onnx")
+    add_model_arguments(parser)
     parser.add_argument("--shard", required=True, nargs="+")
-    parser.add_argument("--samples", type=int, default=50)
-    parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--count", type=int, default=10**9, help="first observations only")
     parser.add_argument("--min-visib-fract", type=float, default=0.1)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    model = OnnxPoseFlow(args.model, args.threads)
+    model, cfg = load_model(args)
     observations = Observations(args.shard, model.object_ids, args.min_visib_fract)
-    cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std, translation_scale=model.translation_scale)
     result = accuracy(model.encoder, model.velocity, observations, cfg, args.count, args.samples, args.steps, args.seed)
     result.update({"model": args.model, "shard": args.shard, "min_visib_fract": args.min_visib_fract})
     print(json.dumps(result))

@@ -16,14 +16,12 @@ import os
 import shutil
 import subprocess
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
-import torch
 from PIL import Image
 
 from .data import Observations
-from .evaluate import OnnxPoseFlow, accuracy
+from .evaluate import accuracy, add_model_arguments, load_model
 
 
 def colour_gains(gains):
@@ -188,22 +186,16 @@ def main():
     import argparse
 
     parser = argparse.ArgumentParser(description="Per-sample accuracy of an exported model on perturbed copies of a BOP split.")
-    parser.add_argument("--model", required=True, help="directory with encoder.onnx and velocity.onnx")
+    add_model_arguments(parser)
     parser.add_argument("--dataset", required=True, help="BOP dataset root (models/, camera.json, the split)")
     parser.add_argument("--split", required=True, help="split folder (not named test*: that reads test targets)")
     parser.add_argument("--out", required=True, help="scratch folder for the perturbed copies and their shards")
     parser.add_argument("--only", nargs="+", choices=list(VARIANTS), help="these variants only")
     parser.add_argument("--poseflow", default="../target/release/poseflow")
     parser.add_argument("--ingest-config", help="ingest parameters (TOML, as config/ingest.toml) for `poseflow observe`")
-    parser.add_argument("--samples", type=int, default=50)
-    parser.add_argument("--steps", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    model = OnnxPoseFlow(args.model, args.threads)
+    model, cfg = load_model(args)
     meta = model.encoder_session.get_modelmeta().custom_metadata_map
-    cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std, translation_scale=model.translation_scale)
     rows = {}
     for number, name in enumerate(args.only or VARIANTS):
         root = Path(args.out) / f"variant{number:02d}"
