@@ -9,6 +9,8 @@
 //! back-projection. Conventions: rasters row-major, depth in metres
 //! (0 = no measurement), radius in pixels (a square window).
 
+use std::borrow::Cow;
+
 use serde::{Deserialize, Serialize};
 
 /// Drop mask pixels more than `jump` metres behind the nearest mask pixel
@@ -41,18 +43,18 @@ impl EdgeFilter {
     /// The mask without its pixels behind an edge. `bounds` is the mask's
     /// inclusive pixel box `(u0, v0, u1, v1)`; `max_depth` as in
     /// back-projection (farther counts as no measurement).
-    pub fn apply(
+    pub fn apply<'a>(
         &self,
         depth: &[f32],
-        mask: &[bool],
+        mask: &'a [bool],
         width: usize,
         bounds: (u32, u32, u32, u32),
         max_depth: f32,
-    ) -> Vec<bool> {
-        let mut kept = mask.to_vec();
+    ) -> Cow<'a, [bool]> {
         if self.radius == 0 {
-            return kept;
+            return Cow::Borrowed(mask);
         }
+        let mut kept = mask.to_vec();
         let (u0, v0, u1, v1) = (bounds.0 as usize, bounds.1 as usize, bounds.2 as usize, bounds.3 as usize);
         let (box_width, box_height) = (u1 - u0 + 1, v1 - v0 + 1);
         let at = |u: usize, v: usize| (v0 + v) * width + u0 + u;
@@ -72,7 +74,7 @@ impl EdgeFilter {
                 kept[at(i % box_width, i / box_width)] = false;
             }
         }
-        kept
+        Cow::Owned(kept)
     }
 }
 

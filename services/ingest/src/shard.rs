@@ -143,7 +143,7 @@ pub fn write_shard(
     let mut truth: Option<SceneTruth> = None;
     while let Some(loaded) = frames.next_frame() {
         counts.frames += 1;
-        let loaded = match loaded {
+        let mut loaded = match loaded {
             Ok(loaded) => loaded,
             Err(err) => {
                 tracing::warn!(%err, "frame skipped");
@@ -160,7 +160,6 @@ pub fn write_shard(
             });
         }
         let SceneTruth { gts, infos, .. } = truth.as_ref().expect("read above");
-        let mut loaded = loaded;
         let mut jitter_rng = seeded_rng(loaded.frame.frame_id ^ JITTER_SEED);
         jitter.apply(&mut loaded.frame, &mut loaded.objects, &mut jitter_rng);
         let mut rng = seeded_rng(loaded.frame.frame_id);
