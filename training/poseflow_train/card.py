@@ -19,6 +19,14 @@ from .data import Shard
 from .train import load_config
 
 
+def instances(result):
+    """"N object instances", naming those the ingest could not observe
+    (counted as misses by `evaluate`)."""
+    missed = result.get("unobserved", 0)
+    total = result["observations"] + missed
+    return f"{total} object instances" + (f" ({missed} not observed by the ingest: misses)" if missed else "")
+
+
 def learning_curve(log_paths):
     """Validation entries of the runs' logs in order; an earlier run's
     entries count up to where the next run's log starts (a run continued
@@ -179,12 +187,12 @@ def main():
     ]
     object_rows = [
         (obj, "yes" if info.get(obj, {}).get("symmetries_discrete") or info.get(obj, {}).get("symmetries_continuous")
-         else "no", r["observations"], r["acc_10deg_5cm"], r["acc_5deg_5cm"], r["median_rot_deg"], r["median_trans_cm"])
+         else "no", r["observations"] + r.get("unobserved", 0), r["acc_10deg_5cm"], r["acc_5deg_5cm"], r["median_rot_deg"], r["median_trans_cm"])
         for obj, r in evaluation["per_object"].items()
     ]
     others = [json.loads(Path(p).read_text()) for p in args.also_eval]
     other_rows = "".join(
-        f"| all, `{' '.join(e['shard'])}` ({e['observations']} instances) | {e['acc_10deg_5cm']} | {e['acc_5deg_5cm']} | "
+        f"| all, `{' '.join(e['shard'])}` ({instances(e)}) | {e['acc_10deg_5cm']} | {e['acc_5deg_5cm']} | "
         f"{e['acc_10deg_2cm']} | {e['median_rot_deg']} | {e['median_trans_cm']} |\n"
         f"| its coarse pose | {e['coarse']['acc_10deg_5cm']} | {e['coarse']['acc_5deg_5cm']} | "
         f"{e['coarse']['acc_10deg_2cm']} | {e['coarse']['median_rot_deg']} | {e['coarse']['median_trans_cm']} |\n"
@@ -267,7 +275,7 @@ the coarse pose's there.
 ## Held-out accuracy (the exported ONNX files through ONNX Runtime)
 
 `python -m poseflow_train.evaluate --model {args.model} --shard {' '.join(evaluation['shard'])}`:
-{evaluation['observations']} object instances (visible fraction ≥ {evaluation['min_visib_fract']}),
+{instances(evaluation)} (visible fraction ≥ {evaluation['min_visib_fract']}),
 N = {evaluation['samples']} samples from uniform rotations, K = {evaluation['steps']} Euler steps, no selection;
 accuracy averaged over individual samples, with the minimum error over each
 object's symmetries (`models_info.json`; continuous ones in 1° steps).

@@ -87,6 +87,20 @@ class Observations:
     def __len__(self):
         return len(self.index)
 
+    def poses(self, indices):
+        """The ground truth alone (what training on cached conditions needs):
+        `rotation`, `translation` (relative to the observed points' mean),
+        `object_index` and `obj_id` of the given positions."""
+        rows = [self.shards[k].records[i] for k, i in (self.index[j] for j in indices)]
+        ids = np.stack([r["ids"] for r in rows])
+        centroid = torch.from_numpy(np.stack([r["centroid"] for r in rows]))
+        return {
+            "object_index": torch.tensor([self.object_index[int(o)] for o in ids[:, 0]]),
+            "obj_id": torch.from_numpy(ids[:, 0].astype(np.int64)),
+            "rotation": torch.from_numpy(np.stack([r["rotation"] for r in rows])).reshape(-1, 3, 3),
+            "translation": torch.from_numpy(np.stack([r["translation"] for r in rows])) - centroid,
+        }
+
     def batch(self, indices):
         """A dict of tensors for the given positions in this set."""
         rows = [self.shards[k].records[i] for k, i in (self.index[j] for j in indices)]

@@ -73,10 +73,61 @@ def errors(r, p, gt_r, gt_p, transforms):
     return best_rot, best_trans
 
 
-def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed):
+def summarise(rot, trans, misses, per_instance):
+    """Accuracies (%) of the scored poses' errors (degrees, cm), with
+    `misses` instances of `per_instance` poses each counted as failures;
+    medians over the scored poses."""
+    def acc(deg, cm):
+        hits = ((rot < deg) & (trans < cm)).float().sum().item()
+        return round(100.0 * hits / (rot.numel() + misses * per_instance), 2)
+
+    return {
+        "acc_5deg_5cm": acc(5, 5),
+        "acc_10deg_5cm": acc(10, 5),
+        "acc_10deg_2cm": acc(10, 2),
+        "median_rot_deg": round(rot.median().item(), 2),
+        "median_trans_cm": round(trans.median().item(), 2),
+    }
+
+
+def unobserved(observations, min_visib_fract):
+    """{obj_id: instances} of the shards' BOP splits that are visible
+    enough to be scored but have no observation: the ingest rejected them
+    (too few valid depth points, say). They are misses, as in `poseflow
+    eval`. The split folder is found where the shard says the dataset is, or
+    beside the shard (training/make-data's layout)."""
+    wanted = set(observations.object_index)
+    missing = {}
+    for shard in observations.shards:
+        candidates = [Path(shard.info["dataset"]) / shard.info["split"], shard.path.parent / shard.info["split"]]
+        split = next((c for c in candidates if c.is_dir()), None)
+        if split is None:
+            raise SystemExit(f"{shard.path}: its split folder is at none of {[str(c) for c in candidates]} "
+                             "(needed to count the instances the ingest could not observe)")
+        expected = {}
+        for scene in sorted(p for p in split.iterdir() if (p / "scene_gt_info.json").is_file()):
+            gts = json.loads((scene / "scene_gt.json").read_text())
+            infos = json.loads((scene / "scene_gt_info.json").read_text())
+            for im_id, entries in gts.items():
+                for gt, info in zip(entries, infos[im_id]):
+                    if gt["obj_id"] in wanted and info["visib_fract"] >= min_visib_fract:
+                        expected[gt["obj_id"]] = expected.get(gt["obj_id"], 0) + 1
+        records = shard.records
+        keep = records["visib_fract"] >= min_visib_fract
+        for obj, count in expected.items():
+            observed = int(((records["ids"][:, 0] == obj) & keep).sum())
+            if count > observed:
+                missing[obj] = missing.get(obj, 0) + count - observed
+    return missing
+
+
+def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed, missed=None):
     """Per-sample accuracies over the first `count` observations, overall
     and per object. `encoder` and `velocity` are callables with the
-    signatures of the PyTorch modules (or `OnnxPoseFlow`'s)."""
+    signatures of the PyTorch modules (or `OnnxPoseFlow`'s). `missed`
+    ({obj_id: instances}, from `unobserved`) count as instances whose every
+    sample failed; medians are over the observed ones."""
+    missed = missed or {}
     generator = torch.Generator().manual_seed(seed)
     transforms = symmetries(observations.models_info)
     count = min(count, len(observations))
@@ -95,25 +146,16 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed):
             coarse_rots.append(rot)
             coarse_transs.append(trans)
 
-    def summary(rot, trans):
-        def acc(deg, cm):
-            return round(100.0 * ((rot < deg) & (trans < cm)).float().mean().item(), 2)
-
-        return {
-            "acc_5deg_5cm": acc(5, 5),
-            "acc_10deg_5cm": acc(10, 5),
-            "acc_10deg_2cm": acc(10, 2),
-            "median_rot_deg": round(rot.median().item(), 2),
-            "median_trans_cm": round(trans.median().item(), 2),
-        }
-
-    result = {"observations": len(rots), "samples": samples, "steps": steps, **summary(torch.cat(rots), torch.cat(transs))}
+    summary = summarise
+    total_missed = sum(missed.values())
+    result = {"observations": len(rots), "unobserved": total_missed, "samples": samples, "steps": steps,
+              **summary(torch.cat(rots), torch.cat(transs), total_missed, samples)}
     # The encoder's coarse pose alone (one per observation), for comparison.
-    result["coarse"] = summary(torch.cat(coarse_rots), torch.cat(coarse_transs))
+    result["coarse"] = summary(torch.cat(coarse_rots), torch.cat(coarse_transs), total_missed, 1)
     result["per_object"] = {
-        str(obj): {"observations": objects.count(obj),
+        str(obj): {"observations": objects.count(obj), "unobserved": missed.get(obj, 0),
                    **summary(torch.cat([r for r, o in zip(rots, objects) if o == obj]),
-                             torch.cat([t for t, o in zip(transs, objects) if o == obj]))}
+                             torch.cat([t for t, o in zip(transs, objects) if o == obj]), missed.get(obj, 0), samples)}
         for obj in sorted(set(objects))
     }
     return result
@@ -205,7 +247,11 @@ def main():
     args = parser.parse_args()
     model, cfg = load_model(args)
     observations = Observations(args.shard, model.object_ids, args.min_visib_fract)
-    result = accuracy(model.encoder, model.velocity, observations, cfg, args.count, args.samples, args.steps, args.seed)
+    # A prefix of the observations (--count) is a quick look, not a figure
+    # over the split: only the whole split counts its unobserved instances.
+    missed = unobserved(observations, args.min_visib_fract) if args.count >= len(observations) else {}
+    result = accuracy(model.encoder, model.velocity, observations, cfg, args.count, args.samples, args.steps, args.seed,
+                      missed)
     result.update({"model": args.model, "shard": args.shard, "min_visib_fract": args.min_visib_fract})
     print(json.dumps(result))
 

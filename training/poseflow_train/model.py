@@ -82,6 +82,15 @@ class ModelConfig:
     # Refinement iterations of the coarse pose (0: none, as models trained
     # before the refiner existed).
     refine_iterations: int = 0
+    # The velocity network sees each sample's pose relative to the coarse
+    # pose (R_c^T R_t, p_t - p_c) and predicts the clean pose as R_c Delta,
+    # a correction in the object frame. An ambiguity is then one fixed
+    # function of the relative pose for every view (a hidden mug handle:
+    # keep the sample's turn about the mug's axis; a symmetric object: its
+    # nearest twin), where a correction of the coarse pose's 6D columns in
+    # the camera frame has to relearn it per orientation, and in practice
+    # collapses every sample onto the coarse pose. False: the first models.
+    relative_pose: bool = False
 
     def __post_init__(self):
         if self.image_encoder not in ("scratch", "dinov2"):
@@ -422,6 +431,13 @@ class VelocityNet(nn.Module):
     def clean_pose(self, condition, condition_mask, rotation, translation, t):
         """The predicted clean pose (R1_hat, p1_hat in metres)."""
         scale = self.cfg.translation_scale
+        bc = condition.shape[0]
+        hint_r, hint_p = read_hint(condition, self.cfg)
+        if self.cfg.relative_pose:
+            per_sample = rotation.shape[0] // bc
+            base_r = hint_r[:, None].expand(bc, per_sample, 3, 3).reshape(-1, 3, 3)
+            base_p = hint_p[:, None, :].expand(bc, per_sample, 3).reshape(-1, 3)
+            rotation, translation = base_r.transpose(-1, -2) @ rotation, translation - base_p
         x = torch.stack(
             [self.rotation_in(rotation.reshape(-1, 9)) + self.kind[0], self.translation_in(translation / scale) + self.kind[1]],
             1,
@@ -429,8 +445,6 @@ class VelocityNet(nn.Module):
         c = self.time(fourier(t, self.cfg.fourier_features))
         # Per-observation conditioning, shared by its samples (grouped as in
         # `Attention`): the coarse pose and the masked mean of the tokens.
-        bc = condition.shape[0]
-        hint_r, hint_p = read_hint(condition, self.cfg)
         per_observation = self.hint(condition[:, -1, :HINT_VALUES])
         if self.cfg.global_condition:
             weights = condition_mask[:, :, None]
@@ -446,11 +460,14 @@ class VelocityNet(nn.Module):
         # current pose is noise, and a correction of it would have to undo a
         # random rotation, which an MLP learns slowly (a run with
         # corrections of R_t stayed at chance for 11,000 steps).
-        base_6d = torch.cat([hint_r[:, :, 0], hint_r[:, :, 1]], -1)[:, None, :].expand(bc, samples, 6).reshape(-1, 6)
         base_p = hint_p[:, None, :].expand(bc, samples, 3).reshape(-1, 3)
-        r1 = se3.rotation_from_6d(base_6d + self.rotation_head(x[:, 0]))
         p1 = base_p + self.translation_head(x[:, 1]) * scale
-        return r1, p1
+        if self.cfg.relative_pose:
+            base_r = hint_r[:, None].expand(bc, samples, 3, 3).reshape(-1, 3, 3)
+            identity_6d = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0], dtype=x.dtype)
+            return base_r @ se3.rotation_from_6d(identity_6d + self.rotation_head(x[:, 0])), p1
+        base_6d = torch.cat([hint_r[:, :, 0], hint_r[:, :, 1]], -1)[:, None, :].expand(bc, samples, 6).reshape(-1, 6)
+        return se3.rotation_from_6d(base_6d + self.rotation_head(x[:, 0])), p1
 
     def forward(self, condition, condition_mask, rotation, translation, t):
         r1, p1 = self.clean_pose(condition, condition_mask, rotation, translation, t)

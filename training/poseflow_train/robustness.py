@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image
 
 from .data import Observations
-from .evaluate import accuracy, add_model_arguments, load_model
+from .evaluate import unobserved, accuracy, add_model_arguments, load_model
 
 
 def colour_gains(gains):
@@ -204,7 +204,7 @@ def main():
         observe(args.poseflow, root, args.split, shard, meta["image_size"], meta["patch_grid"], args.ingest_config)
         observations = Observations([shard], model.object_ids)
         result = accuracy(model.encoder, model.velocity, observations, cfg, len(observations), args.samples,
-                          args.steps, args.seed)
+                          args.steps, args.seed, unobserved(observations, 0.1))
         result.pop("per_object")
         rows[name] = result
         print(f"{name}: {result['observations']} observations, per-sample 10deg5cm {result['acc_10deg_5cm']} %, "

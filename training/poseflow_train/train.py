@@ -186,6 +186,45 @@ def learning_rate(config, state):
     return decay["final"] + (lr - decay["final"]) * 0.5 * (1.0 + math.cos(math.pi * min(max(done, 0.0), 1.0)))
 
 
+def condition_cache(encoder, observations, path, source, batch=64):
+    """Every observation's condition tokens and mask under a frozen encoder
+    ([n, T, D] and [n, T] float32, memory-mapped): computed once and stored
+    at `path`.condition.npy / .mask.npy beside `path`.json, which names the
+    encoder's checkpoint and the shards, so a cache of another encoder or
+    other data is refused rather than silently reused."""
+    path = Path(path)
+    key = {"encoder": str(source), "shards": [str(s.path) for s in observations.shards], "count": len(observations)}
+    files = [path.with_suffix(".condition.npy"), path.with_suffix(".mask.npy")]
+    described = path.with_suffix(".json")
+    if described.exists():
+        if json.loads(described.read_text()) != key:
+            raise SystemExit(f"{described}: a condition cache of another encoder or other shards ({described.read_text()}); "
+                             "delete it or name another condition_cache")
+        return [np.load(f, mmap_mode="r") for f in files]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    encoder.eval()
+    arrays = None
+    started = time.monotonic()
+    with torch.no_grad():
+        for start in range(0, len(observations), batch):
+            b = observations.batch(range(start, min(start + batch, len(observations))))
+            condition, mask = encoder(b["image"], b["token_mask"], b["points"], b["object_index"])
+            if arrays is None:
+                arrays = [np.lib.format.open_memmap(f.with_suffix(".tmp.npy"), mode="w+", dtype=np.float32,
+                                                    shape=(len(observations), *x.shape[1:]))
+                          for f, x in zip(files, (condition, mask))]
+            arrays[0][start:start + len(condition)] = condition.numpy()
+            arrays[1][start:start + len(condition)] = mask.numpy()
+            if start // batch % 50 == 0:
+                print(f"condition cache: {start + len(condition)} of {len(observations)} "
+                      f"({time.monotonic() - started:.0f} s)", flush=True)
+    for array, f in zip(arrays, files):
+        array.flush()
+        os.replace(f.with_suffix(".tmp.npy"), f)
+    described.write_text(json.dumps(key))
+    return [np.load(f, mmap_mode="r") for f in files]
+
+
 def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
     """Everything a later run needs to continue, written atomically."""
     saved = {name: module.state_dict() for name, module in modules.items()}
@@ -194,6 +233,41 @@ def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
     tmp = path.with_suffix(".tmp")
     torch.save(saved, tmp)
     os.replace(tmp, path)
+
+
+def step(config, state, optimiser, params, loss):
+    """One optimiser step at the scheduled learning rate."""
+    for group in optimiser.param_groups:
+        group["lr"] = learning_rate(config, state)
+    optimiser.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, config.get("clip", 1.0))
+    optimiser.step()
+    state["step"] += 1
+
+
+def finish_step(config, state, started, log, loss, loss_rot, loss_pos, loss_corr, encoder, velocity, val, cfg, steps,
+                checkpoint, modules, optimiser, generator, rng, marks):
+    """Counts the step's time; logs, validates and checkpoints when due
+    (`marks` holds the training time of the last validation and
+    checkpoint)."""
+    state["train_s"] += time.monotonic() - started
+    if state["step"] % config.get("log_every", 20) == 0:
+        entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "lr": learning_rate(config, state), "loss": loss.item(),
+                 "loss_rot": loss_rot.item(), "loss_pos": loss_pos.item(), "loss_corr": loss_corr.item()}
+        log.write(json.dumps(entry) + "\n")
+        log.flush()
+        print(entry, flush=True)
+    if state["train_s"] - marks["validation"] >= config.get("validate_s", 900):
+        marks["validation"] = state["train_s"]
+        result = validate(encoder, velocity, val, cfg, config.get("val_observations", 64), 50, steps, seed=1)
+        entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "validation": result}
+        log.write(json.dumps(entry) + "\n")
+        log.flush()
+        print(entry, flush=True)
+    if state["train_s"] - marks["checkpoint"] >= config.get("checkpoint_s", 300):
+        marks["checkpoint"] = state["train_s"]
+        save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
 
 
 def main():
@@ -214,6 +288,14 @@ def main():
     encoder, velocity = Encoder(cfg), VelocityNet(cfg)
     modules = {"encoder": encoder, "velocity": velocity}
     table = symmetry_table(train.models_info, cfg.object_ids, config.get("loss_continuous_steps", 36))
+    # `frozen_encoder`: the encoder (from `init_from`) is fixed and its
+    # conditions are computed once (`condition_cache`), so a step costs the
+    # velocity network alone and can afford many more flow samples.
+    frozen = config.get("frozen_encoder", False)
+    if frozen:
+        if not (config.get("init_from") and config.get("condition_cache")):
+            raise SystemExit("config: frozen_encoder needs init_from (the encoder) and condition_cache (a path)")
+        encoder.requires_grad_(False)
     # A frozen DINOv2 image encoder has no trainable parameters.
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
     optimiser = torch.optim.AdamW(params, lr=config.get("lr", 3e-4), weight_decay=config.get("weight_decay", 1e-4))
@@ -242,12 +324,19 @@ def main():
             if missing:
                 print(f"init_from: {name}: {len(missing)} new tensors ({missing[0]}, ...) start fresh", flush=True)
         state = dict(saved["state"], initialised_at_s=saved["state"]["train_s"])
+        if config.get("reset_heads"):
+            # The heads' outputs mean something else in the new model (e.g.
+            # `relative_pose`): start from the coarse pose again.
+            for head in (velocity.rotation_head, velocity.translation_head):
+                torch.nn.init.zeros_(head.weight)
+                torch.nn.init.zeros_(head.bias)
         print(f"initialised from {config['init_from']} (step {state['step']}, {state['train_s'] / 60:.1f} min)", flush=True)
+    cache = condition_cache(encoder, train, config["condition_cache"], config["init_from"]) if frozen else None
     log = open(out / "log.jsonl", "a")
     batch_size, samples, steps = config.get("batch", 16), config.get("samples_per_observation", 16), config.get("steps", 5)
     lam = config.get("lambda_pos", 10.0)
     run_started = time.monotonic()
-    last_checkpoint = last_validation = state["train_s"]
+    marks = {"checkpoint": state["train_s"], "validation": state["train_s"]}
     print(f"{len(train)} training and {len(val)} validation observations", flush=True)
     # SIGTERM / SIGINT end the run after the current step, with a checkpoint.
     stop = []
@@ -257,6 +346,18 @@ def main():
         if args.max_minutes is not None and time.monotonic() - run_started > 60 * args.max_minutes:
             break
         started = time.monotonic()
+        if cache is not None:
+            indices = np.sort(rng.integers(0, len(train), batch_size))
+            batch = train.poses(indices)
+            condition, mask = (torch.from_numpy(np.asarray(c[indices])) for c in cache)
+            flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0))
+            loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
+            loss = lam * loss_pos + loss_rot
+            loss_corr = torch.zeros(())
+            step(config, state, optimiser, params, loss)
+            finish_step(config, state, started, log, loss, loss_rot, loss_pos, loss_corr, encoder, velocity, val, cfg, steps,
+                        checkpoint, modules, optimiser, generator, rng, marks)
+            continue
         batch = train.batch(rng.integers(0, len(train), batch_size))
         # Warm-ups: the correspondence network (and refiner) alone, many
         # times faster per observation than the whole model: for the first
@@ -283,30 +384,9 @@ def main():
             loss_more = correspondence_losses(encoder, more, table, cfg, config, generator)
             loss_corr = (batch_size * loss_corr + extra * loss_more) / (batch_size + extra)
         loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr
-        for group in optimiser.param_groups:
-            group["lr"] = learning_rate(config, state)
-        optimiser.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, config.get("clip", 1.0))
-        optimiser.step()
-        state["step"] += 1
-        state["train_s"] += time.monotonic() - started
-        if state["step"] % config.get("log_every", 20) == 0:
-            entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "lr": learning_rate(config, state), "loss": loss.item(),
-                     "loss_rot": loss_rot.item(), "loss_pos": loss_pos.item(), "loss_corr": loss_corr.item()}
-            log.write(json.dumps(entry) + "\n")
-            log.flush()
-            print(entry, flush=True)
-        if state["train_s"] - last_validation >= config.get("validate_s", 900):
-            last_validation = state["train_s"]
-            result = validate(encoder, velocity, val, cfg, config.get("val_observations", 64), 50, steps, seed=1)
-            entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "validation": result}
-            log.write(json.dumps(entry) + "\n")
-            log.flush()
-            print(entry, flush=True)
-        if state["train_s"] - last_checkpoint >= config.get("checkpoint_s", 300):
-            last_checkpoint = state["train_s"]
-            save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
+        step(config, state, optimiser, params, loss)
+        finish_step(config, state, started, log, loss, loss_rot, loss_pos, loss_corr, encoder, velocity, val, cfg, steps,
+                    checkpoint, modules, optimiser, generator, rng, marks)
     save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
     print(f"stopped at step {state['step']} after {state['train_s'] / 60:.1f} min of training", flush=True)
 

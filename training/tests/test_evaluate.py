@@ -4,7 +4,11 @@ import math
 import torch
 
 from poseflow_train import se3
-from poseflow_train.evaluate import errors, symmetries
+from types import SimpleNamespace
+
+import numpy as np
+
+from poseflow_train.evaluate import errors, summarise, symmetries, unobserved
 
 
 def write_info(tmp_path, entry):
@@ -33,3 +37,25 @@ def test_an_offset_symmetry_axis_moves_the_translation(tmp_path):
     half = se3.so3_exp(torch.tensor([0.0, 0.0, math.pi]))
     rot, trans = errors(half[None], torch.tensor([[0.02, 0.0, 0.0]]), gt_r, gt_p, transforms)
     assert rot.item() <= 0.5 and trans.item() < 0.05
+
+
+def test_instances_the_ingest_could_not_observe_are_misses(tmp_path):
+    # Scene 0: object 1 twice (one too hidden to score), object 5 once;
+    # the shard holds only object 1's scorable instance.
+    scene = tmp_path / "heldout" / "000000"
+    scene.mkdir(parents=True)
+    gts = {"0": [{"obj_id": 1}, {"obj_id": 1}, {"obj_id": 5}]}
+    infos = {"0": [{"visib_fract": 0.8}, {"visib_fract": 0.05}, {"visib_fract": 0.6}]}
+    (scene / "scene_gt.json").write_text(json.dumps(gts))
+    (scene / "scene_gt_info.json").write_text(json.dumps(infos))
+    records = np.zeros(1, dtype=[("ids", "<u4", 4), ("visib_fract", "<f4")])
+    records["ids"][0, 0], records["visib_fract"][0] = 1, 0.8
+    shard = SimpleNamespace(info={"dataset": str(tmp_path / "elsewhere"), "split": "heldout"},
+                            path=tmp_path / "heldout.obs", records=records)
+    observations = SimpleNamespace(shards=[shard], object_index={1: 0, 5: 1})
+    assert unobserved(observations, 0.1) == {5: 1}
+    # Two observed instances of two samples each, all within 5 deg 5 cm, and
+    # one missed instance: 4 of 6 samples.
+    rot, trans = torch.tensor([1.0, 2.0, 3.0, 4.0]), torch.tensor([0.5, 0.5, 0.5, 0.5])
+    assert summarise(rot, trans, 1, 2)["acc_5deg_5cm"] == 66.67
+    assert summarise(rot, trans, 0, 2)["acc_5deg_5cm"] == 100.0

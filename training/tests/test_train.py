@@ -89,3 +89,51 @@ def test_the_learning_rate_decays_by_cosine_over_the_runs_own_time():
     assert math.isclose(learning_rate(config, dict(grown, train_s=6000.0)), 1e-5)
     assert math.isclose(learning_rate(config, dict(grown, train_s=7000.0)), 1e-5)
     assert math.isclose(learning_rate(config, {"train_s": 250.0}), 1e-5 + 1.9e-4 * 0.5 * (1 + math.cos(math.pi / 4)))
+
+
+class Blind(torch.nn.Module):
+    def __init__(self, width):
+        super().__init__()
+        self.width = width
+
+    def forward(self, values):
+        return torch.zeros(values.shape[0], self.width)
+
+
+def test_the_relative_pose_velocity_net_starts_at_the_coarse_pose_and_sees_poses_relative_to_it():
+    from poseflow_train.model import HINT_VALUES, VelocityNet, hint_token
+
+    cfg = ModelConfig(object_ids=[1], width=32, heads=2, dit_depth=1, relative_pose=True, global_condition=False)
+    g = torch.Generator().manual_seed(0)
+    net = VelocityNet(cfg).eval()
+    coarse_r = se3.uniform_rotation((2,), generator=g)
+    coarse_p = torch.tensor([[0.01, 0.0, -0.02], [0.0, 0.03, 0.0]])
+    tokens = torch.randn(2, 5, cfg.width, generator=g)
+    condition = torch.cat([tokens, hint_token(coarse_r, coarse_p, cfg)], 1)
+    mask = torch.ones(2, 6)
+    samples = 3
+    r_t = se3.uniform_rotation((2 * samples,), generator=g)
+    p_t = torch.randn(2 * samples, 3, generator=g) * 0.05
+    t = torch.full((2 * samples,), 0.4)
+    # Zero-initialised heads: every sample's clean pose is its observation's
+    # coarse pose.
+    with torch.no_grad():
+        r1, p1 = net.clean_pose(condition, mask, r_t, p_t, t)
+    assert (r1 - coarse_r.repeat_interleave(samples, 0)).abs().max() < 1e-5
+    assert (p1 - coarse_p.repeat_interleave(samples, 0)).abs().max() < 1e-7
+    # The pose token is built from R_c^T R_t: turning a sample and its
+    # coarse pose together (same token values otherwise) changes nothing.
+    with torch.no_grad():
+        net.rotation_head.weight.normal_(0.0, 0.1, generator=g)
+        turn = se3.so3_exp(torch.tensor([0.3, -1.0, 0.7]))
+        turned_condition = condition.clone()
+        turned_condition[:, -1, :9] = (turn @ coarse_r).reshape(2, 9)
+        a, _ = net.clean_pose(condition, mask, r_t, p_t, t)
+        # The adaLN conditioning reads the coarse pose's values too: blind it
+        # here, so only the pose token could tell the two apart.
+        net.hint = Blind(cfg.width)
+        a, _ = net.clean_pose(condition, mask, r_t, p_t, t)
+        b, _ = net.clean_pose(turned_condition, mask, turn @ r_t, p_t, t)
+    # The output turns with the coarse pose: R_c Delta -> Q R_c Delta.
+    assert (turn @ a - b).abs().max() < 1e-4
+    assert HINT_VALUES == 12

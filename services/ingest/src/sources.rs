@@ -290,7 +290,10 @@ impl FrameSource for SyntheticFrames {
             self.scene = Some((scene_id, render_scene(&self.library, &self.spec, scene_id)));
         }
         let (_, scene) = self.scene.as_ref().expect("composed above");
-        let rendered = render_frame(&self.library, &self.spec, scene, scene_id, im_id);
+        let rendered = match render_frame(&self.library, &self.spec, scene, scene_id, im_id) {
+            Ok(rendered) => rendered,
+            Err(err) => return Some(Err(err.into())),
+        };
         let camera = self.spec.camera;
         let objects = scene
             .objects

@@ -40,6 +40,7 @@ fn points_lie_on_the_model_and_tokens_cover_the_projection() {
         path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
+        condition: None,
     };
     let root = scratch("surface");
     write_dataset(&library, &spec, &root, |_| {}).unwrap();
@@ -143,6 +144,7 @@ fn mask_files_replace_the_ground_truth() {
         path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
+        condition: None,
     };
     let root = scratch("mask-files");
     write_dataset(&library, &spec, &root, |_| {}).unwrap();
@@ -188,6 +190,7 @@ fn test_targets_restrict_only_the_test_split() {
         path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
+        condition: None,
     };
     let root = scratch("targets");
     write_dataset(&library, &spec("test", 7, 2), &root, |_| {}).unwrap();

@@ -7,6 +7,7 @@ use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use poseflow_scene::camera_path::CameraPath;
 use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset};
+use poseflow_scene::part::{ObjectPart, PartVisibility, ViewCondition};
 use poseflow_scene::scene::{Occlusion, ViewRange};
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
@@ -25,7 +26,9 @@ const RGB_NOISE: f64 = 2.0;
 #[command(after_help = "Example:\n  poseflow render --models objects/lmo --out data/lmo-synth --scenes 20 \
     --frames-per-scene 50 --seed 1 --occlusion high\n  \
     poseflow render --models objects/lmo --out data/lmo-orbit --split test --frames-per-scene 120 \
-    --orbit-step-deg 1   (a 120-image video for tracking)\n\n\
+    --orbit-step-deg 1   (a 120-image video for tracking)\n  \
+    poseflow render --models objects/ycbv/models --objects 14 --out data/mug-hidden --split test --scenes 10 \
+    --frames-per-scene 5 --mug-handle hidden   (mug views whose handle is out of sight)\n\n\
     Writes <out>/camera.json, <out>/models/, <out>/poseflow_render.json and <out>/<split>/<scene:06>/ with \
     scene_camera.json, scene_gt.json, scene_gt_info.json, rgb/, depth/ (16-bit, depth_scale 0.1 mm), mask/, \
     mask_visib/. The same arguments give the same files, bit for bit.")]
@@ -70,9 +73,20 @@ pub struct RenderArgs {
     /// Write noiseless depth and colour (default: depth-sensor and RGB noise).
     #[arg(long)]
     pub clean: bool,
+    /// Keep only views in which the YCB-V mug (object 14: its handle is object x > 5 cm) is at least half
+    /// visible and shows its handle (`visible`: ≥ 150 handle pixels at 640×480) or hides it behind its body or
+    /// clutter (`hidden`: ≤ 10): the ambiguity benchmark's views. Random cameras only.
+    #[arg(long, value_enum, value_name = "VISIBILITY")]
+    pub mug_handle: Option<HandleArg>,
     /// Print a JSON summary on stdout instead of the text line.
     #[arg(long)]
     pub json: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum HandleArg {
+    Hidden,
+    Visible,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -121,6 +135,9 @@ fn check(args: &RenderArgs) -> anyhow::Result<()> {
     {
         bail!("--orbit-step-deg {step}: expected degrees per image within ±{MAX_ORBIT_STEP_DEG}");
     }
+    if args.mug_handle.is_some() && args.orbit_step_deg.is_some() {
+        bail!("--mug-handle with --orbit-step-deg: views are chosen by drawing random cameras, an orbit has none");
+    }
     if args.split.is_empty() || args.split.contains(['/', '\\']) || args.split.starts_with('.') {
         bail!("--split {:?}: expected a plain folder name such as train, val or test", args.split);
     }
@@ -131,6 +148,23 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     check(args)?;
     let library = ModelLibrary::load(&args.models, &args.objects)
         .with_context(|| format!("--models {}: cannot load the object models", args.models.display()))?;
+    let condition = args.mug_handle.map(|handle| ViewCondition {
+        part: ObjectPart::ycbv_mug_handle(),
+        visibility: match handle {
+            HandleArg::Hidden => PartVisibility::Hidden,
+            HandleArg::Visible => PartVisibility::Visible,
+        },
+    });
+    if let Some(condition) = condition
+        && !library.objects.iter().any(|o| o.obj_id == condition.part.obj_id)
+    {
+        bail!(
+            "--mug-handle: the scenes have no object {} (the YCB-V mug); --models {} --objects {:?}",
+            condition.part.obj_id,
+            args.models.display(),
+            args.objects
+        );
+    }
     let spec = RenderSpec {
         split: args.split.clone(),
         first_scene: args.first_scene,
@@ -143,6 +177,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         path: args.orbit_step_deg.map_or(CameraPath::Random, |step_deg| CameraPath::Orbit { step_deg }),
         depth_noise: (!args.clean).then(DepthNoise::default),
         rgb_noise: if args.clean { 0.0 } else { RGB_NOISE },
+        condition,
     };
     let started = Instant::now();
     let total = u64::from(args.scenes) * u64::from(args.frames_per_scene);

@@ -25,5 +25,5 @@ pub mod stage;
 
 pub use error::SelectorError;
 pub use geometry::{ObjectGeometry, ObjectLibrary};
-pub use params::{Method, SelectorParams};
+pub use params::{Distribution, Method, SelectorParams};
 pub use select::{Selection, select};

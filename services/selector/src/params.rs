@@ -20,6 +20,20 @@ pub enum Method {
     Sdf,
 }
 
+/// Which poses the Estimate reports as its kept hypotheses (and their mean
+/// and covariance) when `refine` is on; the selected pose is the best
+/// refined one either way.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Distribution {
+    /// The flow's samples as they were kept (in the refined scores' order):
+    /// refinement pulls every sample near one optimum onto it, which says
+    /// how precise the selected pose is, not how uncertain the estimate is.
+    Samples,
+    /// The refined hypotheses.
+    Refined,
+}
+
 impl Method {
     pub fn needs_model(self) -> bool {
         matches!(self, Self::Chamfer | Self::Sdf)
@@ -40,6 +54,7 @@ impl Method {
 /// | `sdf_resolution` | grid cells along the object's longest side | 64 |
 /// | `refine` | refine the kept hypotheses (Levenberg-Marquardt on the grid) | false |
 /// | `refine_iterations` | iterations per hypothesis | 10 |
+/// | `distribution` | with `refine`: the kept hypotheses reported are the `samples` or the `refined` ones | `samples` |
 /// | `observations` | Observations kept while their Hypotheses are awaited | 64 |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -68,6 +83,8 @@ pub struct SelectorParams {
     pub refine: bool,
     #[serde(default = "default_refine_iterations")]
     pub refine_iterations: usize,
+    #[serde(default = "default_distribution")]
+    pub distribution: Distribution,
     #[serde(default = "default_observations")]
     pub observations: usize,
 }
@@ -98,6 +115,9 @@ fn default_outlier_distance() -> f64 {
 }
 fn default_sdf_resolution() -> usize {
     64
+}
+fn default_distribution() -> Distribution {
+    Distribution::Samples
 }
 fn default_refine_iterations() -> usize {
     10

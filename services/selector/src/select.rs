@@ -10,7 +10,7 @@ use poseflow_geometry::{KarcherOptions, Pose, PoseStatistics};
 use crate::cluster::{Clusters, Neighbourhood, dbscan};
 use crate::refine::refine;
 use crate::score::{Likelihood, Residuals};
-use crate::{Method, ObjectGeometry, SelectorError, SelectorParams};
+use crate::{Distribution, Method, ObjectGeometry, SelectorError, SelectorParams};
 
 /// The outcome for one object in one frame. Poses are camera-frame.
 #[derive(Debug, Clone)]
@@ -24,7 +24,8 @@ pub struct Selection {
     /// share of samples).
     pub modes: Vec<(Pose, f64)>,
     /// Every hypothesis with its score, best first; the first `kept` were
-    /// kept.
+    /// kept (with refinement: in the refined scores' order, as the refined
+    /// poses or the samples they came from, per `distribution`).
     pub scored: Vec<(Pose, f64)>,
     pub kept: usize,
     pub refined: bool,
@@ -94,24 +95,39 @@ pub fn select(
         Method::Chamfer | Method::Sdf => ((params.keep_fraction * n as f64).ceil() as usize).clamp(1, n),
     };
 
+    let mut refined_kept: Option<Vec<Pose>> = None;
     if let (true, Some(object)) = (params.refine, object) {
         let grid = object.grid();
-        for entry in &mut scored[..kept] {
-            entry.0 = refine(grid, &entry.0, points, &likelihood, params.refine_iterations).pose;
-            if let Some(r) = residuals {
-                entry.1 = r.score(&entry.0, points, &likelihood);
-            }
-        }
+        // (refined pose, its score, the sample it came from), best first.
+        let mut refined: Vec<(Pose, f64, (Pose, f64))> = scored[..kept]
+            .iter()
+            .map(|&sample| {
+                let pose = refine(grid, &sample.0, points, &likelihood, params.refine_iterations).pose;
+                let score = residuals.map_or(sample.1, |r| r.score(&pose, points, &likelihood));
+                (pose, score, sample)
+            })
+            .collect();
         if residuals.is_some() {
-            scored[..kept].sort_by(|a, b| b.1.total_cmp(&a.1));
+            refined.sort_by(|a, b| b.1.total_cmp(&a.1));
+        }
+        refined_kept = Some(refined.iter().map(|r| r.0).collect());
+        for (entry, (pose, score, sample)) in scored[..kept].iter_mut().zip(refined) {
+            *entry = match params.distribution {
+                Distribution::Refined => (pose, score),
+                Distribution::Samples => sample,
+            };
         }
     }
 
     let kept_poses: Vec<Pose> = scored[..kept].iter().map(|(p, _)| *p).collect();
     let statistics = PoseStatistics::compute(&kept_poses, None, &karcher).map_err(failed)?;
-    let best = match params.method {
-        Method::None | Method::ModelFree => statistics.mean.mean,
-        Method::Chamfer | Method::Sdf => scored[0].0,
+    let best = match (params.method, refined_kept) {
+        (Method::None | Method::ModelFree, None) => statistics.mean.mean,
+        (Method::None | Method::ModelFree, Some(refined)) => {
+            karcher_mean_poses(&refined, None, &karcher).map_err(failed)?.mean
+        }
+        (Method::Chamfer | Method::Sdf, Some(refined)) => refined[0],
+        (Method::Chamfer | Method::Sdf, None) => scored[0].0,
     };
     Ok(Selection { method: params.method, best, statistics, modes, scored, kept, refined: params.refine })
 }

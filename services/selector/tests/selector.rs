@@ -9,7 +9,7 @@ use poseflow_selector::cluster::{Neighbourhood, dbscan};
 use poseflow_selector::refine::refine;
 use poseflow_selector::score::{Likelihood, Residuals};
 use poseflow_selector::stage::{estimate_header, estimate_payload_len, write_estimate_payload};
-use poseflow_selector::{Method, ObjectGeometry, SelectorParams, select};
+use poseflow_selector::{Distribution, Method, ObjectGeometry, SelectorParams, select};
 
 /// A 6 × 4 × 2 cm box (distinct side lengths: no symmetry but the box's own
 /// half turns), model frame centred.
@@ -142,6 +142,16 @@ fn model_free_selection_takes_the_largest_cluster_and_model_based_the_best_fit()
     let refined = SelectorParams { method: Method::Sdf, refine: true, keep_fraction: 0.3, ..Default::default() };
     let chosen = select(&hypotheses, Some(&points), Some(&object), &refined).unwrap();
     assert!(chosen.refined && angle_deg(&chosen.best, &t) < 0.5, "{}", angle_deg(&chosen.best, &t));
+    // The kept hypotheses reported are the samples (up to 1.5° apart), not
+    // their refinements (all at the truth), unless asked for.
+    let kept: Vec<&Pose> = chosen.scored[..chosen.kept].iter().map(|(p, _)| p).collect();
+    assert!(kept.iter().all(|p| hypotheses.contains(p)), "{kept:?}");
+    let spread = chosen.statistics.rotation_covariance().trace();
+    let as_refined = SelectorParams { distribution: Distribution::Refined, ..refined.clone() };
+    let collapsed = select(&hypotheses, Some(&points), Some(&object), &as_refined).unwrap();
+    assert_eq!(collapsed.best, chosen.best);
+    assert!(!collapsed.scored[..collapsed.kept].iter().any(|(p, _)| hypotheses.contains(p)));
+    assert!(collapsed.statistics.rotation_covariance().trace() < 0.1 * spread, "{spread}");
 
     let none = select(&hypotheses, None, None, &SelectorParams { method: Method::None, ..Default::default() }).unwrap();
     assert_eq!(none.kept, 10);

@@ -111,10 +111,36 @@ pub fn project_to_rotation(m: &Matrix3<f64>, what: &str, tolerance: f64) -> Resu
     Ok(so3::quaternion_from_matrix(m).to_rotation_matrix())
 }
 
+/// The rotation nearest `m` in the Frobenius norm (`U Vᵀ` of its SVD, with
+/// the sign of the last singular direction flipped if that is a
+/// reflection): exact for a scaled rotation, unlike reading a quaternion
+/// off the matrix. For annotations that are only nearly orthonormal.
+pub fn nearest_rotation(m: &Matrix3<f64>) -> Rotation3<f64> {
+    let svd = m.svd(true, true);
+    let (u, v_t) = (svd.u.expect("requested"), svd.v_t.expect("requested"));
+    let mut correction = Matrix3::identity();
+    correction[(2, 2)] = (u * v_t).determinant().signum();
+    // SVD orders singular values descending; flipping the smallest one's
+    // direction is the least change.
+    Rotation3::from_matrix_unchecked(u * correction * v_t)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::f64::consts::PI;
+
+    #[test]
+    fn the_nearest_rotation_of_a_scaled_or_sheared_rotation() {
+        let r = Rotation3::from_euler_angles(0.4, -1.1, 2.5);
+        let back = nearest_rotation(&(r.matrix() * 1.003));
+        assert!((back.matrix() - r.matrix()).abs().max() < 1e-12);
+        // A small symmetric stretch R (I + εS) keeps R as its nearest rotation.
+        let stretch = Matrix3::new(0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.5) * 2e-3;
+        let back = nearest_rotation(&(r.matrix() * (Matrix3::identity() + stretch)));
+        assert!((back.matrix() - r.matrix()).abs().max() < 1e-12, "{back}");
+        assert!((back.matrix().determinant() - 1.0).abs() < 1e-12);
+    }
 
     #[test]
     fn exp_of_pure_translation_is_translation() {

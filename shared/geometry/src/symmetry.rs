@@ -5,10 +5,10 @@
 //! are the minimum over that set, with continuous symmetries discretised as
 //! the BOP toolkit does (`bop_toolkit_lib.misc.get_symmetry_transformations`).
 
-use nalgebra::Rotation3;
+use nalgebra::{Rotation3, Vector3};
 
 use crate::models_info::ModelInfo;
-use crate::{Pose, so3};
+use crate::{GeometryError, KarcherOptions, Pose, PoseStatistics, so3};
 
 /// The BOP toolkit's default `max_sym_disc_step`: the largest distance a
 /// surface point may move between two discretised symmetry rotations, as a
@@ -107,6 +107,43 @@ impl SymmetrySet {
         if rotations.is_empty() { 0.0 } else { least / rotations.len() as f64 }
     }
 
+    /// The twin `pose · S` whose rotation is nearest `reference`: a
+    /// hypothesis expressed in the same symmetric "branch" as the reference,
+    /// so spreads and means do not count the symmetry as uncertainty.
+    pub fn nearest_twin(&self, pose: &Pose, reference: &Rotation3<f64>) -> Pose {
+        let mut best = (f64::INFINITY, *pose);
+        for twin in self.equivalent_poses(pose) {
+            let angle = so3::geodesic_angle(&twin.rotation, reference);
+            if angle < best.0 {
+                best = (angle, twin);
+            }
+        }
+        best.1
+    }
+
+    /// The largest rotational standard deviation of `rotations` modulo the
+    /// symmetries (radians): each rotation is replaced by its twin nearest
+    /// `reference`, and the result is the square root of the largest
+    /// eigenvalue of their tangent covariance about their Karcher mean.
+    /// 0 for fewer than two rotations.
+    pub fn folded_max_rotation_std(
+        &self,
+        rotations: &[Rotation3<f64>],
+        reference: &Rotation3<f64>,
+    ) -> Result<f64, GeometryError> {
+        if rotations.len() < 2 {
+            return Ok(0.0);
+        }
+        let folded: Vec<Pose> = rotations
+            .iter()
+            .map(|r| self.nearest_twin(&Pose::new(*r, Vector3::zeros()), reference))
+            .map(|p| Pose::new(p.rotation, Vector3::zeros()))
+            .collect();
+        let statistics = PoseStatistics::compute(&folded, None, &KarcherOptions::default())?;
+        let largest = statistics.rotation_eigen()?.values.max();
+        Ok(largest.max(0.0).sqrt())
+    }
+
     /// Rotation error minimised over the set, and the translation error
     /// against the same twin (`t_truth + R_truth t_S`).
     pub fn pose_error(&self, estimate: &Pose, truth: &Pose) -> SymmetricError {
@@ -188,6 +225,39 @@ mod tests {
         let cylinder = ContinuousSymmetry { axis: Unit::new_normalize(Vector3::z()), offset: Vector3::zeros() };
         let set = SymmetrySet::from_model_info(&info(vec![flip], vec![cylinder]), 0.1);
         assert_eq!(set.transforms().len(), 2 * 32);
+    }
+
+    #[test]
+    fn folded_max_std_is_the_spread_along_the_widest_axis() {
+        let about = |axis: Vector3<f64>, deg: f64| so3::exp(&(axis * deg.to_radians()));
+        let plain = SymmetrySet::identity_only();
+        // ±σ about x (and nothing about y, z): the largest std is σ exactly
+        // (the Karcher mean is the identity, the covariance diag(σ², 0, 0)).
+        let fan = [about(Vector3::x(), 12.0), about(Vector3::x(), -12.0)];
+        let std = plain.folded_max_rotation_std(&fan, &Rotation3::identity()).unwrap();
+        assert!((std - 12f64.to_radians()).abs() < 1e-9, "{}", std.to_degrees());
+        // A second, narrower axis does not change the largest one.
+        let cross = [fan[0], fan[1], about(Vector3::y(), 3.0), about(Vector3::y(), -3.0)];
+        let std = plain.folded_max_rotation_std(&cross, &Rotation3::identity()).unwrap();
+        assert!((std - 12f64.to_radians() / 2f64.sqrt()).abs() < 1e-6, "{}", std.to_degrees());
+        assert_eq!(plain.folded_max_rotation_std(&fan[..1], &Rotation3::identity()).unwrap(), 0.0);
+    }
+
+    #[test]
+    fn folded_max_std_does_not_count_a_symmetry_as_spread() {
+        let half_turn = Pose::new(so3::exp(&Vector3::new(0.0, 0.0, std::f64::consts::PI)), Vector3::zeros());
+        let twofold = SymmetrySet::from_model_info(&info(vec![half_turn], vec![]), BOP_MAX_SYMMETRY_STEP);
+        let tilt = |deg: f64| so3::exp(&Vector3::new(deg.to_radians(), 0.0, 0.0));
+        // Half the samples in the other symmetric branch: 90° apart unfolded,
+        // 5° folded.
+        let samples = [tilt(5.0), tilt(-5.0), tilt(5.0) * half_turn.rotation, tilt(-5.0) * half_turn.rotation];
+        let folded = twofold.folded_max_rotation_std(&samples, &Rotation3::identity()).unwrap();
+        assert!((folded - 5f64.to_radians()).abs() < 1e-9, "{}", folded.to_degrees());
+        let unfolded = SymmetrySet::identity_only().folded_max_rotation_std(&samples, &Rotation3::identity()).unwrap();
+        assert!(unfolded.to_degrees() > 60.0, "{}", unfolded.to_degrees());
+        // The twin nearest a reference in the other branch is that branch's.
+        let twin = twofold.nearest_twin(&Pose::new(tilt(5.0), Vector3::zeros()), &half_turn.rotation);
+        assert!(so3::geodesic_angle(&twin.rotation, &(tilt(5.0) * half_turn.rotation)) < 1e-12);
     }
 
     #[test]

@@ -26,6 +26,7 @@ use crate::bop::{
     write_mask_png, write_rgb_png,
 };
 use crate::camera_path::{CameraPath, Orbit};
+use crate::part::{MAX_VIEW_ATTEMPTS, ViewCondition};
 use crate::scene::{Occlusion, Scene, View, ViewRange, compose_scene, random_light, render_view};
 use crate::{Camera, DepthNoise, ModelLibrary, SceneError, model_file_name};
 
@@ -55,6 +56,9 @@ pub struct RenderSpec {
     pub depth_noise: Option<DepthNoise>,
     /// Standard deviation of per-channel RGB noise, 8-bit levels.
     pub rgb_noise: f64,
+    /// Keep drawing each image's camera and light until the view meets this
+    /// (random camera paths only).
+    pub condition: Option<ViewCondition>,
 }
 
 /// Progress after each written frame.
@@ -88,6 +92,8 @@ struct Provenance<'a> {
     objects: Vec<u32>,
     depth_noise: bool,
     rgb_noise: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    view_condition: Option<String>,
 }
 
 /// Folds `parts` into one 64-bit seed (SplitMix64 finaliser on each step),
@@ -157,27 +163,51 @@ pub struct RenderedFrame {
 }
 
 /// Renders image `im_id` of `scene` (scene `scene_id`): the camera and
-/// light of `spec.path`, sensor noise.
-pub fn frame(library: &ModelLibrary, spec: &RenderSpec, scene: &Scene, scene_id: u32, im_id: u32) -> RenderedFrame {
+/// light of `spec.path`, sensor noise. With `spec.condition` (random
+/// cameras), cameras and lights are drawn until the view meets it; after
+/// [`MAX_VIEW_ATTEMPTS`] draws the scene is reported as unable to.
+pub fn frame(
+    library: &ModelLibrary,
+    spec: &RenderSpec,
+    scene: &Scene,
+    scene_id: u32,
+    im_id: u32,
+) -> Result<RenderedFrame, SceneError> {
     let mut rng = seeded_rng(stream_seed(&[spec.seed, scene_id.into(), 1 + u64::from(im_id)]));
-    let (camera_from_world, light) = match spec.path {
+    let (camera_from_world, mut view) = match spec.path {
         CameraPath::Random => {
-            let camera_from_world = spec.views.sample(scene, &mut rng);
-            (camera_from_world, random_light(&mut rng))
+            let mut attempts = 0;
+            loop {
+                let camera_from_world = spec.views.sample(scene, &mut rng);
+                let light = random_light(&mut rng);
+                let view = render_view(library, scene, &spec.camera, &camera_from_world, &light);
+                match &spec.condition {
+                    Some(condition) if !condition.accepts(scene, &view, &spec.camera) => {
+                        attempts += 1;
+                        if attempts == MAX_VIEW_ATTEMPTS {
+                            return Err(SceneError::Invalid(format!(
+                                "scene {scene_id} image {im_id}: no view in {MAX_VIEW_ATTEMPTS} random cameras \
+                                 shows {condition}"
+                            )));
+                        }
+                    }
+                    _ => break (camera_from_world, view),
+                }
+            }
         }
         CameraPath::Orbit { step_deg } => {
             // Stream 0 of the scene: the same orbit for all of its images.
             let orbit = Orbit::draw(&spec.views, &mut seeded_rng(stream_seed(&[spec.seed, scene_id.into(), 0])));
-            (orbit.camera_from_world(&scene.centre, step_deg * f64::from(im_id)), orbit.light)
+            let camera_from_world = orbit.camera_from_world(&scene.centre, step_deg * f64::from(im_id));
+            (camera_from_world, render_view(library, scene, &spec.camera, &camera_from_world, &orbit.light))
         }
     };
-    let mut view = render_view(library, scene, &spec.camera, &camera_from_world, &light);
     let depth = match &spec.depth_noise {
         Some(noise) => noise.apply(&view.frame.depth, spec.camera.width as usize, &mut rng),
         None => view.frame.depth.clone(),
     };
     add_rgb_noise(&mut view.frame.rgb, spec.rgb_noise, &mut rng);
-    RenderedFrame { camera_from_world, view, depth }
+    Ok(RenderedFrame { camera_from_world, view, depth })
 }
 
 /// Renders `spec` with every object of `library` in every scene, writing
@@ -210,6 +240,7 @@ pub fn write_dataset(
             objects: library.objects.iter().map(|o| o.obj_id).collect(),
             depth_noise: spec.depth_noise.is_some(),
             rgb_noise: spec.rgb_noise,
+            view_condition: spec.condition.map(|c| c.to_string()),
         },
     )?;
     let total = u64::from(spec.scenes) * u64::from(spec.frames_per_scene);
@@ -224,7 +255,7 @@ pub fn write_dataset(
         let (mut cameras, mut gts, mut infos) = (ByImage::new(), ByImage::new(), ByImage::new());
         for im_id in 0..spec.frames_per_scene {
             let started = Instant::now();
-            let RenderedFrame { camera_from_world, view, depth } = frame(library, spec, &scene, scene_id, im_id);
+            let RenderedFrame { camera_from_world, view, depth } = frame(library, spec, &scene, scene_id, im_id)?;
             let render_time = started.elapsed() + std::mem::take(&mut compose_time);
 
             let started = Instant::now();

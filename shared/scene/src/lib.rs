@@ -16,6 +16,7 @@ mod library;
 mod mesh;
 mod noise;
 mod obj;
+pub mod part;
 mod ply;
 pub mod primitives;
 mod render;

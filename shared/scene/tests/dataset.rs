@@ -32,6 +32,7 @@ fn clean_spec() -> RenderSpec {
         path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
+        condition: None,
     }
 }
 
@@ -99,7 +100,7 @@ fn rendered_dataset_reads_back_consistently() {
         let infos: ByImage<Vec<GtInfoEntry>> = bop::read_json(&dir.scene_gt_info()).unwrap();
         let truth = scene(&library, &spec, scene_id);
         for im_id in 0..3 {
-            let rendered = frame(&library, &spec, &truth, scene_id, im_id);
+            let rendered = frame(&library, &spec, &truth, scene_id, im_id).unwrap();
             let entry = &cameras[&im_id];
             let camera = entry.camera(320, 240, &dir.scene_camera(), im_id).unwrap();
             assert_eq!(camera, spec.camera);
@@ -180,7 +181,7 @@ fn more_occlusion_means_less_of_each_object_visible() {
         for scene_id in 0..8 {
             let truth = scene(&library, &spec, scene_id);
             for im_id in 0..3 {
-                let rendered = frame(&library, &spec, &truth, scene_id, im_id);
+                let rendered = frame(&library, &spec, &truth, scene_id, im_id).unwrap();
                 for (k, full) in rendered.view.silhouettes.iter().enumerate() {
                     let all = full.iter().filter(|&&v| v).count();
                     let visible = rendered.view.frame.label.iter().filter(|&&l| usize::from(l) == k + 1).count();

@@ -23,6 +23,8 @@ pub struct Estimated {
     pub score: f64,
     /// Every scored hypothesis, best first (none from a results file).
     pub hypotheses: Vec<Pose>,
+    /// How many of the first `hypotheses` the selector kept.
+    pub kept: usize,
     /// Trace of the rotational covariance, rad², when reported.
     pub rotation_trace: Option<f64>,
     /// The method's time on this object.
@@ -66,6 +68,7 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
                 selected: Pose::from_f32_row_major(&header.best)?,
                 score: scored.first().map_or(0.0, |h| h.1),
                 hypotheses: scored.into_iter().map(|h| h.0).collect(),
+                kept: header.kept_count as usize,
                 rotation_trace: Some(f64::from(header.rotation_trace)),
                 service_time: None,
                 latency: header.header.stamps.elapsed_ns(Stage::Source, Stage::Selector).map(Duration::from_nanos),
@@ -111,6 +114,7 @@ pub fn read_results(path: &Path) -> anyhow::Result<Vec<Estimated>> {
             selected: row.pose,
             score: row.score,
             hypotheses: Vec::new(),
+            kept: 0,
             rotation_trace: None,
             service_time: row
                 .time_s

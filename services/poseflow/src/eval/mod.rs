@@ -15,7 +15,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use clap::Args;
 use nalgebra::Point3;
-use poseflow_geometry::sampling::farthest_point_indices;
+use poseflow_geometry::metrics::NearestPoints;
+use poseflow_geometry::sampling::sample_seed;
 use poseflow_geometry::symmetry::BOP_MAX_SYMMETRY_STEP;
 use poseflow_geometry::{Pose, SymmetrySet};
 use poseflow_ingest::sources::{BopFrames, Masks};
@@ -32,10 +33,6 @@ use crate::demo::graph::{Overrides, graph_with_overrides};
 use crate::demo::{print_report, run_graph};
 use crate::progress::Progress;
 
-/// Model points the metrics use per object (farthest-point subsample of
-/// the mesh vertices: ADD-S is quadratic in it).
-const METRIC_POINTS: usize = 500;
-
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root after `cargo build --release --workspace` (the stages are \
     separate executables). Writes <out>/<graph>.toml (the graph run, with the frame source on the dataset), \
@@ -49,8 +46,15 @@ const METRIC_POINTS: usize = 500;
     BOP toolkit does. With --selection none every hypothesis is scored and the accuracies are averaged over \
     them (the accuracy of one random sample).\n\n\
     VSD (BOP19: δ 15 mm, τ and θ from 0.05 to 0.5) renders the model at the estimate and the truth against the \
-    image's depth PNG (no depth: no VSD); without selection it averages over the first 10 samples. The BOP19 \
-    average recall is the mean of the VSD, MSSD and MSPD recalls.\n\n\
+    image's depth PNG (no depth: no VSD); without selection it averages over a seeded random 10 of the samples. \
+    MSSD, MSPD and ADD(-S) use every vertex of the --objects meshes. The BOP19 average recall is the mean of the \
+    VSD, MSSD and MSPD recalls.\n\n\
+    The distribution: coverage is the share of instances with at least one hypothesis within 10°5cm (5°5cm) of \
+    the truth, symmetry-aware; the hypotheses are those the selector kept (all samples with --selection none). \
+    spread max is the largest rotational standard deviation of the kept hypotheses, each folded onto its \
+    symmetric twin nearest the selected pose (√ of the largest eigenvalue of their rotation covariance); \
+    within 1×/2× spread is the share of estimated instances whose selected pose's rotation error is at most \
+    1×/2× it.\n\n\
     Runtime: ms/object is the interval between consecutive estimates leaving the selector while the graph is \
     kept busy (the cost of one more object; the CSV's time is their sum over an image); latency is from the \
     frame source reading an image to each estimate, queueing included (--rate-hz below the graph's pace \
@@ -177,14 +181,15 @@ fn scored_objects(library: &ModelLibrary) -> BTreeMap<u32, ScoredObject> {
         .objects
         .iter()
         .map(|object| {
-            let vertices = &object.model.mesh.vertices;
-            let points = farthest_point_indices(vertices, METRIC_POINTS)
-                .into_iter()
-                .map(|i| vertices[i].cast::<f64>())
-                .collect::<Vec<Point3<f64>>>();
+            let points: Vec<Point3<f64>> = object.model.mesh.vertices.iter().map(|v| v.cast::<f64>()).collect();
             let symmetries = SymmetrySet::from_model_info(&object.info, BOP_MAX_SYMMETRY_STEP);
-            let scored =
-                ScoredObject { points, diameter: object.info.diameter, symmetries, model: object.model.clone() };
+            let scored = ScoredObject {
+                nearest: NearestPoints::new(&points),
+                points,
+                diameter: object.info.diameter,
+                symmetries,
+                model: object.model.clone(),
+            };
             (object.obj_id, scored)
         })
         .collect()
@@ -273,6 +278,8 @@ fn evaluate(
                 let estimated = EstimatedInstance {
                     selected: e.selected,
                     hypotheses: &e.hypotheses,
+                    kept: e.kept,
+                    seed: sample_seed(u64::from(image.scene_id), u64::from(image.im_id), truth.obj_id),
                     rotation_trace: e.rotation_trace,
                     score_every_hypothesis: every_hypothesis,
                 };
@@ -427,7 +434,16 @@ fn print_table(report: &EvalReport) {
         );
     }
     println!(
-        "calibration: Spearman(rotational spread, rotation error) = {}; latency image read → estimate p50/p99 {:.0}/{:.0} ms (queueing included); unmatched estimates: {}",
+        "distribution: coverage 10°5cm {:.1} %, 5°5cm {:.1} %; spread max (folded) median {}°; selected rotation error within 1× / 2× spread: {} / {} %; Spearman(spread max, error) = {}",
+        s.overall.coverage_10deg_5cm,
+        s.overall.coverage_5deg_5cm,
+        optional(s.overall.median_rotation_spread_max_deg, 2),
+        optional(s.overall.within_1_spread, 1),
+        optional(s.overall.within_2_spread, 1),
+        optional(s.spread_max_error_spearman, 2),
+    );
+    println!(
+        "calibration: Spearman(reported spread √trace, rotation error) = {}; latency image read → estimate p50/p99 {:.0}/{:.0} ms (queueing included); unmatched estimates: {}",
         optional(s.spread_error_spearman, 2),
         s.latency.p50_ms,
         s.latency.p99_ms,

@@ -53,16 +53,30 @@ pub struct Accuracies {
     /// Of the selected pose, over the estimated instances.
     pub median_rotation_error_deg: Option<f64>,
     pub median_translation_error_cm: Option<f64>,
+    /// Instances with some kept hypothesis within 10°5cm / 5°5cm of the
+    /// truth (a miss counts 0).
+    pub coverage_10deg_5cm: f64,
+    pub coverage_5deg_5cm: f64,
+    /// Median over the estimated instances of the largest folded rotational
+    /// standard deviation of the kept hypotheses.
+    pub median_rotation_spread_max_deg: Option<f64>,
+    /// Of the estimated instances with a spread: the share whose selected
+    /// pose's rotation error is at most 1× / 2× it.
+    pub within_1_spread: Option<f64>,
+    pub within_2_spread: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
     #[serde(flatten)]
     pub overall: Accuracies,
-    /// Spearman correlation between the reported rotational spread and the
-    /// selected pose's rotation error; `None` below 3 estimated instances
-    /// or when either is constant.
+    /// Spearman correlation between the reported rotational spread (√trace
+    /// of the Estimate's covariance) and the selected pose's rotation error;
+    /// `None` below 3 estimated instances or when either is constant.
     pub spread_error_spearman: Option<f64>,
+    /// The same against the largest folded standard deviation of the kept
+    /// hypotheses (symmetry not counted as spread).
+    pub spread_max_error_spearman: Option<f64>,
     /// Over the service times: the graph's cost per object.
     pub ms_per_object_mean: f64,
     pub ms_per_object_p50: f64,
@@ -101,6 +115,8 @@ fn accuracies<'a>(outcomes: impl Iterator<Item = &'a InstanceOutcome>) -> Accura
     // fold from +0.0: an empty f64 sum is -0.0, printed as "-0.0".
     let sum = |f: &dyn Fn(&InstanceScore) -> f64| scores.iter().fold(0.0, |total, s| total + f(s));
     let modes: Vec<f64> = scores.iter().filter_map(|s| s.mode_recall).collect();
+    let spreads: Vec<(f64, f64)> =
+        scores.iter().filter_map(|s| Some((s.rotation_spread_max_deg?, s.rotation_error_deg))).collect();
     let has_depth = scores.iter().any(|s| s.vsd_recall.is_some());
     let vsd_recall = has_depth.then(|| percent(sum(&|s| s.vsd_recall.unwrap_or(0.0)), n));
     let (mssd_recall, mspd_recall) = (percent(sum(&|s| s.mssd_recall), n), percent(sum(&|s| s.mspd_recall), n));
@@ -120,7 +136,18 @@ fn accuracies<'a>(outcomes: impl Iterator<Item = &'a InstanceOutcome>) -> Accura
         mode_recall: (!modes.is_empty()).then(|| percent(modes.iter().fold(0.0, |a, b| a + b), modes.len())),
         median_rotation_error_deg: median(scores.iter().map(|s| s.rotation_error_deg).collect()),
         median_translation_error_cm: median(scores.iter().map(|s| s.translation_error_cm).collect()),
+        coverage_10deg_5cm: percent(sum(&|s| f64::from(u8::from(s.covered[0]))), n),
+        coverage_5deg_5cm: percent(sum(&|s| f64::from(u8::from(s.covered[1]))), n),
+        median_rotation_spread_max_deg: median(spreads.iter().map(|&(spread, _)| spread).collect()),
+        within_1_spread: within_spread(&spreads, 1.0),
+        within_2_spread: within_spread(&spreads, 2.0),
     }
+}
+
+/// Percent of (spread, error) pairs with error ≤ `factor` × spread.
+fn within_spread(pairs: &[(f64, f64)], factor: f64) -> Option<f64> {
+    let within = pairs.iter().filter(|(spread, error)| *error <= factor * spread).count();
+    (!pairs.is_empty()).then(|| percent(within as f64, pairs.len()))
 }
 
 /// Ranks from 1, ties sharing their mean rank.
@@ -161,16 +188,21 @@ pub fn spearman(a: &[f64], b: &[f64]) -> Option<f64> {
 }
 
 /// One line per instance (for plots of accuracy against thresholds):
-/// `scene_id,im_id,obj_id,estimated,rotation_error_deg,translation_error_cm,rotation_spread_deg`,
-/// errors of the selected pose, empty fields when unknown.
+/// `scene_id,im_id,obj_id,estimated,rotation_error_deg,translation_error_cm,rotation_spread_deg,
+/// rotation_spread_max_deg,covered_10deg_5cm,covered_5deg_5cm`: errors of the selected pose, the
+/// reported and the folded spread, whether a kept hypothesis covers the truth; empty fields when
+/// unknown.
 pub fn instances_csv(outcomes: &[InstanceOutcome]) -> String {
-    let mut out =
-        String::from("scene_id,im_id,obj_id,estimated,rotation_error_deg,translation_error_cm,rotation_spread_deg\n");
+    let mut out = String::from(
+        "scene_id,im_id,obj_id,estimated,rotation_error_deg,translation_error_cm,rotation_spread_deg,\
+         rotation_spread_max_deg,covered_10deg_5cm,covered_5deg_5cm\n",
+    );
     for o in outcomes {
         let field = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.4}"));
+        let flag = |v: Option<bool>| v.map_or(String::new(), |v| u8::from(v).to_string());
         let score = o.score.as_ref();
         out.push_str(&format!(
-            "{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{}\n",
             o.scene_id,
             o.im_id,
             o.obj_id,
@@ -178,6 +210,9 @@ pub fn instances_csv(outcomes: &[InstanceOutcome]) -> String {
             field(score.map(|s| s.rotation_error_deg)),
             field(score.map(|s| s.translation_error_cm)),
             field(score.and_then(|s| s.rotation_spread_deg)),
+            field(score.and_then(|s| s.rotation_spread_max_deg)),
+            flag(score.map(|s| s.covered[0])),
+            flag(score.map(|s| s.covered[1])),
         ));
     }
     out
@@ -187,6 +222,8 @@ pub fn summarise(outcomes: &[InstanceOutcome]) -> Summary {
     let scores: Vec<&InstanceScore> = outcomes.iter().filter_map(|o| o.score.as_ref()).collect();
     let (spreads, errors): (Vec<f64>, Vec<f64>) =
         scores.iter().filter_map(|s| Some((s.rotation_spread_deg?, s.rotation_error_deg))).unzip();
+    let (spread_maxima, max_errors): (Vec<f64>, Vec<f64>) =
+        scores.iter().filter_map(|s| Some((s.rotation_spread_max_deg?, s.rotation_error_deg))).unzip();
     let service_times = |obj: Option<u32>| -> Vec<Duration> {
         outcomes.iter().filter(|o| obj.is_none_or(|id| o.obj_id == id)).filter_map(|o| o.service_time).collect()
     };
@@ -207,6 +244,7 @@ pub fn summarise(outcomes: &[InstanceOutcome]) -> Summary {
     Summary {
         overall: accuracies(outcomes.iter()),
         spread_error_spearman: spearman(&spreads, &errors),
+        spread_max_error_spearman: spearman(&spread_maxima, &max_errors),
         ms_per_object_mean: per_object_time.mean_ms,
         ms_per_object_p50: per_object_time.p50_ms,
         ms_per_object_p99: per_object_time.p99_ms,
@@ -234,6 +272,8 @@ mod tests {
                 vsd_recall: Some(0.75),
                 mode_recall: (obj_id == 10).then_some(0.5),
                 rotation_spread_deg: Some(spread),
+                covered: [accuracy[3] > 0.0, accuracy[1] > 0.0],
+                rotation_spread_max_deg: Some(spread / 2.0),
             }),
             service_time: Some(Duration::from_millis(u64::from(obj_id) * 10)),
             latency: Some(Duration::from_millis(500)),
@@ -276,11 +316,27 @@ mod tests {
         assert_eq!(summary.latency.p50_ms, 500.0);
         // Spread grows with error here: a perfect rank correlation.
         assert_eq!(summary.spread_error_spearman, Some(1.0));
+        assert_eq!(summary.spread_max_error_spearman, Some(1.0));
+        // Covered: the first two estimates within 10°5cm, the first within
+        // 5°5cm; the miss counts 0.
+        assert_eq!((summary.overall.coverage_10deg_5cm, summary.overall.coverage_5deg_5cm), (50.0, 25.0));
+        // Folded spreads 0.5, 1.5, 4.5 against errors 2, 8, 90: none within
+        // 1×, none within 2× (2 > 1.0, 8 > 3.0, 90 > 9.0).
+        assert_eq!(summary.overall.median_rotation_spread_max_deg, Some(1.5));
+        assert_eq!((summary.overall.within_1_spread, summary.overall.within_2_spread), (Some(0.0), Some(0.0)));
         let csv = instances_csv(&outcomes);
         let lines: Vec<&str> = csv.lines().collect();
         assert_eq!(lines.len(), 5);
-        assert_eq!(lines[1], "0,0,1,1,2.0000,1.0000,1.0000");
-        assert_eq!(lines[2], "0,1,1,0,,,");
+        assert_eq!(lines[1], "0,0,1,1,2.0000,1.0000,1.0000,0.5000,1,1");
+        assert_eq!(lines[2], "0,1,1,0,,,,,,");
+    }
+
+    #[test]
+    fn calibration_counts_errors_within_one_and_two_spreads() {
+        let pairs = [(1.0, 0.5), (1.0, 1.5), (1.0, 2.0), (1.0, 3.0)];
+        assert_eq!(within_spread(&pairs, 1.0), Some(25.0));
+        assert_eq!(within_spread(&pairs, 2.0), Some(75.0));
+        assert_eq!(within_spread(&[], 2.0), None);
     }
 
     #[test]

@@ -10,6 +10,7 @@ use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::SeededRng;
 use poseflow_ingest::{ObjectMask, RgbdFrame};
 use poseflow_scene::dataset::lmo_camera;
+use poseflow_scene::part::ObjectPart;
 use poseflow_scene::primitives::support_plane;
 use poseflow_scene::scene::{Scene, SceneObject, look_at, random_light, render_view};
 use poseflow_scene::{ModelLibrary, RenderModel};
@@ -84,7 +85,8 @@ fn view_mug_if(
     let view = render_view(library, scene, &camera, camera_from_world, &random_light(rng));
     let camera_from_object = view.object_poses[0];
     let visible: Vec<bool> = view.frame.label.iter().map(|&l| l == 1).collect();
-    let handle_pixels = handle_pixels(&view.frame.depth, &visible, &camera, &camera_from_object);
+    let handle = ObjectPart { obj_id: scene.objects[0].obj_id, axis: Vector3::x_axis(), beyond: HANDLE_X };
+    let handle_pixels = handle.visible_pixels(&view, &camera, 0);
     if !wanted(handle_pixels) {
         return None;
     }
@@ -122,22 +124,4 @@ pub fn render_mug(library: &ModelLibrary, handle: Handle, frame_id: u64, rng: &m
             return (scene, view);
         }
     }
-}
-
-/// Visible pixels whose surface point (noiseless depth) lies on the handle.
-fn handle_pixels(depth: &[f32], visible: &[bool], camera: &poseflow_scene::Camera, camera_from_object: &Pose) -> usize {
-    let object_from_camera = camera_from_object.inverse();
-    let width = camera.width as usize;
-    depth
-        .iter()
-        .zip(visible)
-        .enumerate()
-        .filter(|(_, (z, seen))| **seen && **z > 0.0)
-        .filter(|(i, (z, _))| {
-            let (u, v) = ((i % width) as f64 + 0.5, (i / width) as f64 + 0.5);
-            let ray = camera.ray_direction(u, v);
-            let point = Point3::from(ray * (f64::from(**z) / ray.z));
-            object_from_camera.transform_point(&point).x > HANDLE_X
-        })
-        .count()
 }
