@@ -74,9 +74,12 @@ fn the_demo_runs_the_estimation_graph_and_draws_its_pictures() {
         assert!(ids.contains(&id), "object {id} missing: {report}");
     }
     for o in objects {
+        // Accuracy floors on this fixed seed: the default model is within
+        // 1° and 1 mm of every object here; the untrained contract fixture
+        // (models/test-tiny) is 99–140° off.
         let error = o["rotation_error_deg"].as_f64().unwrap();
-        assert!((0.0..=180.0).contains(&error), "{o}");
-        assert!(o["translation_error_cm"].as_f64().unwrap() >= 0.0);
+        assert!(error < 10.0, "{o}");
+        assert!(o["translation_error_cm"].as_f64().unwrap() < 2.0, "{o}");
         assert_eq!(o["hypotheses"], 12, "{o}");
         assert!(o["kept"].as_u64().unwrap() >= 1);
     }
@@ -105,9 +108,10 @@ fn the_tracking_demo_follows_every_object_through_the_video() {
         // The first image has nothing to start from; later ones do.
         let tracked = o["tracked"].as_u64().unwrap();
         assert!((1..frames).contains(&tracked), "{o}");
-        for key in ["acc_5deg_5cm", "acc_10deg_5cm"] {
-            assert!((0.0..=100.0).contains(&o[key].as_f64().unwrap()), "{key}: {o}");
-        }
+        // Floor: the default model tracks every object within 10°5cm on
+        // every image of this video; models/test-tiny manages 0–50 %.
+        assert!(o["acc_10deg_5cm"].as_f64().unwrap() >= 80.0, "{o}");
+        assert!(o["acc_5deg_5cm"].as_f64().unwrap() <= o["acc_10deg_5cm"].as_f64().unwrap(), "{o}");
         assert!(o["latency"]["p50_ms"].as_f64().unwrap() > 0.0, "{o}");
     }
     let plot = image::open(out_dir.join("tracking.png")).unwrap();
@@ -176,6 +180,26 @@ fn eval_scores_a_rendered_dataset_and_writes_bop19_results() {
     }
     let acc = |key: &str| summary[key].as_f64().unwrap();
     assert!(acc("acc_5deg_2cm") <= acc("acc_5deg_5cm") && acc("acc_5deg_5cm") <= acc("acc_10deg_5cm"), "{summary}");
+    // Accuracy floors on this fixed seed (12 samples, 3 steps, 320×240, no
+    // refinement): the default model reaches MSSD recall 63 % and a median
+    // rotation error of 12°; models/test-tiny, an untrained contract
+    // fixture, must fail them (checked below).
+    let floors = |s: &serde_json::Value| {
+        s["mssd_recall"].as_f64().unwrap() >= 40.0 && s["median_rotation_error_deg"].as_f64().unwrap() <= 45.0
+    };
+    assert!(floors(&summary), "{summary}");
+    // The distribution's metrics: coverage at least the selected pose's
+    // accuracy (without refinement the selected pose is the first kept
+    // hypothesis), spreads.
+    assert!(acc("coverage_10deg_5cm") >= acc("acc_10deg_5cm") - 1e-9, "{summary}");
+    assert!(acc("coverage_5deg_5cm") <= acc("coverage_10deg_5cm"), "{summary}");
+    assert!(acc("median_rotation_spread_max_deg") >= 0.0 && acc("within_1_spread") <= acc("within_2_spread"));
+    let untrained_dir = dir.join("test-tiny");
+    let untrained =
+        eval(&["--dataset", dataset_arg, "--out", untrained_dir.to_str().unwrap(), "--model", "models/test-tiny"]);
+    assert!(untrained.status.success(), "{}", String::from_utf8_lossy(&untrained.stderr));
+    let untrained: serde_json::Value = serde_json::from_slice(&untrained.stdout).unwrap();
+    assert!(!floors(&untrained), "an untrained model passes the floors: {untrained}");
     // Objects 10 and 11 are symmetric: their modes are counted.
     assert!((0.0..=100.0).contains(&summary["mode_recall"].as_f64().unwrap()), "{summary}");
     assert!(summary.get("spread_error_spearman").is_some() && summary["ms_per_object_p50"].as_f64().unwrap() > 0.0);
@@ -392,6 +416,11 @@ fn render_rejects_bad_arguments_with_what_was_expected() {
         (vec!["--models", MODELS, "--out", out, "--split", "../x"], "expected a plain folder name"),
         (vec!["--models", MODELS, "--out", out, "--scenes", "0"], "expected at least 1 of each"),
         (vec!["--models", MODELS, "--out", out, "--orbit-step-deg", "120"], "--orbit-step-deg 120: expected"),
+        (
+            vec!["--models", MODELS, "--out", out, "--mug-handle", "hidden", "--orbit-step-deg", "1"],
+            "--mug-handle with --orbit-step-deg",
+        ),
+        (vec!["--models", MODELS, "--out", out, "--mug-handle", "hidden"], "the scenes have no object 14"),
     ] {
         let result = poseflow(&[&["render"][..], &args].concat());
         assert_eq!(result.status.code(), Some(1), "{args:?}");
@@ -518,7 +547,7 @@ fn grasp_data_writes_grasps_that_hold_on_the_mesh() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// `sim grasp --json`: both conditions, both plans, rates that are whole
+/// `sim grasp --json`: every condition, both plans, rates that are whole
 /// shares of the trials; no trials is an error.
 #[test]
 fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
@@ -536,7 +565,7 @@ fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(report["trials"], 2, "{report}");
-    for condition in ["visible", "occluded"] {
+    for condition in ["visible", "occluded", "hidden_aside"] {
         for plan in ["single", "marginalised"] {
             let rate = report[condition][plan].as_f64().unwrap_or_else(|| panic!("{condition}.{plan}: {report}"));
             assert!([0.0, 50.0, 100.0].contains(&rate), "{condition}.{plan} = {rate}");

@@ -173,6 +173,14 @@ pub fn frame(
     scene_id: u32,
     im_id: u32,
 ) -> Result<RenderedFrame, SceneError> {
+    if let Some(condition) = &spec.condition
+        && !scene.objects.iter().any(|o| o.obj_id == condition.part.obj_id)
+    {
+        return Err(SceneError::Invalid(format!(
+            "scene {scene_id} image {im_id}: no view can show {condition}: the scene has no object {}",
+            condition.part.obj_id
+        )));
+    }
     let mut rng = seeded_rng(stream_seed(&[spec.seed, scene_id.into(), 1 + u64::from(im_id)]));
     let (camera_from_world, mut view) = match spec.path {
         CameraPath::Random => {

@@ -208,3 +208,46 @@ fn missing_models_and_unknown_ids_are_named() {
     let err = ModelLibrary::load(&objects_dir(), &[5]).unwrap_err().to_string();
     assert!(err.contains("obj_000005.ply"), "{err}");
 }
+
+/// `RenderSpec::condition`: every image drawn for the mug with its handle
+/// hidden shows no handle and at least half the mug; with it visible, the
+/// handle in view; the same seed gives the same views; an object that is
+/// not in the scene is an error naming scene, image and condition.
+#[test]
+fn views_are_drawn_until_the_mug_handle_is_hidden_or_in_view() {
+    use poseflow_scene::part::{ObjectPart, PartVisibility, ViewCondition};
+    let ycbv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/ycbv/models");
+    let library = ModelLibrary::load(&ycbv, &[14]).unwrap();
+    let handle = ObjectPart::ycbv_mug_handle();
+    let condition = |visibility| Some(ViewCondition { part: handle, visibility });
+    let spec = |visibility| RenderSpec {
+        scenes: 1,
+        frames_per_scene: 3,
+        camera: lmo_camera(160, 120),
+        condition: condition(visibility),
+        ..clean_spec()
+    };
+    let truth = scene(&library, &spec(PartVisibility::Hidden), 3);
+    for (visibility, wanted) in [(PartVisibility::Hidden, 0..=0), (PartVisibility::Visible, 10..=usize::MAX)] {
+        let spec = spec(visibility);
+        for im_id in 0..3 {
+            let rendered = frame(&library, &spec, &truth, 3, im_id).unwrap();
+            let pixels = handle.visible_pixels(&rendered.view, &spec.camera, 0);
+            assert!(wanted.contains(&pixels), "{visibility:?} image {im_id}: {pixels} handle pixels");
+            let visible = rendered.view.frame.label.iter().filter(|&&l| l == 1).count();
+            let all = rendered.view.silhouettes[0].iter().filter(|&&s| s).count();
+            assert!(2 * visible >= all && all > 0, "{visible} of {all} mug pixels visible");
+            let again = frame(&library, &spec, &truth, 3, im_id).unwrap();
+            assert_eq!(again.camera_from_world, rendered.camera_from_world);
+        }
+    }
+    let absent = RenderSpec {
+        condition: Some(ViewCondition {
+            part: ObjectPart { obj_id: 99, ..handle },
+            visibility: PartVisibility::Hidden,
+        }),
+        ..spec(PartVisibility::Hidden)
+    };
+    let err = frame(&library, &absent, &truth, 3, 1).unwrap_err().to_string();
+    assert!(err.contains("scene 3 image 1") && err.contains("object 99"), "{err}");
+}

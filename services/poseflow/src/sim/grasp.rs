@@ -24,17 +24,18 @@ use super::{pose_pipeline, stage_params};
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root (reads config/*.toml as the graph does).\n\n\
     Each trial renders the YCB-V mug alone on a table (camera 0.45–0.65 m away, 15–35° above the table) with its \
-    handle turned 60–120° from the line of sight (visible) or away from the camera (hidden behind the body; views \
-    where more than 10 handle pixels show are drawn again). The pose stages (ingest, the PoseFlow network, N = 50 \
+    handle turned 60–120° from the line of sight (visible), away from the camera (occluded: hidden behind the body; \
+    views where more than 10 handle pixels show are drawn again), or hidden but turned 25–70° from pointing away \
+    (hidden_aside: a single hypothesis that puts a hidden handle behind the body is wrong there). The pose stages (ingest, the PoseFlow network, N = 50 \
     samples, K = 5 steps, SDF selection with refinement) estimate the mug's pose distribution. Two grasp plans \
     follow, each --grasps grasps from the grasp flow: `single` under the selected pose alone, `marginalised` in the \
     velocity averaged over the first --hypotheses kept hypotheses (the paper's mean field). Each plan executes its \
     top grasp (the highest score: the share of hypotheses it holds under, ties broken by its friction margin); it \
     succeeds when it is antipodal and collision-free on the true pose and clear of the table.\n\n\
-    --json prints {\"trials\": n, \"visible\": {\"single\": rate, \"marginalised\": rate}, \"occluded\": {...}}, \
-    rates in percent.\n\nExample:\n  poseflow sim grasp --trials 20 --seed 0")]
+    --json prints {\"trials\": n, \"visible\": {\"single\": rate, \"marginalised\": rate}, \"occluded\": {...}, \
+    \"hidden_aside\": {...}}, rates in percent.\n\nExample:\n  poseflow sim grasp --trials 20 --seed 0")]
 pub struct GraspSimArgs {
-    /// Trials per condition (handle visible, handle hidden).
+    /// Trials per condition (handle visible, hidden behind the body, hidden and turned aside).
     #[arg(long, default_value_t = 20)]
     pub trials: usize,
     #[arg(long, default_value_t = 0)]
@@ -89,6 +90,7 @@ struct Report {
     trials: usize,
     visible: Rates,
     occluded: Rates,
+    hidden_aside: Rates,
 }
 
 /// Does the gripper at `world_from_grasp` stay above the table (z = 0)?
@@ -138,7 +140,7 @@ fn write_trials(out: &Path, trials: &[Trial]) -> anyhow::Result<()> {
         let (one, many) = (&t.single, &t.marginalised);
         text += &format!(
             "{},{},{},{},{:.2},{:.2},{:.2},{:.2},{},{:.4},{:.4},{},{:.4},{:.4}\n",
-            format!("{:?}", t.handle).to_lowercase(),
+            t.handle.name(),
             t.index,
             t.handle_pixels,
             t.kept,
@@ -189,11 +191,16 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
     let (mut single, mut marginal) = (grasp(1)?, grasp(args.hypotheses)?);
     let gripper = single.params().gripper;
 
-    let mut report = Report { trials: args.trials, visible: Rates::default(), occluded: Rates::default() };
+    let mut report = Report {
+        trials: args.trials,
+        visible: Rates::default(),
+        occluded: Rates::default(),
+        hidden_aside: Rates::default(),
+    };
     let mut rows: Vec<Trial> = Vec::new();
     // Wall time of each plan (grasp flow and checks), single then marginalised.
     let mut plan_ms: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
-    for (c, handle) in [Handle::Visible, Handle::Occluded].into_iter().enumerate() {
+    for (c, handle) in [Handle::Visible, Handle::Occluded, Handle::HiddenAside].into_iter().enumerate() {
         let (mut single_ok, mut marginal_ok) = (0, 0);
         for trial in 0..args.trials {
             let frame_id = (c * args.trials + trial) as u64;
@@ -243,6 +250,7 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
         match handle {
             Handle::Visible => report.visible = rates,
             Handle::Occluded => report.occluded = rates,
+            Handle::HiddenAside => report.hidden_aside = rates,
         }
     }
     if let Some(out) = &args.out {
@@ -260,15 +268,15 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
         args.seed
     );
     println!(
-        "{:<9} {:>5} {:>9} {:>5} {:>8} {:>8} | {:>6} {:>6} {:>6} | {:>6} {:>6} {:>6}",
+        "{:<12} {:>5} {:>9} {:>5} {:>8} {:>8} | {:>6} {:>6} {:>6} | {:>6} {:>6} {:>6}",
         "handle", "trial", "handle px", "kept", "rot err", "spread", "single", "share", "any", "marg.", "share", "any"
     );
     for t in &rows {
         let mark = |e: &Executed| if e.success { "ok" } else { "fail" };
         let (one, many) = (&t.single, &t.marginalised);
         println!(
-            "{:<9} {:>5} {:>9} {:>5} {:>7.1}° {:>7.1}° | {:>6} {:>6.2} {:>5.0}% | {:>6} {:>6.2} {:>5.0}%",
-            format!("{:?}", t.handle).to_lowercase(),
+            "{:<12} {:>5} {:>9} {:>5} {:>7.1}° {:>7.1}° | {:>6} {:>6.2} {:>5.0}% | {:>6} {:>6.2} {:>5.0}%",
+            t.handle.name(),
             t.index,
             t.handle_pixels,
             t.kept,
@@ -292,9 +300,11 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
         args.grasps, args.hypotheses
     );
     println!("\nsuccess of the executed (top) grasp, % of trials:");
-    println!("{:<10} {:>8} {:>13}", "condition", "single", "marginalised");
-    for (name, rates) in [("visible", &report.visible), ("occluded", &report.occluded)] {
-        println!("{name:<10} {:>7.1}% {:>12.1}%", rates.single, rates.marginalised);
+    println!("{:<12} {:>8} {:>13}", "condition", "single", "marginalised");
+    for (name, rates) in
+        [("visible", &report.visible), ("occluded", &report.occluded), ("hidden_aside", &report.hidden_aside)]
+    {
+        println!("{name:<12} {:>7.1}% {:>12.1}%", rates.single, rates.marginalised);
     }
     Ok(())
 }

@@ -28,6 +28,20 @@ pub enum Handle {
     Visible,
     /// Pointing away from the camera (within 15°): hidden behind the body.
     Occluded,
+    /// Hidden behind the body but turned 25–70° from pointing away: a
+    /// network that has learnt "a hidden handle points away" puts it in the
+    /// wrong place, while every pose on the hidden arc explains the image.
+    HiddenAside,
+}
+
+impl Handle {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Visible => "visible",
+            Self::Occluded => "occluded",
+            Self::HiddenAside => "hidden_aside",
+        }
+    }
 }
 
 /// One rendered view: the frame and mask the pipeline reads, the truth,
@@ -104,6 +118,10 @@ pub fn render_mug(library: &ModelLibrary, handle: Handle, frame_id: u64, rng: &m
         let azimuth = rng.random_range(0.0..std::f64::consts::TAU);
         let yaw = match handle {
             Handle::Occluded => azimuth + std::f64::consts::PI + rng.random_range(-15f64..=15.0).to_radians(),
+            Handle::HiddenAside => {
+                let side = if rng.random::<bool>() { 1.0 } else { -1.0 };
+                azimuth + std::f64::consts::PI + side * rng.random_range(25f64..=70.0).to_radians()
+            }
             Handle::Visible => {
                 let side = if rng.random::<bool>() { 1.0 } else { -1.0 };
                 azimuth + side * rng.random_range(60f64..=120.0).to_radians()
@@ -117,7 +135,7 @@ pub fn render_mug(library: &ModelLibrary, handle: Handle, frame_id: u64, rng: &m
                 * Vector3::new(elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin());
         let camera_from_world = look_at(&eye, &scene.centre, 0.0);
         let wanted = |pixels: usize| match handle {
-            Handle::Occluded => pixels <= 10,
+            Handle::Occluded | Handle::HiddenAside => pixels <= 10,
             Handle::Visible => pixels >= 150,
         };
         if let Some(view) = view_mug_if(library, &scene, &camera_from_world, frame_id, rng, wanted) {
