@@ -137,3 +137,22 @@ def test_the_relative_pose_velocity_net_starts_at_the_coarse_pose_and_sees_poses
     # The output turns with the coarse pose: R_c Delta -> Q R_c Delta.
     assert (turn @ a - b).abs().max() < 1e-4
     assert HINT_VALUES == 12
+
+
+def test_the_diagnostic_reads_a_gain_of_one_for_a_field_that_keeps_the_sample_and_zero_for_one_that_does_not():
+    from poseflow_train.diagnose import gains, predicted_turns, turn_about
+
+    g = torch.Generator().manual_seed(3)
+    truth = se3.uniform_rotation((6,), generator=g)
+    axis = torch.tensor([0.0, 0.0, 1.0])
+    # The turn read off is the one applied, whatever the truth.
+    assert (predicted_turns(turn_about(truth, axis, 37.0), truth, axis) - 37.0).abs().max() < 1e-3
+    thetas, translation = [-60.0, 0.0, 60.0], torch.zeros(6, 3)
+    keeps = gains(lambda r, p, t: r, truth, translation, axis, thetas, [0.8])["0.8"]
+    assert abs(keeps["gain"] - 1.0) < 1e-3 and abs(keeps["turns"][0] + 60.0) < 1e-2
+    pulls = gains(lambda r, p, t: truth, truth, translation, axis, thetas, [0.8])["0.8"]
+    assert abs(pulls["gain"]) < 1e-6
+    # A field that keeps half of the sample's turn: gain 0.5.
+    halfway = gains(lambda r, p, t: turn_about(truth, axis, predicted_turns(r, truth, axis) / 2), truth, translation, axis,
+                    thetas, [0.5])
+    assert abs(halfway["0.5"]["gain"] - 0.5) < 1e-3
