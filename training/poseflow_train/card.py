@@ -153,6 +153,8 @@ def main():
     parser.add_argument("--robustness-compare-label", default="compared 10°5cm %", help="that column's heading")
     parser.add_argument("--robustness-note", default="", help="Markdown after the robustness table")
     parser.add_argument("--data-note", default="", help="Markdown at the end of the Data section")
+    parser.add_argument("--ambiguity", help="the Ambiguity section as `evaluation/results_page.py --ambiguity-only` wrote "
+                                            "it (Markdown, included as it is)")
     parser.add_argument("--history", default="",
                         help="Markdown describing how the runs followed each other, for the Training section")
     args = parser.parse_args()
@@ -290,6 +292,7 @@ object's symmetries (`models_info.json`; continuous ones in 1° steps).
 {table(object_rows, ["object", "symmetric", "instances", "10°5cm %", "5°5cm %", "median rot °", "median trans cm"])}
 
 {robustness_section(args.robustness, args.robustness_compare, args.robustness_compare_label, args.robustness_note)}
+{Path(args.ambiguity).read_text() if args.ambiguity else ""}
 ## Latency (2 CPU cores, ONNX Runtime {bench['threads']} intra-op threads)
 
 `poseflow bench model --model {bench['model']} --json`:
