@@ -8,7 +8,6 @@
 //! scaled with the image area for other sizes.
 
 use nalgebra::{Point3, Unit, Vector3};
-use poseflow_geometry::Pose;
 
 use crate::Camera;
 use crate::scene::{Scene, View};
@@ -45,36 +44,24 @@ impl ObjectPart {
     }
 
     /// Pixels where instance `instance` of the view (label `instance + 1`)
-    /// is visible and its surface point lies on the part.
+    /// is visible and its (noiseless) surface point lies on the part.
     pub fn visible_pixels(&self, view: &View, camera: &Camera, instance: usize) -> usize {
         let object_from_camera = view.object_poses[instance].inverse();
-        visible_part_pixels(&view.frame.depth, &view.frame.label, instance + 1, camera, &object_from_camera, self)
+        let width = camera.width as usize;
+        view.frame
+            .depth
+            .iter()
+            .zip(&view.frame.label)
+            .enumerate()
+            .filter(|(_, (z, l))| usize::from(**l) == instance + 1 && **z > 0.0)
+            .filter(|(i, (z, _))| {
+                let (u, v) = ((i % width) as f64 + 0.5, (i / width) as f64 + 0.5);
+                let ray = camera.ray_direction(u, v);
+                let point = Point3::from(ray * (f64::from(**z) / ray.z));
+                self.contains(&object_from_camera.transform_point(&point))
+            })
+            .count()
     }
-}
-
-/// The pixels labelled `label` with depth whose back-projected point (in
-/// the object frame through `object_from_camera`) lies on `part`.
-fn visible_part_pixels(
-    depth: &[f32],
-    labels: &[u16],
-    label: usize,
-    camera: &Camera,
-    object_from_camera: &Pose,
-    part: &ObjectPart,
-) -> usize {
-    let width = camera.width as usize;
-    depth
-        .iter()
-        .zip(labels)
-        .enumerate()
-        .filter(|(_, (z, l))| usize::from(**l) == label && **z > 0.0)
-        .filter(|(i, (z, _))| {
-            let (u, v) = ((i % width) as f64 + 0.5, (i / width) as f64 + 0.5);
-            let ray = camera.ray_direction(u, v);
-            let point = Point3::from(ray * (f64::from(**z) / ray.z));
-            part.contains(&object_from_camera.transform_point(&point))
-        })
-        .count()
 }
 
 /// Whether the part must be seen or not.

@@ -18,9 +18,6 @@ use rand::Rng;
 
 use super::sensor_frame;
 
-/// Object-frame x beyond which a surface point belongs to the handle.
-pub const HANDLE_X: f64 = 0.05;
-
 /// Where the handle points relative to the camera.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Handle {
@@ -99,7 +96,7 @@ fn view_mug_if(
     let view = render_view(library, scene, &camera, camera_from_world, &random_light(rng));
     let camera_from_object = view.object_poses[0];
     let visible: Vec<bool> = view.frame.label.iter().map(|&l| l == 1).collect();
-    let handle = ObjectPart { obj_id: scene.objects[0].obj_id, axis: Vector3::x_axis(), beyond: HANDLE_X };
+    let handle = ObjectPart { obj_id: scene.objects[0].obj_id, ..ObjectPart::ycbv_mug_handle() };
     let handle_pixels = handle.visible_pixels(&view, &camera, 0);
     if !wanted(handle_pixels) {
         return None;
