@@ -366,10 +366,8 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
         let mut stage = build(wiring, make)?;
         let _span = tracing::info_span!("stage", name = %wiring.stage).entered();
         let input = process.input::<S::In>()?;
-        let output = process.output::<S::Out>()?;
         let server =
             RequestServer::<S::Request, S::Response>::create(&process.node, &served.service, served.max_payload_len)?;
-        tracing::info!(input = input.name(), output = output.name(), serves = %served.edge, "running");
         // Shared with the request handler, which outlives the event loop: it
         // keeps answering while the output drains.
         let liveness = process.liveness.clone();
@@ -407,6 +405,16 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
             })?;
             Ok(())
         };
+        // A restarted server's caller may be the reader it waits for (the
+        // sampler asks for velocities and reads conditions): answering
+        // meanwhile turns the caller's wait for a response into a quick
+        // "unknown condition" instead of a timeout per request.
+        let output = process.output_serving::<S::Out>(&mut || {
+            if let Err(err) = on_requests() {
+                tracing::warn!(%err, "requests not served while waiting for the output's readers");
+            }
+        })?;
+        tracing::info!(input = input.name(), output = output.name(), serves = %served.edge, "running");
         let mut on_request_event = || on_requests();
         let requests = Attachment { source: &server, on_event: &mut on_request_event };
         // Outputs are held until the stage has returned, then published while

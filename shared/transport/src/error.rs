@@ -14,6 +14,12 @@ pub enum TransportError {
     #[error("no {operation} on `{target}` within {after:?}")]
     Timeout { operation: &'static str, target: String, after: std::time::Duration },
 
+    #[error("no server holds the request on `{target}`: none was running, or it stopped or restarted before answering")]
+    NoServer { target: String },
+
+    #[error("{operation} on `{target}` abandoned: the process was asked to stop")]
+    Interrupted { operation: &'static str, target: String },
+
     #[error(transparent)]
     Contract(#[from] poseflow_contracts::ContractError),
 }

@@ -25,6 +25,18 @@ pub type Ipc = iceoryx2::service::ipc::Service;
 /// A node of this process.
 pub type Node = iceoryx2::node::Node<Ipc>;
 
+/// Whether SIGINT/SIGTERM arrived, without hiding it from the stage's own
+/// loop: iceoryx2 clears the flag when it is read, so it is raised again.
+pub(crate) fn termination_requested() -> bool {
+    let requested = iceoryx2_bb_posix::signal::SignalHandler::termination_requested();
+    if requested {
+        // SAFETY: raise() only re-delivers SIGTERM to this thread, where
+        // iceoryx2's handler records it again.
+        unsafe { libc::raise(libc::SIGTERM) };
+    }
+    requested
+}
+
 /// Creates this process's iceoryx2 node, named after the stage.
 ///
 /// Signal handling is left to iceoryx2's default: SIGINT/SIGTERM end the

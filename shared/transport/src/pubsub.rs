@@ -21,7 +21,7 @@ use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
 use poseflow_contracts::{ContractError, MessageHeader};
 
-use crate::{Ipc, Node, TransportError, blocked};
+use crate::{Ipc, Node, TransportError, blocked, termination_requested};
 
 /// Event ids. Each edge has two event services: `<edge>` (publisher →
 /// receivers) and `<edge>/ack` (receivers → publisher).
@@ -134,18 +134,6 @@ fn ack_name(edge: &str) -> String {
 
 fn notify(notifier: &Notifier<Ipc>, id: EventId, what: &'static str, edge: &str) -> Result<(), TransportError> {
     notifier.notify_with_custom_event_id(id).map(|_| ()).map_err(|e| TransportError::iceoryx(what, edge, e))
-}
-
-/// Whether SIGINT/SIGTERM arrived, without hiding it from the stage's own
-/// loop: iceoryx2 clears the flag when it is read, so it is raised again.
-fn termination_requested() -> bool {
-    let requested = iceoryx2_bb_posix::signal::SignalHandler::termination_requested();
-    if requested {
-        // SAFETY: raise() only re-delivers SIGTERM to this thread, where
-        // iceoryx2's handler records it again.
-        unsafe { libc::raise(libc::SIGTERM) };
-    }
-    requested
 }
 
 /// How an end-of-stream handshake ended.

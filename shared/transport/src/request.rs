@@ -19,7 +19,7 @@ use iceoryx2::service::port_factory::request_response::PortFactory;
 use poseflow_contracts::{ContractError, MessageHeader};
 
 use crate::pubsub::{events, listener, notifier, service_name};
-use crate::{Ipc, Node, TransportError};
+use crate::{Ipc, Node, TransportError, termination_requested};
 
 fn response_events(edge: &str) -> String {
     format!("{edge}/response")
@@ -74,6 +74,9 @@ impl<Req: MessageHeader, Resp: MessageHeader> Reply<Req, Resp> {
     }
 }
 
+/// How often a waiting caller checks that a server still holds its request.
+const SERVER_CHECK_EVERY: Duration = Duration::from_millis(50);
+
 /// The calling side (the sampler).
 #[derive(Debug)]
 pub struct RequestClient<Req: MessageHeader, Resp: MessageHeader> {
@@ -108,6 +111,11 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestClient<Req, Resp> {
         timeout: Duration,
     ) -> Result<Reply<Req, Resp>, TransportError> {
         check_len(&header, len, self.max_request_len)?;
+        // A stopping caller would otherwise wait out the timeout once per
+        // request still queued: iceoryx2 interrupts only the first wait.
+        if termination_requested() {
+            return Err(TransportError::Interrupted { operation: "request", target: self.name.clone() });
+        }
         let mut request = self
             .client
             .loan_slice_uninit(len)
@@ -131,6 +139,20 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestClient<Req, Resp> {
             {
                 return Ok(Reply { response, _request: std::marker::PhantomData });
             }
+            if termination_requested() {
+                return Err(TransportError::Interrupted { operation: "response", target: self.name.clone() });
+            }
+            // `receive` has just updated the connections: a server that died
+            // (and was cleaned up) or dropped the request answers nothing, so
+            // waiting out the timeout would only stall the caller.
+            if !pending.is_connected() {
+                if let Some(response) =
+                    pending.receive().map_err(|e| TransportError::iceoryx("receive response on", &self.name, e))?
+                {
+                    return Ok(Reply { response, _request: std::marker::PhantomData });
+                }
+                return Err(TransportError::NoServer { target: self.name.clone() });
+            }
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
                 return Err(TransportError::Timeout {
@@ -139,8 +161,9 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestClient<Req, Resp> {
                     after: timeout,
                 });
             }
+            // A dead server sends no event: look again every slice.
             self.responses
-                .timed_wait(|_| {}, left)
+                .timed_wait(|_| {}, left.min(SERVER_CHECK_EVERY))
                 .map_err(|e| TransportError::iceoryx("wait for response on", &self.name, e))?;
         }
     }

@@ -96,11 +96,46 @@ fn euler_steps_get_one_velocity_per_pose() {
 }
 
 #[test]
-fn a_call_without_server_times_out_with_a_named_error() {
+fn a_call_without_server_fails_at_once_with_a_named_error() {
     let name = edge_service_name(&format!("test-noserver-{}", std::process::id()), "velocity").unwrap();
     let node = create_node("lonely-sampler").unwrap();
     let client = RequestClient::<VelocityRequest, VelocityResponse>::create(&node, &name, 64).unwrap();
     let request = VelocityRequest { sample_count: 1, t: 0.0, ..Default::default() };
-    let err = client.call(request, POSE_LEN, |p| p.fill(0.0), Duration::from_millis(100)).unwrap_err().to_string();
-    assert!(err.contains("no response") && err.contains("velocity"), "{err}");
+    // A timeout no test run reaches: the call must not wait it out.
+    let err = client.call(request, POSE_LEN, |p| p.fill(0.0), Duration::from_secs(600)).unwrap_err().to_string();
+    assert!(err.contains("no server") && err.contains("velocity"), "{err}");
+}
+
+#[test]
+fn a_server_that_stops_without_answering_ends_the_call_before_its_timeout() {
+    let name = edge_service_name(&format!("test-goneserver-{}", std::process::id()), "velocity").unwrap();
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+    let server = std::thread::spawn({
+        let name = name.clone();
+        move || {
+            let node = create_node("vanishing-inference").unwrap();
+            let server = RequestServer::<VelocityRequest, VelocityResponse>::create(&node, &name, 4096).unwrap();
+            ready_tx.send(()).unwrap();
+            // Takes the request, answers nothing and goes away.
+            let waitset = WaitSetBuilder::new().create::<Ipc>().unwrap();
+            let requests = waitset.attach_notification(&server).unwrap();
+            let mut taken = 0;
+            waitset
+                .wait_and_process(|id| {
+                    if id.has_event_from(&requests) {
+                        taken += server.serve(|_, _, _| Ok(())).unwrap();
+                    }
+                    if taken > 0 { CallbackProgression::Stop } else { CallbackProgression::Continue }
+                })
+                .unwrap();
+            taken
+        }
+    });
+    ready_rx.recv().unwrap();
+    let node = create_node("waiting-sampler").unwrap();
+    let client = RequestClient::<VelocityRequest, VelocityResponse>::create(&node, &name, 64).unwrap();
+    let request = VelocityRequest { sample_count: 1, t: 0.0, ..Default::default() };
+    let err = client.call(request, POSE_LEN, |p| p.fill(0.0), Duration::from_secs(600)).unwrap_err().to_string();
+    assert!(err.contains("no server") && err.contains("velocity"), "{err}");
+    assert_eq!(server.join().unwrap(), 1);
 }
