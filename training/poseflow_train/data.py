@@ -87,6 +87,10 @@ class Observations:
     def __len__(self):
         return len(self.index)
 
+    def obj_ids(self):
+        """The object id of every observation, in index order."""
+        return np.array([int(self.shards[k].records["ids"][i, 0]) for k, i in self.index], dtype=np.int64)
+
     def poses(self, indices):
         """The ground truth alone (what training on cached conditions needs):
         `rotation`, `translation` (relative to the observed points' mean),

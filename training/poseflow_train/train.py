@@ -83,6 +83,32 @@ def flow_batch(batch, cfg, samples, steps, generator, hint=None, hint_paths=0.0)
     return {"r_t": r_t, "p_t": p_t, "t": t, "v_rot": v_rot, "v_pos": v_pos, "r1": r1, "p1": p1}
 
 
+def draw_weights(obj_ids, oversample):
+    """Draw probabilities of the training observations: an observation of
+    object `o` is drawn `oversample[str(o)]` times as often as one of an
+    object not listed (views the data holds few of, such as a mug with its
+    handle out of sight, otherwise barely reach the loss). None when
+    nothing is oversampled, so the draws stay those of uniform sampling."""
+    if not oversample:
+        return None
+    factors = {}
+    for key, factor in oversample.items():
+        if not str(key).isdigit() or not isinstance(factor, (int, float)) or factor <= 0:
+            raise SystemExit(f"config: oversample {{{key!r}: {factor!r}}}: expected an object id and a positive factor")
+        if int(key) not in set(obj_ids.tolist()):
+            raise SystemExit(f"config: oversample names object {key}, which no training observation shows")
+        factors[int(key)] = float(factor)
+    weights = np.array([factors.get(int(o), 1.0) for o in obj_ids])
+    return weights / weights.sum()
+
+
+def draw(rng, count, size, weights):
+    """`size` observation indices, uniform or by `weights`."""
+    if weights is None:
+        return rng.integers(0, count, size)
+    return rng.choice(count, size, p=weights)
+
+
 def flow_losses(config, cfg, velocity, condition, mask, flow):
     """(l_rot, l_pos) of one batch. `loss` "velocity" (the default): squared
     errors of the predicted velocities against the paper's targets, weighted
@@ -337,6 +363,7 @@ def main():
     lam = config.get("lambda_pos", 10.0)
     run_started = time.monotonic()
     marks = {"checkpoint": state["train_s"], "validation": state["train_s"]}
+    weights = draw_weights(train.obj_ids(), config.get("oversample", {}))
     print(f"{len(train)} training and {len(val)} validation observations", flush=True)
     # SIGTERM / SIGINT end the run after the current step, with a checkpoint.
     stop = []
@@ -347,7 +374,7 @@ def main():
             break
         started = time.monotonic()
         if cache is not None:
-            indices = np.sort(rng.integers(0, len(train), batch_size))
+            indices = np.sort(draw(rng, len(train), batch_size, weights))
             batch = train.poses(indices)
             condition, mask = (torch.from_numpy(np.asarray(c[indices])) for c in cache)
             flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0))
@@ -358,7 +385,7 @@ def main():
             finish_step(config, state, started, log, loss, loss_rot, loss_pos, loss_corr, encoder, velocity, val, cfg, steps,
                         checkpoint, modules, optimiser, generator, rng, marks)
             continue
-        batch = train.batch(rng.integers(0, len(train), batch_size))
+        batch = train.batch(draw(rng, len(train), batch_size, weights))
         # Warm-ups: the correspondence network (and refiner) alone, many
         # times faster per observation than the whole model: for the first
         # `correspondence_warmup_s` of training, and for the first
@@ -368,7 +395,7 @@ def main():
         refine_warmup_end = state.get("initialised_at_s", 0.0) + config.get("refine_warmup_s", 0)
         warming_up = state["train_s"] < max(config.get("correspondence_warmup_s", 0), refine_warmup_end)
         if warming_up:
-            batch = train.batch(rng.integers(0, len(train), batch_size + config.get("correspondence_extra_batch", 0)))
+            batch = train.batch(draw(rng, len(train), batch_size + config.get("correspondence_extra_batch", 0), weights))
             loss_corr = correspondence_losses(encoder, batch, table, cfg, config, generator)
             loss_rot = loss_pos = torch.zeros(())
         else:
@@ -380,7 +407,7 @@ def main():
         if extra and not warming_up:
             # The correspondences are the slow part to learn and cheap to
             # train alone: each step also trains them on more observations.
-            more = train.batch(rng.integers(0, len(train), extra))
+            more = train.batch(draw(rng, len(train), extra, weights))
             loss_more = correspondence_losses(encoder, more, table, cfg, config, generator)
             loss_corr = (batch_size * loss_corr + extra * loss_more) / (batch_size + extra)
         loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr

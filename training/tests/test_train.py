@@ -156,3 +156,23 @@ def test_the_diagnostic_reads_a_gain_of_one_for_a_field_that_keeps_the_sample_an
     halfway = gains(lambda r, p, t: turn_about(truth, axis, predicted_turns(r, truth, axis) / 2), truth, translation, axis,
                     thetas, [0.5])
     assert abs(halfway["0.5"]["gain"] - 0.5) < 1e-3
+
+
+def test_oversampled_objects_are_drawn_by_their_factor_and_bad_factors_are_refused():
+    import numpy as np
+    import pytest
+
+    from poseflow_train.train import draw, draw_weights
+
+    obj_ids = np.array([1] * 90 + [14] * 10)
+    assert draw_weights(obj_ids, {}) is None
+    weights = draw_weights(obj_ids, {"14": 9})
+    # 10 mug observations at 9x weigh as much as the 90 others together.
+    assert abs(weights[obj_ids == 14].sum() - 0.5) < 1e-12
+    drawn = draw(np.random.default_rng(0), len(obj_ids), 20000, weights)
+    assert abs((obj_ids[drawn] == 14).mean() - 0.5) < 0.02
+    uniform = draw(np.random.default_rng(0), len(obj_ids), 20000, None)
+    assert abs((obj_ids[uniform] == 14).mean() - 0.1) < 0.02
+    for bad in ({"14": 0}, {"14": "x"}, {"mug": 2}, {"5": 2}):
+        with pytest.raises(SystemExit):
+            draw_weights(obj_ids, bad)
