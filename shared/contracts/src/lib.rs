@@ -74,7 +74,7 @@ pub use next_view::{CANDIDATE_LEN, NextViewHeader};
 pub use observation::{CameraIntrinsics, ObservationHeader, ObservationView};
 pub use tensor::{MAX_TENSOR_LEN, TensorHeader};
 pub use velocity::{VelocityRequest, VelocityResponse, status};
-pub use visit::{MessageVisitor, visit_message};
+pub use visit::{MessageVisitor, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, visit_message};
 
 /// The layout tables in the docs, checked by the compiler.
 mod layout {

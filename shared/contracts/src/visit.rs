@@ -6,6 +6,24 @@ use crate::{
     ObservationHeader, TensorHeader,
 };
 
+/// Message types a publish-subscribe edge may carry, as graph files and
+/// recordings name them: the `NAME` of each contract header
+/// [`visit_message`] knows.
+pub const PUBLISH_SUBSCRIBE_MESSAGES: [&str; 8] = [
+    FrameHeader::NAME,
+    ObservationHeader::NAME,
+    ConditionHandle::NAME,
+    HypothesesHeader::NAME,
+    EstimateHeader::NAME,
+    GraspsHeader::NAME,
+    NextViewHeader::NAME,
+    TensorHeader::NAME,
+];
+
+/// Message types a request-response edge may carry: "Velocity" is the
+/// [`crate::VelocityRequest`] / [`crate::VelocityResponse`] pair.
+pub const REQUEST_RESPONSE_MESSAGES: [&str; 1] = ["Velocity"];
+
 /// Code that works for any publish-subscribe contract header.
 pub trait MessageVisitor {
     type Output;
@@ -26,4 +44,28 @@ pub fn visit_message<V: MessageVisitor>(message: &str, visitor: V) -> Option<V::
         TensorHeader::NAME => visitor.visit::<TensorHeader>(),
         _ => return None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    struct Name;
+
+    impl MessageVisitor for Name {
+        type Output = &'static str;
+        fn visit<H: MessageHeader + Send + 'static>(self) -> &'static str {
+            H::NAME
+        }
+    }
+
+    #[test]
+    fn every_listed_message_is_visited_as_its_own_header_and_nothing_else_is() {
+        for name in PUBLISH_SUBSCRIBE_MESSAGES {
+            assert_eq!(visit_message(name, Name), Some(name));
+        }
+        for unknown in ["Velocity", "frame", "", "Heartbeat"] {
+            assert_eq!(visit_message(unknown, Name), None, "{unknown}");
+        }
+    }
 }

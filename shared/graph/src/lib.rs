@@ -19,9 +19,6 @@ pub use spec::{EdgePattern, OverflowPolicy, RestartPolicy};
 pub use validate::{Edge, Graph, Restart, Stage, load, parse};
 pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV};
 
-/// Message types an edge may carry, as named in graph files; each is the
-/// `NAME` of a contract header.
-pub const PUBLISH_SUBSCRIBE_MESSAGES: [&str; 8] =
-    ["Frame", "Observation", "Condition", "Hypotheses", "Estimate", "Grasps", "NextView", "Tensor"];
-/// Request-response edges carry VelocityRequest / VelocityResponse.
-pub const REQUEST_RESPONSE_MESSAGES: [&str; 1] = ["Velocity"];
+/// Message types an edge may carry, as named in graph files (defined with
+/// the contracts).
+pub use poseflow_contracts::{PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES};

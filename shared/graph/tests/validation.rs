@@ -3,11 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use poseflow_contracts::{
-    ConditionHandle, EstimateHeader, FrameHeader, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader,
-    ObservationHeader, TensorHeader,
-};
-use poseflow_graph::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, StageWiring, parse};
+use poseflow_graph::{GraphError, StageWiring, parse};
 
 const FILE: &str = "/deploy/test.toml";
 
@@ -208,21 +204,6 @@ fn parameter_files_are_read_relative_to_the_graph() {
     let err = parse(&text, &dir.join("g.toml"), &[PathBuf::from("/bin")]).unwrap_err().to_string();
     assert!(err.contains("`stages.middle.config`") && err.contains("middle.toml"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
-}
-
-#[test]
-fn message_names_match_the_contracts() {
-    let names = [
-        FrameHeader::NAME,
-        ObservationHeader::NAME,
-        ConditionHandle::NAME,
-        HypothesesHeader::NAME,
-        EstimateHeader::NAME,
-        GraspsHeader::NAME,
-        NextViewHeader::NAME,
-        TensorHeader::NAME,
-    ];
-    assert_eq!(PUBLISH_SUBSCRIBE_MESSAGES, names);
 }
 
 #[test]
