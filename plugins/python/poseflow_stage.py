@@ -128,8 +128,209 @@ class Heartbeat(ctypes.Structure):
         return 0
 
 
-assert ctypes.sizeof(Header) == 80 and ctypes.sizeof(HypothesesHeader) == 88 and ctypes.sizeof(Heartbeat) == 136
-assert ctypes.sizeof(FrameHeader) == 120
+# f32 values per record (shared/contracts): a pose is R row-major (9) ‖ t
+# in metres (3), camera from object; a weighted pose adds its weight.
+POSE_LEN = 12
+VELOCITY_LEN = 6
+WEIGHTED_POSE_LEN = POSE_LEN + 1
+GRASP_LEN = POSE_LEN + 3
+CANDIDATE_LEN = POSE_LEN + 1
+
+
+class ObservationHeader(ctypes.Structure):
+    """One object's network input (shared/contracts/src/observation.rs).
+
+    Payload: image 3·S·S (CHW, normalised) ‖ token mask P·P ‖ points N·3
+    (centred on `centroid`, divided by `point_scale`)."""
+
+    _fields_ = [
+        ("header", Header),
+        ("intrinsics", CameraIntrinsics),
+        ("centroid", ctypes.c_float * 3),
+        ("point_scale", ctypes.c_float),
+        ("crop", ctypes.c_float * 4),
+        ("image_size", ctypes.c_uint32),
+        ("patch_grid", ctypes.c_uint32),
+        ("point_count", ctypes.c_uint32),
+        ("valid_point_count", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/Observation/v1"
+
+    def payload_len(self):
+        return 3 * self.image_size**2 + self.patch_grid**2 + 3 * self.point_count
+
+
+class ConditionHandle(ctypes.Structure):
+    """A condition cached by the inference stage; no payload
+    (shared/contracts/src/condition.rs)."""
+
+    _fields_ = [
+        ("header", Header),
+        ("condition_id", ctypes.c_uint64),
+        ("image_tokens", ctypes.c_uint32),
+        ("point_tokens", ctypes.c_uint32),
+        ("active_image_tokens", ctypes.c_uint32),
+        ("model_width", ctypes.c_uint32),
+        ("centroid", ctypes.c_float * 3),
+        ("point_scale", ctypes.c_float),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/Condition/v1"
+
+    def payload_len(self):
+        return 0
+
+
+class VelocityRequest(ctypes.Structure):
+    """Payload: N poses (POSE_LEN each) at time t (shared/contracts/src/velocity.rs)."""
+
+    _fields_ = [
+        ("header", Header),
+        ("condition_id", ctypes.c_uint64),
+        ("request_id", ctypes.c_uint64),
+        ("sample_count", ctypes.c_uint32),
+        ("t", ctypes.c_float),
+        ("step_index", ctypes.c_uint32),
+        ("step_count", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/VelocityRequest/v1"
+
+    def payload_len(self):
+        return POSE_LEN * self.sample_count
+
+
+class VelocityResponse(ctypes.Structure):
+    """Payload: N velocities (ω ‖ v, VELOCITY_LEN each) when status is 0 (OK), else none."""
+
+    _fields_ = [
+        ("header", Header),
+        ("request_id", ctypes.c_uint64),
+        ("sample_count", ctypes.c_uint32),
+        ("status", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/VelocityResponse/v1"
+
+    def payload_len(self):
+        return VELOCITY_LEN * self.sample_count if self.status == 0 else 0
+
+
+class EstimateHeader(ctypes.Structure):
+    """The selected pose and the distribution around it
+    (shared/contracts/src/estimate.rs). `best` and `mean` are poses
+    (POSE_LEN); `covariance` is the 6×6 row-major tangent covariance at
+    `mean`, order t ‖ ω (m², rad²); `selection` 0 none, 1 model-free,
+    2 chamfer, 3 sdf.
+
+    Payload: modes M·13 ‖ hypotheses N·13 (pose ‖ weight); the first
+    `kept_count` hypotheses are the kept ones."""
+
+    _fields_ = [
+        ("header", Header),
+        ("best", ctypes.c_float * POSE_LEN),
+        ("mean", ctypes.c_float * POSE_LEN),
+        ("covariance", ctypes.c_float * 36),
+        ("rotation_trace", ctypes.c_float),
+        ("selection", ctypes.c_uint32),
+        ("mode_count", ctypes.c_uint32),
+        ("hypothesis_count", ctypes.c_uint32),
+        ("kept_count", ctypes.c_uint32),
+        ("refined", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/Estimate/v2"
+
+    def payload_len(self):
+        return WEIGHTED_POSE_LEN * (self.mode_count + self.hypothesis_count)
+
+
+class GraspsHeader(ctypes.Structure):
+    """Payload: G grasps, each a gripper pose (POSE_LEN) ‖ opening width (m),
+    share of hypotheses it is valid under, score (shared/contracts/src/grasps.rs)."""
+
+    _fields_ = [("header", Header), ("grasp_count", ctypes.c_uint32), ("hypothesis_count", ctypes.c_uint32)]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/Grasps/v1"
+
+    def payload_len(self):
+        return GRASP_LEN * self.grasp_count
+
+
+class TensorHeader(ctypes.Structure):
+    """Payload: a row-major f32 tensor of `shape[:rank]` (shared/contracts/src/tensor.rs)."""
+
+    _fields_ = [
+        ("header", Header),
+        ("shape", ctypes.c_uint32 * 4),
+        ("rank", ctypes.c_uint32),
+        ("reserved", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/Tensor/v1"
+
+    def payload_len(self):
+        n = 1
+        for d in self.shape[: self.rank]:
+            n *= d
+        return n
+
+
+class NextViewHeader(ctypes.Structure):
+    """The chosen next camera pose (POSE_LEN) and the candidates scored
+    (payload: C·13, pose ‖ expected rotation trace;
+    shared/contracts/src/next_view.rs)."""
+
+    _fields_ = [
+        ("header", Header),
+        ("chosen", ctypes.c_float * POSE_LEN),
+        ("expected_rotation_trace", ctypes.c_float),
+        ("current_rotation_trace", ctypes.c_float),
+        ("candidate_count", ctypes.c_uint32),
+        ("reserved", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name():
+        return "poseflow/NextView/v1"
+
+    def payload_len(self):
+        return CANDIDATE_LEN * self.candidate_count
+
+
+# Every contract's mirror; tests/e2e/python.rs checks each against the Rust
+# layout (size, alignment, field offsets) and iceoryx2 type name.
+CONTRACTS = [
+    StageStamps,
+    Header,
+    CameraIntrinsics,
+    FrameHeader,
+    ObservationHeader,
+    ConditionHandle,
+    VelocityRequest,
+    VelocityResponse,
+    HypothesesHeader,
+    EstimateHeader,
+    GraspsHeader,
+    Heartbeat,
+    TensorHeader,
+    NextViewHeader,
+]
 
 
 def monotonic_ns():

@@ -7,6 +7,7 @@ use std::process::{Command, Output, Stdio};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
+use poseflow_e2e::plugin_python;
 use poseflow_smoke::SinkReport;
 use poseflow_transport::shared_memory_files;
 
@@ -406,16 +407,6 @@ fn an_invalid_graph_is_rejected_before_anything_starts() {
         stderr.contains("relay.toml") && stderr.contains("`stages.relay.inputs`") && stderr.contains("\"missing\""),
         "{stderr}"
     );
-}
-
-/// The Python interpreter with iceoryx2's bindings that `deploy/setup`
-/// installs (override with POSEFLOW_PYTHON).
-fn plugin_python() -> PathBuf {
-    let python = std::env::var_os("POSEFLOW_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../target/python-venv/bin/python")));
-    assert!(python.exists(), "{} missing: run deploy/setup first", python.display());
-    python
 }
 
 #[test]

@@ -21,3 +21,13 @@ pub fn probe_poses(frame: u64, object: u32, count: usize) -> Vec<f32> {
     }
     poses
 }
+
+/// The Python interpreter with iceoryx2's bindings that `deploy/setup`
+/// installs (override with POSEFLOW_PYTHON).
+pub fn plugin_python() -> std::path::PathBuf {
+    let python = std::env::var_os("POSEFLOW_PYTHON").map(std::path::PathBuf::from).unwrap_or_else(|| {
+        std::path::PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../target/python-venv/bin/python"))
+    });
+    assert!(python.exists(), "{} missing: run deploy/setup first", python.display());
+    python
+}
