@@ -21,5 +21,5 @@ mod stage;
 pub use error::RuntimeError;
 pub use local::{LocalGraph, LocalOverflow, LocalReport};
 pub use logging::init_logging;
-pub use process::{run_joined, run_server, run_sink, run_source, run_transform};
+pub use process::{run_joined, run_server, run_sink, run_source, run_transform, run_transform_or_joined};
 pub use stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};

@@ -508,6 +508,16 @@ pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String
     })())
 }
 
+/// Runs a stage whose side input is optional: as [`run_joined`] when its
+/// graph entry lists one in `side_inputs`, else as [`run_transform`] (a
+/// selector that scores without the observed points needs none).
+pub fn run_transform_or_joined<T: Transform + Joined>(
+    make: impl FnOnce(&StageWiring) -> Result<T, String>,
+) -> ExitCode {
+    let has_side_input = StageWiring::from_env().is_ok_and(|w| !w.side_inputs.is_empty());
+    if has_side_input { run_joined(make) } else { run_transform(make) }
+}
+
 /// Answers a new writer's handshake on `side` without reading its messages,
 /// remembering an end of stream seen on the way in `ended`.
 fn answer_handshake<H: MessageHeader>(side: &EdgeSubscriber<H>, ended: &std::cell::Cell<bool>) {

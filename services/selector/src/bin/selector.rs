@@ -24,6 +24,5 @@ fn make(wiring: &StageWiring) -> Result<SelectorStage, String> {
 }
 
 fn main() -> ExitCode {
-    let has_side_input = StageWiring::from_env().is_ok_and(|w| !w.side_inputs.is_empty());
-    if has_side_input { poseflow_runtime::run_joined(make) } else { poseflow_runtime::run_transform(make) }
+    poseflow_runtime::run_transform_or_joined(make)
 }
