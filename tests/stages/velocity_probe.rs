@@ -76,11 +76,11 @@ impl Sink for Probe {
 }
 
 fn main() -> std::process::ExitCode {
-    poseflow_runtime::run_sink(|wiring| {
+    poseflow_runtime::run_sink(|wiring| -> Result<_, poseflow_runtime::BuildError> {
         let report = wiring.params.get("report").and_then(|v| v.as_str()).ok_or("params.report: expected a path")?;
         let [edge] = wiring.calls.as_slice() else { return Err("expected one request-response edge it calls".into()) };
-        let node = create_node(&format!("{}-client", wiring.stage)).map_err(|e| e.to_string())?;
-        let client = RequestClient::create(&node, &edge.service, edge.max_payload_len).map_err(|e| e.to_string())?;
+        let node = create_node(&format!("{}-client", wiring.stage))?;
+        let client = RequestClient::create(&node, &edge.service, edge.max_payload_len)?;
         let report = std::fs::File::create(PathBuf::from(report)).map_err(|e| format!("{report}: {e}"))?;
         Ok(Probe { client, _node: node, report, requests: 0 })
     })

@@ -25,6 +25,10 @@ pub enum ReplayError {
     HeaderSize { file: PathBuf, index: u64, edge: String, message: &'static str, found: usize, expected: usize },
     #[error("{0}")]
     Emit(#[from] poseflow_runtime::EmitError),
+    #[error("param `{key}`: expected {expected}, got {found}")]
+    Param { key: &'static str, expected: String, found: String },
+    #[error("{file}: edge `{edge}` carries {recorded}, the output edge carries {expected}")]
+    MessageMismatch { file: PathBuf, edge: String, recorded: String, expected: &'static str },
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -46,43 +50,49 @@ pub struct ReplaySource<H> {
 }
 
 impl<H: MessageHeader> ReplaySource<H> {
-    pub fn from_wiring(wiring: &StageWiring) -> Result<Self, String> {
+    pub fn from_wiring(wiring: &StageWiring) -> Result<Self, ReplayError> {
         let params = &wiring.params;
-        let file = PathBuf::from(
-            params.get("file").and_then(|v| v.as_str()).ok_or("param `file`: expected the path of a recording")?,
-        );
-        let reader = RecordingReader::open(&file).map_err(|e| e.to_string())?;
+        let file = PathBuf::from(params.get("file").and_then(|v| v.as_str()).ok_or_else(|| ReplayError::Param {
+            key: "file",
+            expected: "the path of a recording".into(),
+            found: params.get("file").map_or("nothing".into(), ToString::to_string),
+        })?);
+        let reader = RecordingReader::open(&file)?;
         let edges = &reader.info.edges;
+        let names = || format!("{:?}", edges.iter().map(|e| &e.edge).collect::<Vec<_>>());
         let recorded = match params.get("edge").and_then(|v| v.as_str()) {
-            Some(name) => edges.iter().find(|e| e.edge == name).ok_or_else(|| {
-                format!(
-                    "param `edge`: {name:?} is not in {} (it holds {:?})",
-                    file.display(),
-                    edges.iter().map(|e| &e.edge).collect::<Vec<_>>()
-                )
+            Some(name) => edges.iter().find(|e| e.edge == name).ok_or_else(|| ReplayError::Param {
+                key: "edge",
+                expected: format!("an edge of {} (it holds {})", file.display(), names()),
+                found: format!("{name:?}"),
             })?,
             None if edges.len() == 1 => &edges[0],
             None => {
-                return Err(format!(
-                    "param `edge`: {} holds several edges {:?}; name one",
-                    file.display(),
-                    edges.iter().map(|e| &e.edge).collect::<Vec<_>>()
-                ));
+                return Err(ReplayError::Param {
+                    key: "edge",
+                    expected: format!("one of the edges {} holds ({}); it holds several", file.display(), names()),
+                    found: "nothing".into(),
+                });
             }
         };
         if recorded.message != H::NAME {
-            return Err(format!(
-                "{}: edge `{}` carries {}, the output edge carries {}",
-                file.display(),
-                recorded.edge,
-                recorded.message,
-                H::NAME
-            ));
+            return Err(ReplayError::MessageMismatch {
+                file: file.clone(),
+                edge: recorded.edge.clone(),
+                recorded: recorded.message.clone(),
+                expected: H::NAME,
+            });
         }
         let speed = match params.get("speed").and_then(|v| v.as_str()) {
             None | Some("recorded") => Speed::Recorded,
             Some("max") => Speed::Max,
-            Some(other) => return Err(format!("param `speed`: expected \"recorded\" or \"max\", got {other:?}")),
+            Some(other) => {
+                return Err(ReplayError::Param {
+                    key: "speed",
+                    expected: "\"recorded\" or \"max\"".into(),
+                    found: format!("{other:?}"),
+                });
+            }
         };
         let edge = recorded.edge.clone();
         Ok(Self { file, reader, edge, speed, origin: None, replayed: 0, _message: PhantomData })

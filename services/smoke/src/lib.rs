@@ -24,12 +24,18 @@ pub enum SmokeError {
     Emit(#[from] poseflow_runtime::EmitError),
     #[error("cannot write report {path}: {source}")]
     Report { path: PathBuf, source: std::io::Error },
+    #[error("param `{key}`: expected {expected}, got {found}")]
+    Param { key: String, expected: &'static str, found: String },
 }
 
-fn param_u64(wiring: &StageWiring, key: &str, default: u64) -> Result<u64, String> {
+fn param_u64(wiring: &StageWiring, key: &str, default: u64) -> Result<u64, SmokeError> {
     match wiring.params.get(key) {
         None => Ok(default),
-        Some(v) => v.as_u64().ok_or_else(|| format!("param `{key}`: expected a non-negative integer, got {v}")),
+        Some(v) => v.as_u64().ok_or_else(|| SmokeError::Param {
+            key: key.into(),
+            expected: "a non-negative integer",
+            found: v.to_string(),
+        }),
     }
 }
 
@@ -42,7 +48,7 @@ pub struct CountingSource {
 }
 
 impl CountingSource {
-    pub fn from_wiring(wiring: &StageWiring) -> Result<Self, String> {
+    pub fn from_wiring(wiring: &StageWiring) -> Result<Self, SmokeError> {
         Ok(Self {
             next_frame: 0,
             frames: param_u64(wiring, "frames", 1000)?,
@@ -125,12 +131,14 @@ pub struct CheckingSink {
 }
 
 impl CheckingSink {
-    pub fn from_wiring(wiring: &StageWiring) -> Result<Self, String> {
+    pub fn from_wiring(wiring: &StageWiring) -> Result<Self, SmokeError> {
         let report_path = match wiring.params.get("report") {
             None => None,
-            Some(v) => {
-                Some(PathBuf::from(v.as_str().ok_or_else(|| format!("param `report`: expected a path, got {v}"))?))
-            }
+            Some(v) => Some(PathBuf::from(v.as_str().ok_or_else(|| SmokeError::Param {
+                key: "report".into(),
+                expected: "a path",
+                found: v.to_string(),
+            })?)),
         };
         Ok(Self { report_path, report: SinkReport::default() })
     }

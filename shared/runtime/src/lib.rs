@@ -18,7 +18,7 @@ mod process;
 pub mod recording;
 mod stage;
 
-pub use error::RuntimeError;
+pub use error::{BuildError, RuntimeError, error_chain};
 pub use local::{LocalGraph, LocalOverflow, LocalReport};
 pub use logging::init_logging;
 pub use process::{run_joined, run_server, run_sink, run_source, run_transform, run_transform_or_joined};

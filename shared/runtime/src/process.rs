@@ -10,10 +10,11 @@ use poseflow_contracts::{MessageHeader, Stage, StageState, flags};
 use poseflow_graph::StageWiring;
 use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, RequestServer, Responder, TransportError, create_node};
 
+use crate::error::error_chain;
 use crate::heartbeat::HeartbeatThread;
 use crate::liveness::Liveness;
 use crate::stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};
-use crate::{RuntimeError, init_logging};
+use crate::{BuildError, RuntimeError, init_logging};
 
 /// How long a finished stage waits for its receivers to drain before exiting
 /// anyway.
@@ -232,19 +233,23 @@ fn exit(result: Result<(), RuntimeError>) -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
             init_logging();
+            let err = error_chain(&err);
             tracing::error!(%err, "stage failed");
             ExitCode::FAILURE
         }
     }
 }
 
-fn build<T>(wiring: &StageWiring, make: impl FnOnce(&StageWiring) -> Result<T, String>) -> Result<T, RuntimeError> {
-    make(wiring).map_err(|reason| RuntimeError::Build { stage: wiring.stage.clone(), reason })
+fn build<T, E: Into<BuildError>>(
+    wiring: &StageWiring,
+    make: impl FnOnce(&StageWiring) -> Result<T, E>,
+) -> Result<T, RuntimeError> {
+    make(wiring).map_err(|source| RuntimeError::Build { stage: wiring.stage.clone(), source: source.into() })
 }
 
 /// Runs a [`Transform`] as a graph process; `make` builds it from the
 /// stage's wiring (its `params` in particular). Call it from `main`.
-pub fn run_transform<T: Transform>(make: impl FnOnce(&StageWiring) -> Result<T, String>) -> ExitCode {
+pub fn run_transform<T: Transform, E: Into<BuildError>>(make: impl FnOnce(&StageWiring) -> Result<T, E>) -> ExitCode {
     exit((|| {
         let process = StageProcess::start(1, 1)?;
         let mut stage = build(&process.wiring, make)?;
@@ -352,7 +357,7 @@ impl<Req: MessageHeader, Resp: MessageHeader> Emitter<Resp> for ReplyEmitter<'_,
 
 /// Runs a [`Server`] as a graph process: its input and output edge as for
 /// [`run_transform`], plus the one request-response edge it `serves`.
-pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String>) -> ExitCode {
+pub fn run_server<S: Server, E: Into<BuildError>>(make: impl FnOnce(&StageWiring) -> Result<S, E>) -> ExitCode {
     exit((|| {
         let process = StageProcess::start(1, 1)?;
         let wiring = &process.wiring;
@@ -440,7 +445,7 @@ pub fn run_server<S: Server>(make: impl FnOnce(&StageWiring) -> Result<S, String
 
 /// Runs a [`Joined`] transform as a graph process: its input and output edge
 /// as for [`run_transform`], plus the one edge in its `side_inputs`.
-pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String>) -> ExitCode {
+pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring) -> Result<J, E>) -> ExitCode {
     exit((|| {
         let process = StageProcess::start(1, 1)?;
         let wiring = &process.wiring;
@@ -511,8 +516,8 @@ pub fn run_joined<J: Joined>(make: impl FnOnce(&StageWiring) -> Result<J, String
 /// Runs a stage whose side input is optional: as [`run_joined`] when its
 /// graph entry lists one in `side_inputs`, else as [`run_transform`] (a
 /// selector that scores without the observed points needs none).
-pub fn run_transform_or_joined<T: Transform + Joined>(
-    make: impl FnOnce(&StageWiring) -> Result<T, String>,
+pub fn run_transform_or_joined<T: Transform + Joined, E: Into<BuildError>>(
+    make: impl FnOnce(&StageWiring) -> Result<T, E>,
 ) -> ExitCode {
     let has_side_input = StageWiring::from_env().is_ok_and(|w| !w.side_inputs.is_empty());
     if has_side_input { run_joined(make) } else { run_transform(make) }
@@ -551,7 +556,7 @@ fn drain_side<J: Joined>(
 }
 
 /// Runs a [`Sink`] as a graph process.
-pub fn run_sink<K: Sink>(make: impl FnOnce(&StageWiring) -> Result<K, String>) -> ExitCode {
+pub fn run_sink<K: Sink, E: Into<BuildError>>(make: impl FnOnce(&StageWiring) -> Result<K, E>) -> ExitCode {
     exit((|| {
         let process = StageProcess::start(1, 0)?;
         let mut sink = build(&process.wiring, make)?;
@@ -578,7 +583,7 @@ pub fn run_sink<K: Sink>(make: impl FnOnce(&StageWiring) -> Result<K, String>) -
 
 /// Runs a [`Source`] as a graph process. With a `rate_hz` parameter it emits
 /// on a timer; without, as fast as its output edge accepts.
-pub fn run_source<S: Source>(make: impl FnOnce(&StageWiring) -> Result<S, String>) -> ExitCode {
+pub fn run_source<S: Source, E: Into<BuildError>>(make: impl FnOnce(&StageWiring) -> Result<S, E>) -> ExitCode {
     exit((|| {
         let process = StageProcess::start(0, 1)?;
         let mut source = build(&process.wiring, make)?;

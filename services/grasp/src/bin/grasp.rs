@@ -7,9 +7,9 @@ use poseflow_grasp::stage::GraspStage;
 use poseflow_grasp::{GraspParams, GraspPlanner};
 
 fn main() -> ExitCode {
-    poseflow_runtime::run_transform(|wiring| {
-        let params = GraspParams::from_json(&wiring.params).map_err(|e| e.to_string())?;
-        let planner = GraspPlanner::load(params).map_err(|e| e.to_string())?;
+    poseflow_runtime::run_transform(|wiring| -> Result<_, poseflow_runtime::BuildError> {
+        let params = GraspParams::from_json(&wiring.params)?;
+        let planner = GraspPlanner::load(params)?;
         tracing::info!(
             model = %planner.params().model.display(),
             objects = ?planner.objects().ids(),

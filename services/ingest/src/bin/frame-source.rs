@@ -7,7 +7,7 @@ use poseflow_ingest::stage::{FrameSourceStage, frame_source};
 
 fn main() -> ExitCode {
     poseflow_runtime::init_logging();
-    poseflow_runtime::run_source(|wiring| {
-        frame_source(&wiring.params).map(FrameSourceStage::new).map_err(|e| e.to_string())
+    poseflow_runtime::run_source(|wiring| -> Result<_, poseflow_runtime::BuildError> {
+        frame_source(&wiring.params).map(FrameSourceStage::new).map_err(Into::into)
     })
 }

@@ -8,7 +8,7 @@ use poseflow_ingest::stage::IngestStage;
 
 fn main() -> ExitCode {
     poseflow_runtime::init_logging();
-    poseflow_runtime::run_transform(|wiring| {
-        IngestParams::from_json(&wiring.params).map(IngestStage::new).map_err(|e| e.to_string())
+    poseflow_runtime::run_transform(|wiring| -> Result<_, poseflow_runtime::BuildError> {
+        IngestParams::from_json(&wiring.params).map(IngestStage::new).map_err(Into::into)
     })
 }

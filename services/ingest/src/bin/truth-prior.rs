@@ -7,7 +7,7 @@ use poseflow_ingest::truth_prior::{TruthPriorParams, TruthPriorStage};
 
 fn main() -> ExitCode {
     poseflow_runtime::init_logging();
-    poseflow_runtime::run_transform(|wiring| {
-        TruthPriorParams::from_json(&wiring.params).and_then(TruthPriorStage::new).map_err(|e| e.to_string())
+    poseflow_runtime::run_transform(|wiring| -> Result<_, poseflow_runtime::BuildError> {
+        TruthPriorParams::from_json(&wiring.params).and_then(TruthPriorStage::new).map_err(Into::into)
     })
 }

@@ -7,10 +7,11 @@ use std::process::ExitCode;
 use poseflow_graph::StageWiring;
 use poseflow_nbv::stage::NbvStage;
 use poseflow_nbv::{NbvParams, NbvPlanner};
+use poseflow_runtime::BuildError;
 
-fn make(wiring: &StageWiring) -> Result<NbvStage, String> {
-    let params = NbvParams::from_json(&wiring.params).map_err(|e| e.to_string())?;
-    let planner = NbvPlanner::load(params).map_err(|e| e.to_string())?;
+fn make(wiring: &StageWiring) -> Result<NbvStage, BuildError> {
+    let params = NbvParams::from_json(&wiring.params)?;
+    let planner = NbvPlanner::load(params)?;
     let params = planner.params();
     tracing::info!(
         model = %params.inference.model.display(),

@@ -34,7 +34,7 @@ fn add_stage(local: &mut LocalGraph, graph: &Graph, stage: &Stage, instance: &st
     let added = match exe {
         "smoke-source" => {
             let rate_hz = wiring.params.get("rate_hz").and_then(|v| v.as_f64());
-            let source = CountingSource::from_wiring(&wiring).map_err(anyhow::Error::msg)?;
+            let source = CountingSource::from_wiring(&wiring)?;
             local.add_source(name, source, one(graph, stage, "outputs", &stage.outputs)?, rate_hz)
         }
         "smoke-relay" => local.add_transform(
@@ -44,7 +44,7 @@ fn add_stage(local: &mut LocalGraph, graph: &Graph, stage: &Stage, instance: &st
             one(graph, stage, "outputs", &stage.outputs)?,
         ),
         "smoke-sink" => {
-            let sink = CheckingSink::from_wiring(&wiring).map_err(anyhow::Error::msg)?;
+            let sink = CheckingSink::from_wiring(&wiring)?;
             local.add_sink(name, sink, one(graph, stage, "inputs", &stage.inputs)?)
         }
         other => bail!(

@@ -7,21 +7,23 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use poseflow_graph::StageWiring;
+use poseflow_runtime::BuildError;
 use poseflow_sampler::SamplerParams;
 use poseflow_sampler::stage::{RemoteField, SamplerStage};
 use poseflow_transport::{RequestClient, create_node};
 
-fn make(wiring: &StageWiring) -> Result<SamplerStage<RemoteField>, String> {
-    let params = SamplerParams::from_json(&wiring.params).map_err(|e| e.to_string())?;
+fn make(wiring: &StageWiring) -> Result<SamplerStage<RemoteField>, BuildError> {
+    let params = SamplerParams::from_json(&wiring.params)?;
     let [edge] = wiring.calls.as_slice() else {
         return Err(format!(
             "stage `{}`: expected exactly one request-response edge in `calls` (the inference stage's velocities), found {}",
             wiring.stage,
             wiring.calls.len()
-        ));
+        )
+        .into());
     };
-    let node = create_node(&format!("{}-velocity", wiring.stage)).map_err(|e| e.to_string())?;
-    let client = RequestClient::create(&node, &edge.service, edge.max_payload_len).map_err(|e| e.to_string())?;
+    let node = create_node(&format!("{}-velocity", wiring.stage))?;
+    let client = RequestClient::create(&node, &edge.service, edge.max_payload_len)?;
     let timeout = Duration::from_millis(params.velocity_timeout_ms);
     tracing::info!(samples = params.samples, steps = params.steps, tracking = params.tracking.enabled, "sampler ready");
     Ok(SamplerStage::new(params, RemoteField::new(node, client, timeout)))

@@ -5,20 +5,22 @@
 use std::process::ExitCode;
 
 use poseflow_graph::StageWiring;
+use poseflow_runtime::BuildError;
 use poseflow_selector::SelectorParams;
 use poseflow_selector::stage::SelectorStage;
 
-fn make(wiring: &StageWiring) -> Result<SelectorStage, String> {
-    let params = SelectorParams::from_json(&wiring.params).map_err(|e| e.to_string())?;
+fn make(wiring: &StageWiring) -> Result<SelectorStage, BuildError> {
+    let params = SelectorParams::from_json(&wiring.params)?;
     if params.needs_models() && wiring.side_inputs.is_empty() {
         return Err(format!(
             "stage `{}`: method {:?}{} scores the observed points: list the Observation edge in `side_inputs`",
             wiring.stage,
             params.method,
             if params.refine { " with refine" } else { "" }
-        ));
+        )
+        .into());
     }
-    let stage = SelectorStage::new(params).map_err(|e| e.to_string())?;
+    let stage = SelectorStage::new(params)?;
     tracing::info!(method = ?stage.params().method, refine = stage.params().refine, "selector ready");
     Ok(stage)
 }
