@@ -561,7 +561,9 @@ fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
             .output()
             .unwrap()
     };
-    let out = sim(&["--trials", "2", "--grasps", "8", "--hypotheses", "4", "--json"]);
+    let out_dir = std::env::temp_dir().join(format!("poseflow-sim-grasp-{}", std::process::id()));
+    let out =
+        sim(&["--trials", "2", "--grasps", "8", "--hypotheses", "4", "--json", "--out", out_dir.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(report["trials"], 2, "{report}");
@@ -571,6 +573,23 @@ fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
             assert!([0.0, 50.0, 100.0].contains(&rate), "{condition}.{plan} = {rate}");
         }
     }
+    // The per-trial CSV: its columns (evaluation/results_page.py reads
+    // them by name) and a row per condition and trial.
+    let csv = std::fs::read_to_string(out_dir.join("trials.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next(),
+        Some(
+            "condition,trial,handle_pixels,kept,rotation_error_deg,translation_error_mm,spread_deg,worst_error_deg,\
+             single_success,single_share,single_success_any,marginalised_success,marginalised_share,\
+             marginalised_success_any"
+        )
+    );
+    let rows: Vec<&str> = lines.collect();
+    assert_eq!(rows.len(), 3 * 2, "{csv}");
+    assert!(rows[0].starts_with("visible,0,") && rows[5].starts_with("hidden_aside,1,"), "{csv}");
+    assert!(rows.iter().all(|r| r.split(',').count() == 14), "{csv}");
+    let _ = std::fs::remove_dir_all(&out_dir);
     let none = sim(&["--trials", "0"]);
     assert_eq!(none.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&none.stderr).contains("--trials 0"));
@@ -605,6 +624,14 @@ fn sim_nbv_reports_each_policy_after_one_and_two_moves() {
     }
     let csv = std::fs::read_to_string(out_dir.join("trials.csv")).unwrap();
     assert_eq!(csv.lines().count(), 1 + 1 + 3 * 2, "{csv}");
+    assert_eq!(
+        csv.lines().next(),
+        Some(
+            "trial,object,policy,move,rot_trace,folded_trace,rot_err_deg,revealed,detail,lost,turn_deg,expected_trace,plan_ms"
+        )
+    );
+    // The start row has no plan: its optional columns are empty.
+    assert!(csv.lines().nth(1).unwrap().ends_with(",,"), "{csv}");
     assert!(csv.lines().nth(2).unwrap().starts_with("0,14,nbv,1,"), "{csv}");
     // The cluttered start: the first LM-O object of objects/lmo (ape).
     let out = sim(&["--scene", "clutter", "--trials", "1", "--json", "--out", out_dir.to_str().unwrap()]);

@@ -19,7 +19,7 @@ use poseflow_scene::ModelLibrary;
 use serde::Serialize;
 
 use super::mug::{Handle, render_mug};
-use super::{pose_pipeline, stage_params};
+use super::{pose_pipeline, rounded, stage_params, write_trials_csv};
 
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root (reads config/*.toml as the graph does).\n\n\
@@ -130,34 +130,45 @@ struct Trial {
     marginalised: Executed,
 }
 
+/// A row of trials.csv.
+#[derive(Serialize)]
+struct TrialRow {
+    condition: &'static str,
+    trial: usize,
+    handle_pixels: usize,
+    kept: usize,
+    rotation_error_deg: f64,
+    translation_error_mm: f64,
+    spread_deg: f64,
+    worst_error_deg: f64,
+    single_success: u8,
+    single_share: f64,
+    single_success_any: f64,
+    marginalised_success: u8,
+    marginalised_share: f64,
+    marginalised_success_any: f64,
+}
+
 fn write_trials(out: &Path, trials: &[Trial]) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
-    let mut text = String::from(
-        "condition,trial,handle_pixels,kept,rotation_error_deg,translation_error_mm,spread_deg,worst_error_deg,single_success,\
-         single_share,single_success_any,marginalised_success,marginalised_share,marginalised_success_any\n",
-    );
-    for t in trials {
-        let (one, many) = (&t.single, &t.marginalised);
-        text += &format!(
-            "{},{},{},{},{:.2},{:.2},{:.2},{:.2},{},{:.4},{:.4},{},{:.4},{:.4}\n",
-            t.handle.name(),
-            t.index,
-            t.handle_pixels,
-            t.kept,
-            t.rotation_error_deg,
-            t.translation_error_mm,
-            t.spread_deg,
-            t.worst_error_deg,
-            u8::from(one.success),
-            one.planned_share,
-            one.success_any,
-            u8::from(many.success),
-            many.planned_share,
-            many.success_any
-        );
-    }
-    let path = out.join("trials.csv");
-    std::fs::write(&path, text).with_context(|| format!("{}: cannot write", path.display()))
+    write_trials_csv(
+        out,
+        trials.iter().map(|t| TrialRow {
+            condition: t.handle.name(),
+            trial: t.index,
+            handle_pixels: t.handle_pixels,
+            kept: t.kept,
+            rotation_error_deg: rounded(t.rotation_error_deg, 2),
+            translation_error_mm: rounded(t.translation_error_mm, 2),
+            spread_deg: rounded(t.spread_deg, 2),
+            worst_error_deg: rounded(t.worst_error_deg, 2),
+            single_success: u8::from(t.single.success),
+            single_share: rounded(t.single.planned_share, 4),
+            single_success_any: rounded(t.single.success_any, 4),
+            marginalised_success: u8::from(t.marginalised.success),
+            marginalised_share: rounded(t.marginalised.planned_share, 4),
+            marginalised_success_any: rounded(t.marginalised.success_any, 4),
+        }),
+    )
 }
 
 /// Executes the plan's top grasp on the true pose.

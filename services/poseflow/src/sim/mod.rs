@@ -95,3 +95,26 @@ fn sensor_frame(
     };
     (frame, ObjectMask { obj_id, instance, mask: Raster { width, height, pixels: visible } })
 }
+
+/// `value` rounded to `decimals` places: the precision a trials table
+/// carries (the CSV writer prints the shortest form of what it is given).
+fn rounded(value: f64, decimals: i32) -> f64 {
+    let scale = 10f64.powi(decimals);
+    (value * scale).round() / scale
+}
+
+/// Writes `rows` as `<out>/trials.csv` with a header from the row type's
+/// field names.
+fn write_trials_csv<R: serde::Serialize>(
+    out: &std::path::Path,
+    rows: impl IntoIterator<Item = R>,
+) -> anyhow::Result<()> {
+    use anyhow::Context;
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    let path = out.join("trials.csv");
+    let mut writer = csv::Writer::from_path(&path).with_context(|| format!("{}: cannot create", path.display()))?;
+    for row in rows {
+        writer.serialize(row).with_context(|| format!("{}: cannot write", path.display()))?;
+    }
+    writer.flush().with_context(|| format!("{}: cannot write", path.display()))
+}

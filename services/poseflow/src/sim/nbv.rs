@@ -24,7 +24,7 @@ use serde::Serialize;
 
 use super::clutter::{ClutterView, render_occluded, view_clutter};
 use super::mug::{Handle, MugView, render_mug, view_mug};
-use super::{pose_pipeline, stage_params};
+use super::{pose_pipeline, rounded, stage_params, write_trials_csv};
 
 /// Where the trials start.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -359,37 +359,59 @@ fn policy_means(trials: &[Trial], policy: Policy) -> PolicyMeans {
     }
 }
 
+/// A row of trials.csv: one trial, policy and move.
+#[derive(Serialize)]
+struct TrialRow {
+    trial: usize,
+    object: u32,
+    policy: &'static str,
+    #[serde(rename = "move")]
+    step: usize,
+    rot_trace: f64,
+    folded_trace: f64,
+    rot_err_deg: f64,
+    revealed: u8,
+    detail: f64,
+    lost: u8,
+    turn_deg: f64,
+    expected_trace: Option<f64>,
+    plan_ms: Option<f64>,
+}
+
 fn write_trials(out: &Path, trials: &[Trial]) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
-    let mut text = String::from(
-        "trial,object,policy,move,rot_trace,folded_trace,rot_err_deg,revealed,detail,lost,turn_deg,expected_trace,\
-         plan_ms\n",
-    );
-    let row = |text: &mut String, trial: usize, object: u32, policy: &str, step: usize, o: &Outcome| {
-        let optional = |v: Option<f64>, f: fn(f64) -> String| v.map_or(String::new(), f);
-        *text += &format!(
-            "{trial},{object},{policy},{step},{:.4e},{:.4e},{:.2},{},{:.1},{},{:.1},{},{}\n",
-            o.trace,
-            o.folded,
-            o.error_deg,
-            u8::from(o.revealed),
-            o.detail,
-            u8::from(o.lost),
-            o.turn_deg,
-            optional(o.expected_trace, |v| format!("{v:.4e}")),
-            optional(o.plan_ms, |v| format!("{v:.0}"))
-        );
+    let row = |trial: usize, object: u32, policy: &'static str, step: usize, o: &Outcome| TrialRow {
+        trial,
+        object,
+        policy,
+        step,
+        rot_trace: significant(o.trace),
+        folded_trace: significant(o.folded),
+        rot_err_deg: rounded(o.error_deg, 2),
+        revealed: u8::from(o.revealed),
+        detail: rounded(o.detail, 1),
+        lost: u8::from(o.lost),
+        turn_deg: rounded(o.turn_deg, 1),
+        expected_trace: o.expected_trace.map(significant),
+        plan_ms: o.plan_ms.map(|ms| rounded(ms, 0)),
     };
-    for (i, trial) in trials.iter().enumerate() {
-        row(&mut text, i, trial.obj_id, "start", 0, &trial.start);
-        for (policy, moves) in &trial.moves {
-            for (step, o) in moves.iter().enumerate() {
-                row(&mut text, i, trial.obj_id, policy.name(), step + 1, o);
-            }
-        }
+    let row = &row;
+    let rows = trials.iter().enumerate().flat_map(|(i, trial)| {
+        let start = std::iter::once(row(i, trial.obj_id, "start", 0, &trial.start));
+        let moves = trial.moves.iter().flat_map(move |(policy, moves)| {
+            moves.iter().enumerate().map(move |(step, o)| row(i, trial.obj_id, policy.name(), step + 1, o))
+        });
+        start.chain(moves)
+    });
+    write_trials_csv(out, rows)
+}
+
+/// `value` to 5 significant digits (traces span many decades).
+fn significant(value: f64) -> f64 {
+    if value == 0.0 || !value.is_finite() {
+        return value;
     }
-    let path = out.join("trials.csv");
-    std::fs::write(&path, text).with_context(|| format!("{}: cannot write", path.display()))
+    let digits = 4 - value.abs().log10().floor() as i32;
+    rounded(value, digits)
 }
 
 pub fn run(args: &NbvSimArgs) -> anyhow::Result<()> {
