@@ -7,7 +7,7 @@
 mod error;
 mod grasp_model;
 mod model;
-pub mod runtime;
+pub mod onnx_library;
 pub mod stage;
 
 pub use error::InferenceError;

@@ -117,7 +117,7 @@ pub(crate) fn session(path: &Path, threads: usize) -> Result<Session, InferenceE
             "no such file (a PoseFlow model directory holds encoder.onnx and velocity.onnx, a grasp flow model grasp_encoder.onnx and grasp_velocity.onnx)".into(),
         ));
     }
-    let environment = crate::runtime::environment()?;
+    let environment = crate::onnx_library::environment()?;
     Session::builder(environment)
         .and_then(|b| b.with_optimization_level(GraphOptimizationLevel::Level3).map_err(Into::into))
         .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))

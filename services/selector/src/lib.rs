@@ -15,7 +15,7 @@
 
 pub mod cluster;
 mod error;
-mod geometry;
+mod object_models;
 mod params;
 pub mod refine;
 pub mod score;
@@ -24,6 +24,6 @@ mod select;
 pub mod stage;
 
 pub use error::SelectorError;
-pub use geometry::{ObjectGeometry, ObjectLibrary};
+pub use object_models::{ObjectGeometry, ObjectLibrary};
 pub use params::{Distribution, Method, SelectorParams};
 pub use select::{Selection, select};

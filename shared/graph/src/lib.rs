@@ -7,16 +7,16 @@
 //! parameters) in the environment variable [`WIRING_ENV`].
 
 mod error;
+mod graph;
 mod overrides;
 mod resolve;
 mod spec;
-mod validate;
 mod wiring;
 
 pub use error::GraphError;
+pub use graph::{Edge, Graph, Restart, Stage, load, parse};
 pub use resolve::resolve_executable;
 pub use spec::{EdgePattern, OverflowPolicy, RestartPolicy};
-pub use validate::{Edge, Graph, Restart, Stage, load, parse};
 pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV};
 
 /// Message types an edge may carry, as named in graph files (defined with

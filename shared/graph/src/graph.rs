@@ -1,4 +1,5 @@
-//! From a parsed file to a [`Graph`] that is known to be runnable.
+//! The graph types ([`Graph`], [`Edge`], [`Stage`]) and the checks that turn
+//! a parsed file into a graph known to be runnable.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
