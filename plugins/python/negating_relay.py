@@ -2,7 +2,7 @@
 """A plug-in stage in Python: negates every value of Hypotheses messages.
 
 Drop-in replacement for the Rust `testbed-relay` of tests/graphs/relay.toml
-(see tests/e2e/graph.rs, `a_python_stage_replaces_a_rust_one`)."""
+(see tests/e2e/plugins.rs, `a_python_stage_replaces_a_rust_one`)."""
 
 import poseflow_stage
 

@@ -1,5 +1,7 @@
 //! What the end-to-end tests and their test stages share.
 
+pub mod harness;
+
 use poseflow_geometry::sampling::{seeded_rng, uniform_rotation};
 
 /// `count` poses (R row-major, t in metres within 5 cm) fixed by the frame

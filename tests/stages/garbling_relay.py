@@ -4,7 +4,7 @@ EVERY-th frame (argv[1], default 50) goes out with a header announcing one
 more sample than its payload holds; the others are negated as by
 plugins/python/negating_relay.py. The Rust sink must reject exactly those
 (counted as errors, logged with the message type and both lengths) and
-keep going. Used by tests/e2e/graph.rs."""
+keep going. Used by tests/e2e/plugins.rs."""
 
 import sys
 from pathlib import Path

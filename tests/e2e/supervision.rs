@@ -1,0 +1,322 @@
+//! Supervision: stages killed, crashing, hanging, ignoring SIGTERM or
+//! flooding their queues are restarted, killed or counted by `poseflow run`;
+//! Ctrl-C and failing graphs; the deploy graphs; the in-process mode. Whole
+//! graphs of real processes over real iceoryx2 shared memory, launched by
+//! `poseflow run`.
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use poseflow_e2e::harness::*;
+use poseflow_transport::shared_memory_files;
+
+#[test]
+fn three_processes_pass_every_frame_intact() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("intact");
+    let graph = scratch.graph(1000, 0.0, "block");
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "finished", "{summary}");
+        assert_eq!(summary["stages"][stage]["restarts"], 0, "{summary}");
+    }
+    assert_eq!(summary["stages"]["relay"]["frames_in"], 1000, "{summary}");
+    for edge in ["raw", "negated"] {
+        let flow = &summary["edges"][edge];
+        assert_eq!((flow["sent"].as_u64(), flow["lost"].as_u64()), (Some(1000), Some(0)), "{summary}");
+    }
+
+    // Back-pressure ("block") loses nothing: every frame, intact, in order.
+    let report = scratch.report();
+    assert_eq!(report.received, 1000, "{report:?}");
+    assert_eq!(report.intact, 1000);
+    assert_eq!(report.relayed, 1000);
+    assert_eq!((report.first_frame, report.last_frame, report.gaps), (Some(0), Some(999), 0));
+
+    assert_nothing_leaked(&before);
+}
+
+#[test]
+fn a_killed_stage_is_restarted_and_traffic_resumes() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("kill");
+    // 1,500 frames at 500 Hz: three seconds of traffic; drop-oldest so the
+    // source never waits for the dead relay.
+    let graph = scratch.graph(1500, 500.0, "drop-oldest");
+    let instance = format!("kill-{}", std::process::id());
+    let (run, relay) = start_and_wait_for(&graph, &instance, "relay");
+    // Let traffic flow for a moment, then kill the relay mid-stream.
+    std::thread::sleep(Duration::from_millis(800));
+    // SAFETY: signalling a process this test started (through poseflow).
+    assert_eq!(unsafe { libc::kill(relay as i32, libc::SIGKILL) }, 0);
+
+    let output = run.wait_with_output().unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
+    let relay_summary = &summary["stages"]["relay"];
+    assert_eq!(relay_summary["restarts"], 1, "{summary}");
+    let latency = relay_summary["restart_latency_ms"][0].as_f64().unwrap();
+    eprintln!("relay restarted {latency:.0} ms after its death was noticed");
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "finished", "{summary}");
+    }
+
+    // Nothing corrupted; what was lost while the relay was down is counted;
+    // traffic resumed up to the last frame.
+    let report = scratch.report();
+    assert_eq!(report.corrupted, 0, "{report:?}");
+    assert_eq!(report.intact, report.received);
+    assert_eq!(report.last_frame, Some(1499), "traffic did not resume: {report:?}");
+    let first = report.first_frame.unwrap();
+    assert_eq!(report.received + report.gaps, 1500 - first, "{report:?}");
+    assert_eq!(report.restart_notices, 1, "the sink was told of the restart: {report:?}");
+    eprintln!("sink: {report:?}");
+
+    assert_nothing_leaked(&before);
+}
+
+/// A relay that panics in the middle of a frame (input taken, nothing
+/// emitted) is restarted with backoff; the sink sees no corrupted frame.
+#[test]
+fn a_stage_crashing_mid_frame_is_restarted_and_nothing_corrupted_passes() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("crash");
+    let (summary, stderr) = run_to_end(&scratch.fault_graph((1500, 500.0), "crash", 300, "", 3000));
+    assert!(stderr.contains("injected crash at frame 300"), "{stderr}");
+    assert_eq!(summary["stages"]["relay"]["restarts"], 1, "{summary}");
+    let report = scratch.report();
+    assert_recovered(&summary, &report, 1500);
+    // The summary counts the relay's frames over both its processes: the
+    // restarted one alone did not send all the sink received; with the
+    // first one's counts (up to its last heartbeat, 100 ms = 50 frames
+    // before the crash) they account for it.
+    let relay = &summary["stages"]["relay"];
+    let (all_out, last_out) = (relay["total"]["frames_out"].as_u64().unwrap(), relay["frames_out"].as_u64().unwrap());
+    assert!(last_out < report.received && last_out < all_out, "{summary}\n{report:?}");
+    assert!(report.received <= all_out + 100, "{summary}\n{report:?}");
+    eprintln!("crash: {report:?}, restart latency {} ms", summary["stages"]["relay"]["restart_latency_ms"][0]);
+    assert_nothing_leaked(&before);
+}
+
+/// A relay stuck in one frame is found by its heartbeat deadline
+/// (`heartbeat_timeout_ms`), killed and restarted; traffic resumes.
+#[test]
+fn a_hung_stage_is_killed_at_its_heartbeat_deadline_and_restarted() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("hang");
+    let (summary, stderr) = run_to_end(&scratch.fault_graph((2500, 500.0), "hang", 300, "", 1000));
+    let relay = &summary["stages"]["relay"];
+    assert_eq!((relay["hangs"].as_u64(), relay["restarts"].as_u64()), (Some(1), Some(1)), "{summary}");
+    assert!(stderr.contains("busy in one message longer than graph.heartbeat_timeout_ms"), "{stderr}");
+    let report = scratch.report();
+    assert_recovered(&summary, &report, 2500);
+    assert!(report.gaps > 0, "frames were lost while the relay hung: {report:?}");
+    eprintln!("hang: {report:?}, restart latency {} ms", relay["restart_latency_ms"][0]);
+    assert_nothing_leaked(&before);
+}
+
+/// As above with blocking queues: the source is held back by the hung
+/// relay's full queue when the relay is killed; once the supervisor has
+/// removed the dead reader's port, the source's send stops waiting for it
+/// and traffic resumes through the restarted relay.
+#[test]
+fn a_writer_blocked_on_a_killed_reader_carries_on() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("hang-block");
+    let graph = scratch.fault_graph((1500, 500.0), "hang", 300, "", 1000);
+    let text = std::fs::read_to_string(&graph).unwrap().replace("\"drop-oldest\"", "\"block\"");
+    std::fs::write(&graph, text).unwrap();
+    let (summary, stderr) = run_to_end(&graph);
+    assert_eq!(summary["stages"]["relay"]["hangs"], 1, "{summary}");
+    assert!(stderr.contains("busy in one message longer than graph.heartbeat_timeout_ms"), "{stderr}");
+    let report = scratch.report();
+    assert_recovered(&summary, &report, 1500);
+    eprintln!("blocked writer: {report:?}");
+    assert_nothing_leaked(&before);
+}
+
+/// At shutdown, a stage that ignores SIGTERM (and is stuck) is SIGKILLed
+/// after the grace period, reported as such, and leaves nothing behind;
+/// the others stop normally.
+#[test]
+fn a_stage_ignoring_sigterm_is_killed_after_the_grace_period() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("sigterm");
+    // A long stream and a generous heartbeat deadline: only shutdown ends
+    // the stuck relay.
+    let graph = scratch.fault_graph((1_000_000, 200.0), "ignore-sigterm", 50, "", 60_000);
+    let instance = format!("sigterm-{}", std::process::id());
+    let (run, _) = start_and_wait_for(&graph, &instance, "sink");
+    let marker = scratch.dir.join("fault-marker");
+    let waiting = Instant::now();
+    while !marker.exists() && waiting.elapsed() < Duration::from_secs(20) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(marker.exists(), "the relay never reached its faulty frame");
+    std::thread::sleep(Duration::from_millis(300));
+    let stopping = Instant::now();
+    // SAFETY: signalling the poseflow process this test started.
+    assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGINT) }, 0);
+    let output = run.wait_with_output().unwrap();
+    let stopped_after = stopping.elapsed();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    assert_eq!(summary["stages"]["relay"]["killed_at_stop"], true, "{summary}");
+    for stage in ["source", "sink"] {
+        assert_eq!(summary["stages"][stage]["killed_at_stop"], false, "{summary}");
+    }
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "stopped", "{summary}");
+        assert!(find_stage_pid(&instance, stage).is_none(), "{stage} still running");
+    }
+    // The grace period (5 s) passed before the SIGKILL.
+    assert!(stopped_after >= Duration::from_secs(5), "{stopped_after:?}");
+    eprintln!("sigterm ignored: the graph stopped {stopped_after:?} after SIGINT");
+    assert_eq!(scratch.report().corrupted, 0);
+    assert_nothing_leaked(&before);
+}
+
+/// A relay that floods its bounded, drop-oldest output queue (100 copies of
+/// every frame from frame 100 on): the queue stays bounded, the sink
+/// receives fewer messages than were sent (the difference is counted: the
+/// relay's frames out minus the sink's frames in) and none corrupted.
+#[test]
+fn a_flooding_stage_overflows_a_bounded_queue_with_counted_losses() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("flood");
+    let (summary, _) = run_to_end(&scratch.fault_graph((400, 200.0), "flood", 100, ", copies = 100", 3000));
+    let relay_out = summary["stages"]["relay"]["frames_out"].as_u64().unwrap();
+    let sink_in = summary["stages"]["sink"]["frames_in"].as_u64().unwrap();
+    // Frames 0–99 once, 100–399 a hundred times each.
+    assert_eq!(relay_out, 100 + 300 * 100, "{summary}");
+    let report = scratch.report();
+    assert_eq!(report.received, sink_in, "{summary}");
+    assert!(sink_in < relay_out, "nothing overflowed: {summary}");
+    // The launcher counts the loss on the edge.
+    let negated = &summary["edges"]["negated"];
+    assert_eq!(
+        (negated["sent"].as_u64(), negated["lost"].as_u64()),
+        (Some(relay_out), Some(relay_out - sink_in)),
+        "{summary}"
+    );
+    eprintln!("flood: relay sent {relay_out}, sink received {sink_in}, {} lost in the queue", relay_out - sink_in);
+    assert_eq!((report.corrupted, report.last_frame), (0, Some(399)), "{report:?}");
+    assert_nothing_leaked(&before);
+}
+
+#[test]
+fn an_invalid_graph_is_rejected_before_anything_starts() {
+    let scratch = Scratch::new("invalid");
+    let graph = scratch.graph(10, 0.0, "block");
+    let text =
+        std::fs::read_to_string(&graph).unwrap().replace("inputs = [\"raw\"]", "inputs = [\"raw\", \"missing\"]");
+    std::fs::write(&graph, text).unwrap();
+    let output = run_graph(&[], &graph).output().unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("relay.toml") && stderr.contains("`stages.relay.inputs`") && stderr.contains("\"missing\""),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("sigint");
+    // A stream far longer than the test: only SIGINT ends it.
+    let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
+    let instance = format!("sigint-{}", std::process::id());
+    let (run, _) = start_and_wait_for(&graph, &instance, "sink");
+    std::thread::sleep(Duration::from_millis(500));
+    // SAFETY: signalling the poseflow process this test started.
+    assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGINT) }, 0);
+
+    let output = run.wait_with_output().unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "stopped", "{summary}");
+        assert!(find_stage_pid(&instance, stage).is_none(), "{stage} still running");
+    }
+    // The sink finished normally on SIGTERM and wrote what it had seen.
+    let report = scratch.report();
+    assert!(report.received > 0 && report.corrupted == 0, "{report:?}");
+    assert_nothing_leaked(&before);
+}
+
+#[test]
+fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("failing");
+    let graph = scratch.graph(1_000_000, 200.0, "drop-oldest");
+    // A "relay" that dies at once, every time.
+    let text = std::fs::read_to_string(&graph)
+        .unwrap()
+        .replace("exe = \"smoke-relay\"", "exe = \"/bin/false\"\nmax_restarts = 2")
+        .replace("backoff_ms = 100", "backoff_ms = 10");
+    std::fs::write(&graph, text).unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
+    assert_eq!(output.status.code(), Some(1));
+    let summary = summary(&output);
+    assert_eq!(summary["failed"], true);
+    let relay = &summary["stages"]["relay"];
+    assert_eq!(relay["outcome"], "failed", "{summary}");
+    assert_eq!(relay["restarts"], 2, "{summary}");
+    assert!(relay["failure"].as_str().unwrap().contains("max_restarts"), "{summary}");
+    assert_eq!(summary["stages"]["source"]["outcome"], "stopped", "{summary}");
+    assert_nothing_leaked(&before);
+}
+
+/// Every graph shipped in deploy/ validates, and the smoke graph runs clean.
+#[test]
+fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
+    let _serial = serial();
+    let deploy = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy"));
+    for entry in std::fs::read_dir(deploy).unwrap().flatten() {
+        let path = entry.path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            let output = run_graph(&["--check"], &path).output().unwrap();
+            assert!(output.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&output.stderr));
+        }
+    }
+    let before = shared_memory_files();
+    let output = run_graph(&["--json", "--status-ms", "0"], &deploy.join("smoke.toml")).output().unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    assert_eq!(summary["stages"]["source"]["frames_out"], 3000, "{summary}");
+    assert_eq!(summary["stages"]["sink"]["errors"], 0, "{summary}");
+    assert_nothing_leaked(&before);
+}
+
+/// `--in-process`: the same stage libraries as threads, same results.
+#[test]
+fn the_same_graph_runs_in_process() {
+    let scratch = Scratch::new("in-process");
+    let graph = scratch.graph(1000, 0.0, "block");
+    let output = run_graph(&["--in-process", "--json"], &graph).output().unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}");
+    assert_eq!(summary["stages"]["relay"]["frames_in"], 1000, "{summary}");
+    let report = scratch.report();
+    assert_eq!((report.received, report.intact, report.relayed, report.gaps), (1000, 1000, 1000, 0), "{report:?}");
+
+    // A stage without an in-process build is named, with the alternatives.
+    let text = std::fs::read_to_string(&graph).unwrap().replace("exe = \"smoke-relay\"", "exe = \"/bin/true\"");
+    std::fs::write(&graph, text).unwrap();
+    let output = run_graph(&["--in-process"], &graph).output().unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("`stages.relay.exe`") && stderr.contains("smoke-relay"), "{stderr}");
+}
