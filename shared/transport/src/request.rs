@@ -134,6 +134,9 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestClient<Req, Resp> {
             .map_err(|e| TransportError::iceoryx("notify server on", &self.name, e))?;
         let deadline = Instant::now() + timeout;
         loop {
+            // Read before `receive`, which updates the connections: a response
+            // sent just before its server went away is still taken below.
+            let server_gone = !pending.is_connected();
             if let Some(response) =
                 pending.receive().map_err(|e| TransportError::iceoryx("receive response on", &self.name, e))?
             {
@@ -142,15 +145,9 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestClient<Req, Resp> {
             if termination_requested() {
                 return Err(TransportError::Interrupted { operation: "response", target: self.name.clone() });
             }
-            // `receive` has just updated the connections: a server that died
-            // (and was cleaned up) or dropped the request answers nothing, so
-            // waiting out the timeout would only stall the caller.
-            if !pending.is_connected() {
-                if let Some(response) =
-                    pending.receive().map_err(|e| TransportError::iceoryx("receive response on", &self.name, e))?
-                {
-                    return Ok(Reply { response, _request: std::marker::PhantomData });
-                }
+            // A server that died (and was cleaned up) or dropped the request
+            // answers nothing: waiting out the timeout would only stall.
+            if server_gone {
                 return Err(TransportError::NoServer { target: self.name.clone() });
             }
             let left = deadline.saturating_duration_since(Instant::now());
