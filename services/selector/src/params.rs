@@ -47,6 +47,7 @@ impl Method {
 /// | `epsilon_translation` | DBSCAN neighbourhood: translation, metres | 0.02 |
 /// | `min_samples` | DBSCAN core-point size (the point itself included) | 3 |
 /// | `keep_fraction` | share of best-scored hypotheses kept (model-based) | 0.2 |
+/// | `keep_margin` | model-based: also keep every hypothesis scored within this of the best (per-point log-likelihood; 0.5 = a mean squared residual one σ² worse; 0: `keep_fraction` alone) | 0.25 |
 /// | `models` | BOP models directory (`models_info.json`, `obj_NNNNNN.ply`, mm) for `chamfer`, `sdf`, `refine` | none |
 /// | `score_points` | observed points scored (a prefix of the farthest-point order) | 256 |
 /// | `noise_std` | σ of point-to-surface residuals in the likelihood, metres | 0.005 |
@@ -69,6 +70,11 @@ pub struct SelectorParams {
     pub min_samples: usize,
     #[serde(default = "default_keep_fraction")]
     pub keep_fraction: f64,
+    /// Hypotheses the observed points cannot tell apart from the best (a
+    /// mug whose handle is out of sight fits its body equally at every turn)
+    /// are all kept, however many that is; `keep_fraction` stays the minimum.
+    #[serde(default = "default_keep_margin")]
+    pub keep_margin: f64,
     #[serde(default)]
     pub models: Option<PathBuf>,
     #[serde(default = "default_score_points")]
@@ -103,6 +109,9 @@ fn default_min_samples() -> usize {
 }
 fn default_keep_fraction() -> f64 {
     0.2
+}
+fn default_keep_margin() -> f64 {
+    0.25
 }
 fn default_score_points() -> usize {
     256
@@ -148,7 +157,7 @@ impl SelectorParams {
 
     pub fn validate(&self) -> Result<(), SelectorError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
-        let checks: [(&'static str, bool, String); 9] = [
+        let checks: [(&'static str, bool, String); 10] = [
             (
                 "epsilon_rotation_deg",
                 positive(self.epsilon_rotation_deg) && self.epsilon_rotation_deg <= 180.0,
@@ -164,6 +173,11 @@ impl SelectorParams {
                 "keep_fraction",
                 self.keep_fraction > 0.0 && self.keep_fraction <= 1.0,
                 format!("{}: expected a share in (0, 1]", self.keep_fraction),
+            ),
+            (
+                "keep_margin",
+                self.keep_margin.is_finite() && self.keep_margin >= 0.0,
+                format!("{}: expected a score margin ≥ 0", self.keep_margin),
             ),
             ("score_points", self.score_points >= 3, format!("{}: expected at least 3", self.score_points)),
             (

@@ -89,17 +89,29 @@ pub fn select(
     let cluster_rank = |i: usize| clusters.labels[i].unwrap_or(usize::MAX);
     order.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(cluster_rank(a).cmp(&cluster_rank(b))));
     let mut scored: Vec<(Pose, f64)> = order.iter().map(|&i| (hypotheses[i], scores[i])).collect();
+    let by_fraction = ((params.keep_fraction * n as f64).ceil() as usize).clamp(1, n);
     let kept = match params.method {
         Method::None => n,
         Method::ModelFree => clusters.sizes.first().copied().unwrap_or(n),
-        Method::Chamfer | Method::Sdf => ((params.keep_fraction * n as f64).ceil() as usize).clamp(1, n),
+        Method::Chamfer | Method::Sdf => {
+            let best = scored.first().map_or(0.0, |(_, s)| *s);
+            let by_margin = scored.iter().take_while(|(_, s)| *s >= best - params.keep_margin).count();
+            by_fraction.max(by_margin)
+        }
+    };
+    // The best pose is found among the `keep_fraction` best; hypotheses kept
+    // beyond them by the margin are reported as sampled, so they cost no
+    // refinement unless the refined poses are what is reported.
+    let refined_count = match (params.method, params.distribution) {
+        (Method::Chamfer | Method::Sdf, Distribution::Samples) => kept.min(by_fraction),
+        _ => kept,
     };
 
     let mut refined_kept: Option<Vec<Pose>> = None;
     if let (true, Some(object)) = (params.refine, object) {
         let grid = object.grid();
         // (refined pose, its score, the sample it came from), best first.
-        let mut refined: Vec<(Pose, f64, (Pose, f64))> = scored[..kept]
+        let mut refined: Vec<(Pose, f64, (Pose, f64))> = scored[..refined_count]
             .iter()
             .map(|&sample| {
                 let pose = refine(grid, &sample.0, points, &likelihood, params.refine_iterations).pose;
@@ -111,7 +123,7 @@ pub fn select(
             refined.sort_by(|a, b| b.1.total_cmp(&a.1));
         }
         refined_kept = Some(refined.iter().map(|r| r.0).collect());
-        for (entry, (pose, score, sample)) in scored[..kept].iter_mut().zip(refined) {
+        for (entry, (pose, score, sample)) in scored[..refined_count].iter_mut().zip(refined) {
             *entry = match params.distribution {
                 Distribution::Refined => (pose, score),
                 Distribution::Samples => sample,

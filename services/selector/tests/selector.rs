@@ -133,13 +133,20 @@ fn model_free_selection_takes_the_largest_cluster_and_model_based_the_best_fit()
     assert_eq!((model_free.kept, model_free.modes.len()), (6, 2));
     assert!((model_free.modes[0].1 - 0.6).abs() < 1e-12 && (model_free.scored[0].1 - 0.6).abs() < 1e-12);
 
-    let chamfer = SelectorParams { method: Method::Chamfer, keep_fraction: 0.3, ..Default::default() };
+    let chamfer =
+        SelectorParams { method: Method::Chamfer, keep_fraction: 0.3, keep_margin: 0.0, ..Default::default() };
     let chosen = select(&hypotheses, Some(&points), Some(&object), &chamfer).unwrap();
     assert!(angle_deg(&chosen.best, &t) < 1.6, "{}", angle_deg(&chosen.best, &t));
     assert_eq!(chosen.kept, 3);
     assert!(chosen.scored.windows(2).all(|w| w[0].1 >= w[1].1), "scores best first");
 
-    let refined = SelectorParams { method: Method::Sdf, refine: true, keep_fraction: 0.3, ..Default::default() };
+    let refined = SelectorParams {
+        method: Method::Sdf,
+        refine: true,
+        keep_fraction: 0.3,
+        keep_margin: 0.0,
+        ..Default::default()
+    };
     let chosen = select(&hypotheses, Some(&points), Some(&object), &refined).unwrap();
     assert!(chosen.refined && angle_deg(&chosen.best, &t) < 0.5, "{}", angle_deg(&chosen.best, &t));
     // The kept hypotheses reported are the samples (up to 1.5° apart), not
@@ -159,6 +166,45 @@ fn model_free_selection_takes_the_largest_cluster_and_model_based_the_best_fit()
 
     let err = select(&hypotheses, None, Some(&object), &chamfer).unwrap_err().to_string();
     assert!(err.contains("Chamfer") && err.contains("points"), "{err}");
+}
+
+#[test]
+fn a_score_margin_keeps_every_hypothesis_the_points_cannot_tell_apart() {
+    // A 4 cm-radius cylinder about model y: every turn about y fits the
+    // observed side equally; a tilt does not.
+    let (vertices, triangles) = parry3d::shape::Cylinder::new(0.05, 0.04).to_trimesh(64);
+    let object = ObjectGeometry::from_mesh(1, vertices, triangles, 64).unwrap();
+    let side: Vec<Point3<f64>> = (0..240)
+        .map(|k| {
+            let (a, h) = (-1.2 + 2.4 * (k % 24) as f64 / 23.0, -0.045 + 0.09 * (k / 24) as f64 / 9.0);
+            Point3::new(0.04 * a.sin(), h, -0.04 * a.cos())
+        })
+        .collect();
+    let points = observed(&side);
+    let t = truth();
+    let mut hypotheses: Vec<Pose> =
+        (0..12).map(|i| turned(&t, Vector3::y(), i as f64 * 30.0, Vector3::zeros())).collect();
+    hypotheses.extend((0..8).map(|i| turned(&t, Vector3::x(), 25.0 + i as f64, Vector3::zeros())));
+    let fraction = SelectorParams { method: Method::Sdf, keep_fraction: 0.1, keep_margin: 0.0, ..Default::default() };
+    let by_fraction = select(&hypotheses, Some(&points), Some(&object), &fraction).unwrap();
+    assert_eq!(by_fraction.kept, 2);
+    let margin = SelectorParams { keep_margin: 0.25, ..fraction.clone() };
+    let chosen = select(&hypotheses, Some(&points), Some(&object), &margin).unwrap();
+    assert_eq!(chosen.kept, 12, "scores {:?}", chosen.scored.iter().map(|(_, s)| *s).collect::<Vec<_>>());
+    let kept = &chosen.scored[..chosen.kept];
+    assert!(kept.iter().all(|(p, _)| hypotheses[..12].contains(p)));
+    // The kept turns span the whole circle: a spread no single mode has.
+    assert!(chosen.statistics.rotation_covariance().trace().sqrt().to_degrees() > 60.0);
+    // Refinement picks the best among the `keep_fraction` best either way:
+    // the margin widens what is reported, not what is selected.
+    let refined = |p: &SelectorParams| {
+        let p = SelectorParams { refine: true, ..p.clone() };
+        select(&hypotheses, Some(&points), Some(&object), &p).unwrap()
+    };
+    let (narrow, wide) = (refined(&fraction), refined(&margin));
+    assert_eq!((narrow.best, narrow.kept, wide.kept), (wide.best, 2, 12));
+    let err = SelectorParams::from_json(&serde_json::json!({"keep_margin": -1.0})).unwrap_err().to_string();
+    assert!(err.contains("keep_margin") && err.contains("-1"), "{err}");
 }
 
 #[test]
