@@ -61,12 +61,29 @@ class Shard:
         return len(self.records)
 
 
+def load_arcs(shard):
+    """The hidden-part turns written beside a shard by `poseflow_train.arcs`."""
+    path = shard.path.with_suffix(".arcs.npz")
+    if not path.is_file():
+        raise SystemExit(f"{path}: missing; write it with `python -m poseflow_train.arcs {shard.path}` (hidden_arcs)")
+    saved = np.load(path)
+    turns = saved["turns"]
+    if tuple(saved["turn_axis"]) != (0.0, 0.0, 1.0):
+        raise SystemExit(f"{path}: turns about {tuple(saved['turn_axis'])}; training draws them about object z")
+    if len(turns) != len(shard):
+        raise SystemExit(f"{path}: {len(turns)} rows for {len(shard)} observations; write it again")
+    return turns
+
+
 class Observations:
     """Several shards as one indexable set, filtered by visibility and
     object, yielding torch batches."""
 
-    def __init__(self, paths, object_ids, min_visib_fract=0.1):
+    def __init__(self, paths, object_ids, min_visib_fract=0.1, hidden_arcs=False):
         self.shards = [Shard(p) for p in paths]
+        # Per shard, the turns that keep a part hidden ([records, bins]
+        # bool, `poseflow_train.arcs`), when asked for.
+        self.arcs = [load_arcs(shard) for shard in self.shards] if hidden_arcs else None
         first = self.shards[0].info
         for shard in self.shards[1:]:
             for key in ("image_size", "patch_grid", "point_count"):
@@ -90,6 +107,11 @@ class Observations:
     def obj_ids(self):
         """The object id of every observation, in index order."""
         return np.array([int(self.shards[k].records["ids"][i, 0]) for k, i in self.index], dtype=np.int64)
+
+    def hidden_turns(self, indices):
+        """[B, bins] bool: the turns (`poseflow_train.arcs`) that keep the
+        observation's part hidden; all false where none does."""
+        return torch.from_numpy(np.stack([self.arcs[k][i] for k, i in (self.index[j] for j in indices)]))
 
     def poses(self, indices):
         """The ground truth alone (what training on cached conditions needs):

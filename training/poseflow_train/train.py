@@ -49,9 +49,48 @@ def load_config(path):
     return config
 
 
-def flow_batch(batch, cfg, samples, steps, generator, hint=None, hint_paths=0.0):
+def equivalent_targets(batch, samples, table, generator, turns=None):
+    """Per flow sample, a target drawn uniformly from the poses that explain
+    the observation as well as its ground truth does: the truth times one of
+    its object's symmetries (`table`: R [n_obj, K, 3, 3], t [n_obj, K, 3],
+    count [n_obj] of real entries) and, where `turns` ([B, bins] bool, from
+    `poseflow_train.arcs`) marks turns about object z that keep a part
+    hidden, turned by one of them (uniform within its bin). A render shows
+    one of these poses; teaching that one would teach the network to guess
+    it. Returns (r1 [B*samples, 3, 3], p1 [B*samples, 3])."""
+    r = batch["rotation"].repeat_interleave(samples, 0)
+    p = batch["translation"].repeat_interleave(samples, 0)
+    m = r.shape[0]
+    if turns is not None:
+        turns = turns.repeat_interleave(samples, 0)
+        bins = turns.shape[1]
+        hidden = turns.any(1)
+        # A uniform bin among the allowed ones, then uniform within it.
+        weights = torch.where(hidden[:, None], turns.float(), torch.ones_like(turns, dtype=torch.float32))
+        k = torch.multinomial(weights, 1, generator=generator)[:, 0].float()
+        phi = (k + torch.rand(m, generator=generator) - 0.5) * (2 * math.pi / bins)
+        phi = torch.where(hidden, phi, torch.zeros_like(phi))
+        r = r @ se3.so3_exp(phi[:, None] * torch.tensor([0.0, 0.0, 1.0]))
+    sym_r, sym_t, count = table
+    obj = batch["object_index"].repeat_interleave(samples, 0)
+    k = (torch.rand(m, generator=generator) * count[obj]).long().clamp_max(sym_r.shape[1] - 1)
+    s_r, s_t = sym_r[obj, k], sym_t[obj, k]
+    return r @ s_r, (r @ s_t[..., None])[..., 0] + p
+
+
+def targets_of(observations, indices, batch, samples, table, generator):
+    """`equivalent_targets` of a batch when the config asks for them
+    (`table` given), else None (the ground truth)."""
+    if table is None:
+        return None
+    turns = observations.hidden_turns(indices) if observations.arcs is not None else None
+    return equivalent_targets(batch, samples, table, generator, turns)
+
+
+def flow_batch(batch, cfg, samples, steps, generator, hint=None, hint_paths=0.0, targets=None):
     """Per observation, `samples` draws of (t, R0, p0) on the path to the
-    ground truth: the poses at t and the target velocities. Half of the
+    ground truth (or at `targets`, per sample, see `equivalent_targets`):
+    the poses at t and the target velocities. Half of the
     times sit exactly where a K-step sampler evaluates (0, 1/K, ...), half
     anywhere in [0, (K - 1)/K].
 
@@ -64,8 +103,11 @@ def flow_batch(batch, cfg, samples, steps, generator, hint=None, hint_paths=0.0)
     10deg5cm). These draws teach it to correct such a state."""
     b = batch["rotation"].shape[0]
     m = b * samples
-    r1 = batch["rotation"].repeat_interleave(samples, 0)
-    p1 = batch["translation"].repeat_interleave(samples, 0)
+    if targets is None:
+        r1 = batch["rotation"].repeat_interleave(samples, 0)
+        p1 = batch["translation"].repeat_interleave(samples, 0)
+    else:
+        r1, p1 = targets
     r0 = se3.uniform_rotation((m,), generator=generator)
     p0 = torch.randn(m, 3, generator=generator) * cfg.translation_noise_std
     grid = torch.randint(0, steps, (m,), generator=generator).float() / steps
@@ -143,15 +185,18 @@ def loss_weight(kind, t, cfg):
     raise SystemExit(f"config: loss_weighting {kind!r}, expected \"endpoint\" or \"velocity\"")
 
 
-def symmetry_table(models_info, object_ids, continuous_steps):
+def symmetry_table(models_info, object_ids, continuous_steps, counts=False):
     """Per object index, K symmetry transforms (R [n_obj, K, 3, 3], t [n_obj,
     K, 3] metres), identity first, padded by repetition: what the
-    correspondence loss minimises over."""
+    correspondence loss minimises over. With `counts`, also each object's
+    number of real entries ([n_obj]), for uniform draws."""
     table = symmetries(models_info, continuous_steps)
     lists = [table.get(obj, [(torch.eye(3), torch.zeros(3))]) for obj in object_ids]
     k = max(len(entries) for entries in lists)
     rotations = torch.stack([torch.stack([entries[i % len(entries)][0] for i in range(k)]) for entries in lists])
     translations = torch.stack([torch.stack([entries[i % len(entries)][1] for i in range(k)]) for entries in lists])
+    if counts:
+        return rotations, translations, torch.tensor([len(entries) for entries in lists])
     return rotations, translations
 
 
@@ -306,7 +351,10 @@ def main():
     out = Path(config["out"])
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(config.get("threads", 2))
-    train = Observations(config["train"], cfg.object_ids, config.get("min_visib_fract", 0.1))
+    equivalent = config.get("equivalent_targets", False)
+    if config.get("hidden_arcs") and not equivalent:
+        raise SystemExit("config: hidden_arcs needs equivalent_targets")
+    train = Observations(config["train"], cfg.object_ids, config.get("min_visib_fract", 0.1), config.get("hidden_arcs", False))
     val = Observations(config["val"], cfg.object_ids, config.get("min_visib_fract", 0.1))
     for key in ("image_size", "patch_grid", "point_count"):
         if train.info[key] != getattr(cfg, key):
@@ -314,6 +362,9 @@ def main():
     encoder, velocity = Encoder(cfg), VelocityNet(cfg)
     modules = {"encoder": encoder, "velocity": velocity}
     table = symmetry_table(train.models_info, cfg.object_ids, config.get("loss_continuous_steps", 36))
+    # Flow targets drawn from every equivalent pose: continuous symmetries
+    # at 1-degree steps.
+    target_table = symmetry_table(train.models_info, cfg.object_ids, 360, counts=True) if equivalent else None
     # `frozen_encoder`: the encoder (from `init_from`) is fixed and its
     # conditions are computed once (`condition_cache`), so a step costs the
     # velocity network alone and can afford many more flow samples.
@@ -357,7 +408,12 @@ def main():
                 torch.nn.init.zeros_(head.weight)
                 torch.nn.init.zeros_(head.bias)
         print(f"initialised from {config['init_from']} (step {state['step']}, {state['train_s'] / 60:.1f} min)", flush=True)
-    cache = condition_cache(encoder, train, config["condition_cache"], config["init_from"]) if frozen else None
+    if config.get("encoder_from"):
+        # The frozen encoder of another checkpoint (the one a condition
+        # cache was built with), over whatever init_from held.
+        encoder.load_state_dict(torch.load(config["encoder_from"], weights_only=False)["encoder"])
+    source = config.get("encoder_from") or config.get("init_from")
+    cache = condition_cache(encoder, train, config["condition_cache"], source) if frozen else None
     log = open(out / "log.jsonl", "a")
     batch_size, samples, steps = config.get("batch", 16), config.get("samples_per_observation", 16), config.get("steps", 5)
     lam = config.get("lambda_pos", 10.0)
@@ -377,7 +433,9 @@ def main():
             indices = np.sort(draw(rng, len(train), batch_size, weights))
             batch = train.poses(indices)
             condition, mask = (torch.from_numpy(np.asarray(c[indices])) for c in cache)
-            flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0))
+            targets = targets_of(train, indices, batch, samples, target_table, generator)
+            flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0),
+                              targets)
             loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
             loss = lam * loss_pos + loss_rot
             loss_corr = torch.zeros(())
@@ -385,7 +443,8 @@ def main():
             finish_step(config, state, started, log, loss, loss_rot, loss_pos, loss_corr, encoder, velocity, val, cfg, steps,
                         checkpoint, modules, optimiser, generator, rng, marks)
             continue
-        batch = train.batch(draw(rng, len(train), batch_size, weights))
+        indices = draw(rng, len(train), batch_size, weights)
+        batch = train.batch(indices)
         # Warm-ups: the correspondence network (and refiner) alone, many
         # times faster per observation than the whole model: for the first
         # `correspondence_warmup_s` of training, and for the first
@@ -400,7 +459,9 @@ def main():
             loss_rot = loss_pos = torch.zeros(())
         else:
             condition, mask, coordinates = encoder.encode(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
-            flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0))
+            targets = targets_of(train, indices, batch, samples, target_table, generator)
+            flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0),
+                              targets)
             loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
             loss_corr = sum(correspondence_loss(c, batch, table, cfg) for c in coordinates) / len(coordinates)
         extra = config.get("correspondence_extra_batch", 0)

@@ -176,3 +176,34 @@ def test_oversampled_objects_are_drawn_by_their_factor_and_bad_factors_are_refus
     for bad in ({"14": 0}, {"14": "x"}, {"mug": 2}, {"5": 2}):
         with pytest.raises(SystemExit):
             draw_weights(obj_ids, bad)
+
+
+def test_equivalent_targets_are_the_truth_its_symmetric_twins_and_its_hidden_turns():
+    from poseflow_train.train import equivalent_targets
+
+    g = torch.Generator().manual_seed(3)
+    truth = se3.uniform_rotation((2,), generator=g)
+    batch = {"rotation": truth, "translation": torch.tensor([[0.01, 0.0, 0.0], [0.0, 0.02, 0.0]]),
+             "object_index": torch.tensor([0, 1])}
+    half_turn = se3.so3_exp(torch.tensor([math.pi, 0.0, 0.0]))
+    # Object 0: no symmetry (padded); object 1: a two-fold one with an offset.
+    table = (torch.stack([torch.stack([torch.eye(3), torch.eye(3)]), torch.stack([torch.eye(3), half_turn])]),
+             torch.tensor([[[0.0, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, 0, 0.03]]]), torch.tensor([1, 2]))
+    r, p = equivalent_targets(batch, 400, table, g)
+    assert torch.allclose(r[:400], truth[0].expand(400, 3, 3)) and torch.allclose(p[:400], batch["translation"][0].expand(400, 3))
+    twin = (se3.geodesic_angle(r[400:], truth[1].expand(400, 3, 3)) > 3.0)
+    assert 0.4 < twin.float().mean().item() < 0.6
+    assert torch.allclose(p[400:][twin], batch["translation"][1] + truth[1] @ torch.tensor([0.0, 0, 0.03]), atol=1e-6)
+    # Hidden turns: object 0 may be turned by 90..120 degrees about its z
+    # (bins 9..11 of 36, each 10 degrees wide); object 1's part is in view.
+    turns = torch.zeros(2, 36, dtype=torch.bool)
+    turns[0, 9:12] = True
+    r, p = equivalent_targets(batch, 400, table, g, turns)
+    relative = truth[0].T @ r[:400]
+    angle = torch.rad2deg(torch.atan2(relative[:, 1, 0], relative[:, 0, 0]))
+    assert torch.allclose(relative[:, 2, 2], torch.ones(400), atol=1e-5)  # a turn about z
+    assert angle.min().item() >= 85.0 - 1e-3 and angle.max().item() <= 115.0 + 1e-3
+    assert angle.max().item() - angle.min().item() > 25.0
+    assert torch.allclose(p[:400], batch["translation"][0].expand(400, 3))
+    twin = (se3.geodesic_angle(r[400:], truth[1].expand(400, 3, 3)) > 3.0)
+    assert 0.4 < twin.float().mean().item() < 0.6
