@@ -29,8 +29,10 @@ import math
 from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import Image
 
+from . import se3
 from .data import Shard
 
 BINS = 36
@@ -77,11 +79,9 @@ def read_ply_vertices(path):
 
 
 def turn(axis, phi):
-    """Rotation matrix of angle phi (radians) about the unit `axis` (Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(phi) * k + (1 - math.cos(phi)) * k @ k
+    """Rotation matrix (numpy, float64) of angle phi (radians) about `axis`."""
+    a = torch.tensor(axis, dtype=torch.float64)
+    return se3.so3_exp(a / a.norm() * phi).numpy()
 
 
 def seen_pixels(part_points, rotation, translation, depth, intrinsics, tolerance):
@@ -120,10 +120,9 @@ def hidden_turns(part_points, rotation, translation, depth, intrinsics, turn_axi
 
 def shard_arcs(shard, part=MUG, hidden_pixels=10.0):
     """`turns` [records, BINS] of one shard (see the module doc)."""
-    root = Path(shard.info["dataset"])
-    if not root.is_dir():
-        root = shard.path.parent
-    models = root / "models"
+    # The dataset is where its models_info.json was found.
+    models = shard.models_info.parent
+    root = models.parent
     points = read_ply_vertices(models / f"obj_{part['obj_id']:06d}.ply") / 1000.0
     points = points[points @ np.asarray(part["part_axis"]) > part["beyond_m"]]
     split = root / shard.info["split"]
