@@ -46,6 +46,15 @@ def sample(encoder, velocity, batch, cfg, samples, steps, generator):
     and Gaussian translations: ([B, N, 3, 3], [B, N, 3]), and the encoder's
     coarse poses ([B, 3, 3], [B, 3])."""
     condition, mask = encoder(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
+    r, p = rollout(velocity, condition, mask, cfg, samples, steps, generator)
+    return r, p, read_hint(condition, cfg)
+
+
+def rollout(velocity, condition, mask, cfg, samples, steps, generator):
+    """The sampler of the inference stage: `samples` uniform rotations and
+    Gaussian translations per observation, carried by K Euler steps at
+    t = 0, 1/K, ... ([B, N, 3, 3], [B, N, 3]). Differentiable, so training
+    can score what K steps produce (`rollout_energy`)."""
     b = condition.shape[0]
     m = b * samples
     r = se3.uniform_rotation((m,), generator=generator)
@@ -54,7 +63,7 @@ def sample(encoder, velocity, batch, cfg, samples, steps, generator):
         t = torch.full((m,), k / steps)
         v_rot, v_pos = velocity(condition, mask, r, p, t)
         r, p = se3.euler_step(r, p, v_rot, v_pos, 1.0 / steps)
-    return r.reshape(b, samples, 3, 3), p.reshape(b, samples, 3), read_hint(condition, cfg)
+    return r.reshape(b, samples, 3, 3), p.reshape(b, samples, 3)
 
 
 def errors(r, p, gt_r, gt_p, transforms):
@@ -88,6 +97,14 @@ def summarise(rot, trans, misses, per_instance):
         "median_rot_deg": round(rot.median().item(), 2),
         "median_trans_cm": round(trans.median().item(), 2),
     }
+
+
+def coverage(rots, transs, misses):
+    """% of observations (one error tensor [N] each) with at least one
+    sample within 10 degrees and 5 cm, `misses` counted as failures: does
+    the distribution hold the truth, as `poseflow eval` measures it."""
+    hits = sum(bool(((r < 10) & (t < 5)).any()) for r, t in zip(rots, transs))
+    return round(100.0 * hits / max(len(rots) + misses, 1), 2)
 
 
 def unobserved(observations, min_visib_fract):
@@ -152,10 +169,13 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed, 
               **summary(torch.cat(rots), torch.cat(transs), total_missed, samples)}
     # The encoder's coarse pose alone (one per observation), for comparison.
     result["coarse"] = summary(torch.cat(coarse_rots), torch.cat(coarse_transs), total_missed, 1)
+    result["coverage_10deg_5cm"] = coverage(rots, transs, total_missed)
     result["per_object"] = {
         str(obj): {"observations": objects.count(obj), "unobserved": missed.get(obj, 0),
                    **summary(torch.cat([r for r, o in zip(rots, objects) if o == obj]),
-                             torch.cat([t for t, o in zip(transs, objects) if o == obj]), missed.get(obj, 0), samples)}
+                             torch.cat([t for t, o in zip(transs, objects) if o == obj]), missed.get(obj, 0), samples),
+                   "coverage_10deg_5cm": coverage([r for r, o in zip(rots, objects) if o == obj],
+                                                  [t for t, o in zip(transs, objects) if o == obj], missed.get(obj, 0))}
         for obj in sorted(set(objects))
     }
     return result

@@ -26,7 +26,7 @@ import torch
 
 from . import se3
 from .data import Observations
-from .evaluate import symmetries, validate
+from .evaluate import rollout, symmetries, validate
 from .model import Encoder, ModelConfig, VelocityNet, read_hint
 
 
@@ -169,6 +169,51 @@ def flow_losses(config, cfg, velocity, condition, mask, flow):
     weight = loss_weight(config.get("loss_weighting", "endpoint"), flow["t"], cfg)
     loss_rot = (weight * (pred_rot - flow["v_rot"]).pow(2).sum(-1)).mean()
     return loss_rot, (weight * ((pred_pos - flow["v_pos"]) / s).pow(2).sum(-1)).mean()
+
+
+def energy_score(r, p, target_r, target_p, cfg, lambda_pos):
+    """Mean over observations of the energy score of samples (r [B, N, 3, 3],
+    p [B, N, 3] metres) against draws from the poses the view allows
+    (target_r [B, T, 3, 3], target_p [B, T, 3]):
+    E|X - Y| - E|X - X'| / 2 with |.| the Euclidean distance of
+    (R flattened, sqrt(lambda_pos) p / translation_scale), the metric of
+    the clean-pose loss. A proper scoring rule: its expectation is least
+    when the samples are distributed as the targets, so unlike the
+    per-sample flow loss (least at the posterior mean) it rewards samples
+    that spread over every pose and penalises ones that pile up on one."""
+    def embed(rotation, translation):
+        return torch.cat([rotation.flatten(-2), math.sqrt(lambda_pos) * translation / cfg.translation_scale], -1)
+
+    def distances(a, b):
+        # The epsilon keeps the gradient finite where a sample meets itself.
+        return ((a[:, :, None] - b[:, None]).pow(2).sum(-1) + 1e-8).sqrt()
+
+    x, y = embed(r, p), embed(target_r, target_p)
+    n = x.shape[1]
+    spread = distances(x, x).sum((1, 2)) / (n * (n - 1))
+    return (distances(x, y).mean((1, 2)) - 0.5 * spread).mean()
+
+
+def rollout_energy(config, cfg, velocity, train, cache, weights, target_table, rng, generator, steps):
+    """`rollout_energy` {"weight", "observations", "samples"}: the energy
+    score of what the K-step sampler makes of `samples` noise draws, on
+    `observations` observations drawn afresh, against as many equivalent
+    targets each. The flow loss trains each step to land on the mean of
+    what the current sample could still become, and K = 5 such steps
+    narrow a wide distribution even with an exact field
+    (docs/distributions.md); this trains the K-step map itself to end on
+    draws. Backpropagates through all K steps."""
+    settings = config["rollout_energy"]
+    count, samples = settings.get("observations", 16), settings.get("samples", 32)
+    indices = np.sort(draw(rng, len(train), count, weights))
+    batch = train.poses(indices)
+    condition, mask = (torch.from_numpy(np.asarray(c[indices])) for c in cache)
+    targets = targets_of(train, indices, batch, samples, target_table, generator)
+    if targets is None:
+        targets = (batch["rotation"].repeat_interleave(samples, 0), batch["translation"].repeat_interleave(samples, 0))
+    r, p = rollout(velocity, condition, mask, cfg, samples, steps, generator)
+    target_r, target_p = targets[0].reshape(count, samples, 3, 3), targets[1].reshape(count, samples, 3)
+    return energy_score(r, p, target_r, target_p, cfg, config.get("lambda_pos", 10.0))
 
 
 def loss_weight(kind, t, cfg):
@@ -317,22 +362,26 @@ def step(config, state, optimiser, params, loss):
     state["step"] += 1
 
 
-def finish_step(config, state, started, log, loss, loss_rot, loss_pos, loss_corr, encoder, velocity, val, cfg, steps,
+def finish_step(config, state, started, log, loss, parts, encoder, velocity, val, cfg, steps,
                 checkpoint, modules, optimiser, generator, rng, marks):
-    """Counts the step's time; logs, validates and checkpoints when due
-    (`marks` holds the training time of the last validation and
-    checkpoint)."""
+    """Counts the step's time; logs (the loss and its `parts`, name ->
+    tensor), validates and checkpoints when due (`marks` holds the training
+    time of the last validation and checkpoint)."""
     state["train_s"] += time.monotonic() - started
     if state["step"] % config.get("log_every", 20) == 0:
         entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "lr": learning_rate(config, state), "loss": loss.item(),
-                 "loss_rot": loss_rot.item(), "loss_pos": loss_pos.item(), "loss_corr": loss_corr.item()}
+                 **{name: value.item() for name, value in parts.items()}}
         log.write(json.dumps(entry) + "\n")
         log.flush()
         print(entry, flush=True)
     if state["train_s"] - marks["validation"] >= config.get("validate_s", 900):
         marks["validation"] = state["train_s"]
-        result = validate(encoder, velocity, val, cfg, config.get("val_observations", 64), 50, steps, seed=1)
-        entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "validation": result}
+        count = config.get("val_observations", 64)
+        entry = {"step": state["step"], "train_s": round(state["train_s"], 1),
+                 "validation": validate(encoder, velocity, val["val"], cfg, count, 50, steps, seed=1)}
+        for name, observations in val.items():
+            if name != "val":
+                entry[f"validation_{name}"] = validate(encoder, velocity, observations, cfg, count, 50, steps, seed=1)
         log.write(json.dumps(entry) + "\n")
         log.flush()
         print(entry, flush=True)
@@ -355,7 +404,13 @@ def main():
     if config.get("hidden_arcs") and not equivalent:
         raise SystemExit("config: hidden_arcs needs equivalent_targets")
     train = Observations(config["train"], cfg.object_ids, config.get("min_visib_fract", 0.1), config.get("hidden_arcs", False))
-    val = Observations(config["val"], cfg.object_ids, config.get("min_visib_fract", 0.1))
+    # `validate_also` {name: [shards]}: more held-out sets scored at each
+    # validation (say, views where the mug's handle is hidden), logged as
+    # `validation_<name>`.
+    val = {"val": Observations(config["val"], cfg.object_ids, config.get("min_visib_fract", 0.1))}
+    for name, patterns in config.get("validate_also", {}).items():
+        val[name] = Observations(shard_paths(patterns, f"validate_also.{name}"), cfg.object_ids,
+                                 config.get("min_visib_fract", 0.1))
     for key in ("image_size", "patch_grid", "point_count"):
         if train.info[key] != getattr(cfg, key):
             raise SystemExit(f"{config['train'][0]}: {key} {train.info[key]}, the model config says {getattr(cfg, key)}")
@@ -373,6 +428,8 @@ def main():
         if not (config.get("init_from") and config.get("condition_cache")):
             raise SystemExit("config: frozen_encoder needs init_from (the encoder) and condition_cache (a path)")
         encoder.requires_grad_(False)
+    if config.get("rollout_energy") and not frozen:
+        raise SystemExit("config: rollout_energy needs frozen_encoder (it rolls the sampler out on cached conditions)")
     # A frozen DINOv2 image encoder has no trainable parameters.
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
     optimiser = torch.optim.AdamW(params, lr=config.get("lr", 3e-4), weight_decay=config.get("weight_decay", 1e-4))
@@ -420,7 +477,7 @@ def main():
     run_started = time.monotonic()
     marks = {"checkpoint": state["train_s"], "validation": state["train_s"]}
     weights = draw_weights(train.obj_ids(), config.get("oversample", {}))
-    print(f"{len(train)} training and {len(val)} validation observations", flush=True)
+    print(f"{len(train)} training and {len(val['val'])} validation observations", flush=True)
     # SIGTERM / SIGINT end the run after the current step, with a checkpoint.
     stop = []
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -438,9 +495,13 @@ def main():
                               targets)
             loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
             loss = lam * loss_pos + loss_rot
-            loss_corr = torch.zeros(())
+            parts = {"loss_rot": loss_rot, "loss_pos": loss_pos}
+            if config.get("rollout_energy"):
+                parts["loss_energy"] = rollout_energy(config, cfg, velocity, train, cache, weights, target_table, rng, generator,
+                                                      steps)
+                loss = loss + config["rollout_energy"].get("weight", 1.0) * parts["loss_energy"]
             step(config, state, optimiser, params, loss)
-            finish_step(config, state, started, log, loss, loss_rot, loss_pos, loss_corr, encoder, velocity, val, cfg, steps,
+            finish_step(config, state, started, log, loss, parts, encoder, velocity, val, cfg, steps,
                         checkpoint, modules, optimiser, generator, rng, marks)
             continue
         indices = draw(rng, len(train), batch_size, weights)
@@ -473,8 +534,8 @@ def main():
             loss_corr = (batch_size * loss_corr + extra * loss_more) / (batch_size + extra)
         loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr
         step(config, state, optimiser, params, loss)
-        finish_step(config, state, started, log, loss, loss_rot, loss_pos, loss_corr, encoder, velocity, val, cfg, steps,
-                    checkpoint, modules, optimiser, generator, rng, marks)
+        finish_step(config, state, started, log, loss, {"loss_rot": loss_rot, "loss_pos": loss_pos, "loss_corr": loss_corr},
+                    encoder, velocity, val, cfg, steps, checkpoint, modules, optimiser, generator, rng, marks)
     save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
     print(f"stopped at step {state['step']} after {state['train_s'] / 60:.1f} min of training", flush=True)
 

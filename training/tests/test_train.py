@@ -207,3 +207,64 @@ def test_equivalent_targets_are_the_truth_its_symmetric_twins_and_its_hidden_tur
     assert torch.allclose(p[:400], batch["translation"][0].expand(400, 3))
     twin = (se3.geodesic_angle(r[400:], truth[1].expand(400, 3, 3)) > 3.0)
     assert 0.4 < twin.float().mean().item() < 0.6
+
+
+def test_the_energy_score_prefers_samples_spread_like_the_targets_to_samples_on_one_pose():
+    from poseflow_train.train import energy_score
+
+    cfg = ModelConfig(object_ids=[1])
+    # Targets: half at a +40 degree turn about z, half at -40 (a two-mode view).
+    turns = torch.tensor([40.0, -40.0] * 8)
+    targets = se3.so3_exp(torch.deg2rad(turns)[:, None] * torch.tensor([0.0, 0.0, 1.0]))[None]
+    zeros = torch.zeros(1, 16, 3)
+
+    def score(samples):
+        return energy_score(samples, zeros, targets, zeros, cfg, 10.0).item()
+
+    both = targets.clone()
+    one_mode = targets[:, :1].expand(1, 16, 3, 3)
+    middle = torch.eye(3).expand(1, 16, 3, 3)
+    assert score(both) < score(middle) - 0.05
+    assert score(both) < score(one_mode) - 0.05
+    # Translations count too: a shifted copy of the targets scores worse.
+    shifted = energy_score(both, zeros + 0.02, targets, zeros, cfg, 10.0).item()
+    assert shifted > score(both) + 0.05
+
+
+def test_the_rollout_ends_where_a_field_aiming_at_one_pose_sends_every_sample():
+    from poseflow_train.evaluate import rollout
+
+    cfg = ModelConfig(object_ids=[1])
+    goal_r = se3.so3_exp(torch.tensor([0.3, -0.2, 0.5]))
+    goal_p = torch.tensor([0.01, 0.02, 0.5])
+
+    def velocity(condition, mask, r, p, t):
+        return se3.target_velocity(r, p, goal_r.expand_as(r), goal_p.expand_as(p), t)
+
+    r, p = rollout(velocity, torch.zeros(2, 4, 8), torch.ones(2, 4), cfg, 6, 5, torch.Generator().manual_seed(0))
+    assert r.shape == (2, 6, 3, 3) and p.shape == (2, 6, 3)
+    assert (r - goal_r).abs().max().item() < 1e-4
+    assert (p - goal_p).abs().max().item() < 1e-5
+
+
+def test_part_weights_weigh_the_grasps_whose_contact_lies_on_the_part():
+    import pytest
+
+    from poseflow_train.grasp import part_weights
+
+    # Grasps approaching along -z (grasp z = object -z), contact 1 cm above
+    # the fingertips' origin: at object x = 0.02 and 0.07.
+    down = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
+    rotation = down.expand(2, 3, 3)
+    translation = torch.tensor([[0.02, 0.0, 0.0], [0.07, 0.0, 0.0]])
+    part = {"axis": [1.0, 0.0, 0.0], "beyond": 0.05, "factor": 10.0}
+    assert part_weights(rotation, translation, 0.01, part).tolist() == [1.0, 10.0]
+    assert part_weights(rotation, translation, 0.01, None).tolist() == [1.0, 1.0]
+    # The contact point, not the fingertips' origin: approaching along
+    # object -x with the origin at x = 0.045, the contact is at x = 0.055.
+    along_minus_x = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    assert part_weights(along_minus_x[None], torch.tensor([[0.045, 0.0, 0.0]]), 0.01, part).tolist() == [10.0]
+    with pytest.raises(SystemExit, match="oversample_parts"):
+        part_weights(rotation, translation, 0.01, {"axis": [0.0, 0.0, 0.0], "beyond": 0.05, "factor": 2.0})
+    with pytest.raises(SystemExit, match="oversample_parts"):
+        part_weights(rotation, translation, 0.01, {"beyond": 0.05})
