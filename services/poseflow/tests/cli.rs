@@ -562,13 +562,25 @@ fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
             .unwrap()
     };
     let out_dir = std::env::temp_dir().join(format!("poseflow-sim-grasp-{}", std::process::id()));
-    let out =
-        sim(&["--trials", "2", "--grasps", "8", "--hypotheses", "4", "--json", "--out", out_dir.to_str().unwrap()]);
+    let out = sim(&[
+        "--trials",
+        "2",
+        "--grasps",
+        "8",
+        "--hypotheses",
+        "4",
+        "--prefer",
+        "handle",
+        "--json",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(report["trials"], 2, "{report}");
+    assert_eq!(report["prefer"], "handle", "{report}");
     for condition in ["visible", "occluded", "hidden_aside"] {
-        for plan in ["single", "marginalised"] {
+        for plan in ["single", "marginalised", "single_handle", "marginalised_handle"] {
             let rate = report[condition][plan].as_f64().unwrap_or_else(|| panic!("{condition}.{plan}: {report}"));
             assert!([0.0, 50.0, 100.0].contains(&rate), "{condition}.{plan} = {rate}");
         }
@@ -581,14 +593,14 @@ fn sim_grasp_reports_single_and_marginalised_rates_per_condition() {
         lines.next(),
         Some(
             "condition,trial,handle_pixels,kept,rotation_error_deg,translation_error_mm,spread_deg,worst_error_deg,\
-             single_success,single_share,single_success_any,marginalised_success,marginalised_share,\
-             marginalised_success_any"
+             single_success,single_share,single_success_any,single_on_handle,marginalised_success,\
+             marginalised_share,marginalised_success_any,marginalised_on_handle"
         )
     );
     let rows: Vec<&str> = lines.collect();
     assert_eq!(rows.len(), 3 * 2, "{csv}");
     assert!(rows[0].starts_with("visible,0,") && rows[5].starts_with("hidden_aside,1,"), "{csv}");
-    assert!(rows.iter().all(|r| r.split(',').count() == 14), "{csv}");
+    assert!(rows.iter().all(|r| r.split(',').count() == 16), "{csv}");
     let _ = std::fs::remove_dir_all(&out_dir);
     let none = sim(&["--trials", "0"]);
     assert_eq!(none.status.code(), Some(1));

@@ -39,7 +39,8 @@ impl ObjectPart {
         Self { obj_id: 14, axis: Vector3::x_axis(), beyond: 0.05 }
     }
 
-    fn contains(&self, object_point: &Point3<f64>) -> bool {
+    /// Whether an object-frame point (metres) lies on the part.
+    pub fn contains(&self, object_point: &Point3<f64>) -> bool {
         self.axis.dot(&object_point.coords) > self.beyond
     }
 

@@ -16,6 +16,7 @@ use poseflow_geometry::so3::geodesic_angle;
 use poseflow_grasp::stage::kept_hypotheses;
 use poseflow_grasp::{GraspParams, GraspPlanner, Gripper, OnnxGraspField, PlannedGrasp, judge};
 use poseflow_scene::ModelLibrary;
+use poseflow_scene::part::ObjectPart;
 use serde::Serialize;
 
 use super::mug::{Handle, render_mug};
@@ -32,8 +33,13 @@ use super::{pose_pipeline, rounded, stage_params, write_trials_csv};
     velocity averaged over the first --hypotheses kept hypotheses (the paper's mean field). Each plan executes its \
     top grasp (the highest score: the share of hypotheses it holds under, ties broken by its friction margin); it \
     succeeds when it is antipodal and collision-free on the true pose and clear of the table.\n\n\
-    --json prints {\"trials\": n, \"visible\": {\"single\": rate, \"marginalised\": rate}, \"occluded\": {...}, \
-    \"hidden_aside\": {...}}, rates in percent.\n\nExample:\n  poseflow sim grasp --trials 20 --seed 0")]
+    With --prefer handle the task wants the handle: among the grasps of the highest share, those whose contact \
+    point lies on the handle under the plan's first hypothesis go first, so a single hypothesis that puts a hidden \
+    handle in the wrong place reaches for it there.\n\n\
+    --json prints {\"trials\": n, \"prefer\": \"any\"|\"handle\", \"visible\": {\"single\": rate, \"marginalised\": rate, \
+    \"single_handle\": rate, \"marginalised_handle\": rate}, \"occluded\": {...}, \"hidden_aside\": {...}}, rates in \
+    percent (*_handle: the executed grasp aimed at the handle).\n\nExample:\n  poseflow sim grasp --trials 20 --seed 0 \
+    --prefer handle")]
 pub struct GraspSimArgs {
     /// Trials per condition (handle visible, hidden behind the body, hidden and turned aside).
     #[arg(long, default_value_t = 20)]
@@ -67,6 +73,21 @@ pub struct GraspSimArgs {
     /// Also write one row per trial to <out>/trials.csv.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// What the robot wants: `any` grasp that holds, or the `handle` (to hang the mug or hand it over) when
+    /// its plan holds a handle grasp as surely as any other grasp.
+    #[arg(long, value_enum, default_value_t = Prefer::Any)]
+    pub prefer: Prefer,
+}
+
+/// The task's preference among a plan's grasps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Prefer {
+    /// The planner's order: valid share, then friction margin.
+    Any,
+    /// Among the grasps of the highest valid share, those that close on the
+    /// handle first (under the plan's first hypothesis), then the margin.
+    Handle,
 }
 
 /// One plan's outcome in one trial.
@@ -77,17 +98,25 @@ struct Executed {
     planned_share: f64,
     /// Share of the plan's grasps that would have succeeded.
     success_any: f64,
+    /// Whether the executed grasp closes on the handle where the plan's
+    /// first hypothesis puts it.
+    aimed_at_handle: bool,
 }
 
+/// Per condition, % of trials: the executed grasp succeeded, and it aimed
+/// at the handle (`*_handle`).
 #[derive(Debug, Default, Serialize)]
 struct Rates {
     single: f64,
     marginalised: f64,
+    single_handle: f64,
+    marginalised_handle: f64,
 }
 
 #[derive(Debug, Serialize)]
 struct Report {
     trials: usize,
+    prefer: Prefer,
     visible: Rates,
     occluded: Rates,
     hidden_aside: Rates,
@@ -144,9 +173,11 @@ struct TrialRow {
     single_success: u8,
     single_share: f64,
     single_success_any: f64,
+    single_on_handle: u8,
     marginalised_success: u8,
     marginalised_share: f64,
     marginalised_success_any: f64,
+    marginalised_on_handle: u8,
 }
 
 fn write_trials(out: &Path, trials: &[Trial]) -> anyhow::Result<()> {
@@ -164,20 +195,62 @@ fn write_trials(out: &Path, trials: &[Trial]) -> anyhow::Result<()> {
             single_success: u8::from(t.single.success),
             single_share: rounded(t.single.planned_share, 4),
             single_success_any: rounded(t.single.success_any, 4),
+            single_on_handle: u8::from(t.single.aimed_at_handle),
             marginalised_success: u8::from(t.marginalised.success),
             marginalised_share: rounded(t.marginalised.planned_share, 4),
             marginalised_success_any: rounded(t.marginalised.success_any, 4),
+            marginalised_on_handle: u8::from(t.marginalised.aimed_at_handle),
         }),
     )
 }
 
+/// `planned` (in the planner's order) reordered for the task: with
+/// [`Prefer::Handle`], a grasp whose contact point (the middle of the
+/// finger pads, `contact_depth` behind the fingertips) lies on `handle`
+/// when the object is at `hypothesis` moves ahead of the grasps of the
+/// same valid share. The share stays first: a plan unsure where the handle
+/// is holds its handle grasps under few hypotheses and keeps a grasp that
+/// holds under all of them on top.
+fn ordered_for_task(
+    mut planned: Vec<PlannedGrasp>,
+    prefer: Prefer,
+    hypothesis: &Pose,
+    handle: &ObjectPart,
+    gripper: &Gripper,
+) -> Vec<PlannedGrasp> {
+    if prefer == Prefer::Any {
+        return planned;
+    }
+    // A stable sort: within equal keys the planner's margin order stays.
+    planned.sort_by_key(|g| (std::cmp::Reverse(share_key(g.valid_share)), !on_part(g, hypothesis, handle, gripper)));
+    planned
+}
+
+/// Whether the grasp's contact point (the middle of the finger pads) lies
+/// on `part` with the object at `hypothesis` (camera frame).
+fn on_part(grasp: &PlannedGrasp, hypothesis: &Pose, part: &ObjectPart, gripper: &Gripper) -> bool {
+    let contact = Point3::new(0.0, 0.0, -f64::from(gripper.contact_depth));
+    part.contains(&(hypothesis.inverse() * grasp.camera_from_grasp).transform_point(&contact))
+}
+
+/// A valid share as an orderable key (shares are counts over at most 64
+/// hypotheses, so a millionth resolves them).
+fn share_key(share: f64) -> i64 {
+    (share * 1e6).round() as i64
+}
+
 /// Executes the plan's top grasp on the true pose.
-fn execute(planned: &[PlannedGrasp], mesh_check: impl Fn(&PlannedGrasp) -> bool) -> Executed {
+fn execute(
+    planned: &[PlannedGrasp],
+    mesh_check: impl Fn(&PlannedGrasp) -> bool,
+    aims_at_handle: impl Fn(&PlannedGrasp) -> bool,
+) -> Executed {
     let successes = planned.iter().filter(|g| mesh_check(g)).count();
     Executed {
         success: planned.first().is_some_and(&mesh_check),
         planned_share: planned.first().map_or(0.0, |g| g.valid_share),
         success_any: successes as f64 / planned.len().max(1) as f64,
+        aimed_at_handle: planned.first().is_some_and(aims_at_handle),
     }
 }
 
@@ -201,9 +274,11 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
     };
     let (mut single, mut marginal) = (grasp(1)?, grasp(args.hypotheses)?);
     let gripper = single.params().gripper;
+    let handle_part = ObjectPart { obj_id: args.mug, ..ObjectPart::ycbv_mug_handle() };
 
     let mut report = Report {
         trials: args.trials,
+        prefer: args.prefer,
         visible: Rates::default(),
         occluded: Rates::default(),
         hidden_aside: Rates::default(),
@@ -212,7 +287,7 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
     // Wall time of each plan (grasp flow and checks), single then marginalised.
     let mut plan_ms: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
     for (c, handle) in [Handle::Visible, Handle::Occluded, Handle::HiddenAside].into_iter().enumerate() {
-        let (mut single_ok, mut marginal_ok) = (0, 0);
+        let (mut single_ok, mut marginal_ok, mut single_handle, mut marginal_handle) = (0, 0, 0, 0);
         for trial in 0..args.trials {
             let frame_id = (c * args.trials + trial) as u64;
             let mut rng = seeded_rng(args.seed.wrapping_mul(1_000_003).wrapping_add(frame_id));
@@ -228,16 +303,22 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
             let one_plan = single.plan(frame_id, args.mug, &[best])?;
             plan_ms[0].push(started.elapsed().as_secs_f64() * 1e3);
             let started = Instant::now();
-            let plans = [one_plan, marginal.plan(frame_id, args.mug, &kept)?];
+            let many_plan = marginal.plan(frame_id, args.mug, &kept)?;
             plan_ms[1].push(started.elapsed().as_secs_f64() * 1e3);
+            let first_kept = kept.first().copied().unwrap_or(best);
+            let one_plan = ordered_for_task(one_plan, args.prefer, &best, &handle_part, &gripper);
+            let many_plan = ordered_for_task(many_plan, args.prefer, &first_kept, &handle_part, &gripper);
             let mesh = &single.objects().get(args.mug).context("the mug's mesh")?.mesh;
             let holds = |g: &PlannedGrasp| {
                 judge(mesh, &gripper, &[truth], &g.camera_from_grasp).valid_share == 1.0
                     && clear_of_table(&gripper, &(world_from_camera * g.camera_from_grasp))
             };
-            let [one, many] = plans.map(|plan| execute(&plan, holds));
+            let one = execute(&one_plan, holds, |g| on_part(g, &best, &handle_part, &gripper));
+            let many = execute(&many_plan, holds, |g| on_part(g, &first_kept, &handle_part, &gripper));
             single_ok += usize::from(one.success);
             marginal_ok += usize::from(many.success);
+            single_handle += usize::from(one.aimed_at_handle);
+            marginal_handle += usize::from(many.aimed_at_handle);
             let angle = |a: &Pose, b: &Pose| geodesic_angle(&a.rotation, &b.rotation).to_degrees();
             let used = &kept[..kept.len().min(args.hypotheses)];
             let widest = |from: &Pose| used.iter().map(|h| angle(h, from)).fold(0.0, f64::max);
@@ -254,9 +335,12 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
                 marginalised: many,
             });
         }
+        let percent = |count: usize| 100.0 * count as f64 / args.trials as f64;
         let rates = Rates {
-            single: 100.0 * single_ok as f64 / args.trials as f64,
-            marginalised: 100.0 * marginal_ok as f64 / args.trials as f64,
+            single: percent(single_ok),
+            marginalised: percent(marginal_ok),
+            single_handle: percent(single_handle),
+            marginalised_handle: percent(marginal_handle),
         };
         match handle {
             Handle::Visible => report.visible = rates,
@@ -272,18 +356,24 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     println!(
-        "grasp simulation: mug {} ({}), {} trials per condition, seed {}",
+        "grasp simulation: mug {} ({}), {} trials per condition, seed {}, prefer {:?}",
         args.mug,
         args.objects.display(),
         args.trials,
-        args.seed
+        args.seed,
+        args.prefer
     );
     println!(
         "{:<12} {:>5} {:>9} {:>5} {:>8} {:>8} | {:>6} {:>6} {:>6} | {:>6} {:>6} {:>6}",
         "handle", "trial", "handle px", "kept", "rot err", "spread", "single", "share", "any", "marg.", "share", "any"
     );
     for t in &rows {
-        let mark = |e: &Executed| if e.success { "ok" } else { "fail" };
+        let mark = |e: &Executed| match (e.success, e.aimed_at_handle) {
+            (true, false) => "ok",
+            (true, true) => "ok·h",
+            (false, false) => "fail",
+            (false, true) => "fail·h",
+        };
         let (one, many) = (&t.single, &t.marginalised);
         println!(
             "{:<12} {:>5} {:>9} {:>5} {:>7.1}° {:>7.1}° | {:>6} {:>6.2} {:>5.0}% | {:>6} {:>6.2} {:>5.0}%",
@@ -310,12 +400,15 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
          {marginal_ms:.1} ms",
         args.grasps, args.hypotheses
     );
-    println!("\nsuccess of the executed (top) grasp, % of trials:");
-    println!("{:<12} {:>8} {:>13}", "condition", "single", "marginalised");
+    println!("\nsuccess of the executed (top) grasp, % of trials (aimed at the handle: ·h above, % in brackets):");
+    println!("{:<12} {:>15} {:>15}", "condition", "single", "marginalised");
     for (name, rates) in
         [("visible", &report.visible), ("occluded", &report.occluded), ("hidden_aside", &report.hidden_aside)]
     {
-        println!("{name:<12} {:>7.1}% {:>12.1}%", rates.single, rates.marginalised);
+        println!(
+            "{name:<12} {:>6.1}% ({:>5.1}%) {:>6.1}% ({:>5.1}%)",
+            rates.single, rates.single_handle, rates.marginalised, rates.marginalised_handle
+        );
     }
     Ok(())
 }
@@ -339,5 +432,36 @@ mod tests {
         let side = Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2);
         assert!(!clear_of_table(&gripper, &Pose::new(side, Vector3::new(0.0, 0.0, 0.02))));
         assert!(clear_of_table(&gripper, &Pose::new(side, Vector3::new(0.0, 0.0, 0.11))));
+    }
+
+    #[test]
+    fn a_handle_grasp_goes_first_only_among_grasps_held_as_surely() {
+        let gripper = Gripper::default();
+        let handle = ObjectPart::ycbv_mug_handle();
+        // The mug 0.5 m ahead of the camera, unrotated. Grasp poses put the
+        // contact point (0, 0, -contact_depth in the grasp frame) at an
+        // object point: the rim centre, or 7 cm out along +x (the handle).
+        let mug = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, 0.5));
+        let at = |x: f64, share: f64, margin: f32| PlannedGrasp {
+            camera_from_grasp: Pose::new(
+                Rotation3::identity(),
+                Vector3::new(x, 0.0, 0.5 + f64::from(gripper.contact_depth)),
+            ),
+            width: 0.03,
+            valid_share: share,
+            margin,
+        };
+        let planned = vec![at(0.0, 1.0, 0.3), at(0.07, 1.0, 0.1), at(0.07, 0.5, 0.3)];
+        let xs = |grasps: &[PlannedGrasp]| grasps.iter().map(|g| g.camera_from_grasp.translation.x).collect::<Vec<_>>();
+        let any = ordered_for_task(planned.clone(), Prefer::Any, &mug, &handle, &gripper);
+        assert_eq!(xs(&any), [0.0, 0.07, 0.07]);
+        let first_handle = ordered_for_task(planned.clone(), Prefer::Handle, &mug, &handle, &gripper);
+        assert_eq!(xs(&first_handle), [0.07, 0.0, 0.07]);
+        assert_eq!(first_handle[0].valid_share, 1.0);
+        // With the hypothesis turned 180° about the mug's axis, the same
+        // camera point is no longer on the handle: the planner's order stays.
+        let turned = Pose::new(Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI), mug.translation);
+        let elsewhere = ordered_for_task(planned, Prefer::Handle, &turned, &handle, &gripper);
+        assert_eq!(xs(&elsewhere), [0.0, 0.07, 0.07]);
     }
 }
