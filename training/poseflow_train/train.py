@@ -428,8 +428,14 @@ def main():
         if not (config.get("init_from") and config.get("condition_cache")):
             raise SystemExit("config: frozen_encoder needs init_from (the encoder) and condition_cache (a path)")
         encoder.requires_grad_(False)
-    if config.get("rollout_energy") and not frozen:
-        raise SystemExit("config: rollout_energy needs frozen_encoder (it rolls the sampler out on cached conditions)")
+    if config.get("rollout_energy"):
+        if not frozen:
+            raise SystemExit("config: rollout_energy needs frozen_encoder (it rolls the sampler out on cached conditions)")
+        settings = config["rollout_energy"]
+        if not (isinstance(settings.get("samples", 32), int) and settings.get("samples", 32) >= 2
+                and isinstance(settings.get("observations", 16), int) and settings.get("observations", 16) >= 1):
+            raise SystemExit(f"config: rollout_energy {settings!r}: expected \"samples\" >= 2 (the score compares "
+                             "samples with each other) and \"observations\" >= 1")
     # A frozen DINOv2 image encoder has no trainable parameters.
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
     optimiser = torch.optim.AdamW(params, lr=config.get("lr", 3e-4), weight_decay=config.get("weight_decay", 1e-4))
