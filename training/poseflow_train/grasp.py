@@ -133,6 +133,10 @@ class GraspData:
                                         (oversample_parts or {}).get(str(data["obj_id"]))),
             })
 
+        unknown = set(oversample_parts or {}) - {str(o["obj_id"]) for o in self.objects}
+        if unknown:
+            raise SystemExit(f"config: oversample_parts names objects {sorted(unknown)}, which {directory} has no grasps of")
+
     def draw(self, count, generator):
         """`count` examples: object index [B], turn [B,3,3], the turned and
         centred clouds [B,P,3] and the means subtracted [B,3]."""
