@@ -221,8 +221,11 @@ fn ordered_for_task(
     if prefer == Prefer::Any {
         return planned;
     }
-    // A stable sort: within equal keys the planner's margin order stays.
-    planned.sort_by_key(|g| (std::cmp::Reverse(share_key(g.valid_share)), !on_part(g, hypothesis, handle, gripper)));
+    // Stable, and each grasp's key (a pose inverse and product) computed
+    // once: within equal keys the planner's margin order stays.
+    planned.sort_by_cached_key(|g| {
+        (std::cmp::Reverse(share_key(g.valid_share)), !on_part(g, hypothesis, handle, gripper))
+    });
     planned
 }
 
