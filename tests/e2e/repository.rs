@@ -9,7 +9,7 @@ const CHECKPOINT_BUDGET_BYTES: u64 = 50_000_000;
 
 /// The checkpoints the shipped models were exported from.
 const SHIPPED_MODEL_CHECKPOINTS: [&str; 2] =
-    ["training/checkpoints/lmo10-anneal/checkpoint.pt", "training/checkpoints/grasp/checkpoint.pt"];
+    ["training/checkpoints/lmo10-energy3/checkpoint.pt", "training/checkpoints/grasp/checkpoint.pt"];
 
 #[test]
 fn tracked_checkpoints_stay_within_the_repository_budget() {

@@ -89,6 +89,24 @@ def learning_rate_text(config):
     return f"{config.get('lr')} cosine-decayed to {decay['final']} over {decay['over_s'] / 60:.0f} minutes (`lr_decay`)"
 
 
+def last_run_text(config):
+    """What the last run trained besides the flow loss, as the card states it."""
+    if not config.get("frozen_encoder"):
+        return (f"plus the correspondence loss with weight {config.get('correspondence', 1.0)}; the first "
+                f"{config.get('correspondence_warmup_s', 0) / 60:.0f} minutes train the correspondence network alone")
+    parts = [f"the encoder frozen (`{config.get('encoder_from') or config['init_from']}`) and the velocity network "
+             "trained on its cached conditions"]
+    if config.get("equivalent_targets"):
+        parts.append("each flow target drawn from the poses equivalent to the truth (symmetries"
+                     + (", hidden-handle turns" if config.get("hidden_arcs") else "") + ")")
+    if config.get("rollout_energy"):
+        energy = config["rollout_energy"]
+        parts.append(f"plus {energy.get('weight', 1.0)} × the energy score of the {config.get('steps')}-step sampler's "
+                     f"output ({energy.get('observations', 16)} observations × {energy.get('samples', 32)} samples) "
+                     "against those targets")
+    return "; ".join(parts)
+
+
 def robustness_section(path, compare_path, compare_label, note):
     """The robustness table: per variant the per-sample and coarse-pose
     accuracy, and another run's per-sample 10°5cm when given."""
@@ -260,9 +278,7 @@ medium occlusion, never trained on. {args.data_note}
 {state['step']:,} steps, {state['train_s'] / 3600:.2f} h of training on 2 CPU cores (PyTorch,
 `torch.set_num_threads(2)`), batch {config.get('batch')} observations × {config.get('samples_per_observation')} flow samples,
 AdamW lr {learning_rate_text(config)}, loss λ·ℓ_pos + ℓ_rot with λ = {config.get('lambda_pos')} ("{config.get('loss', 'velocity')}"),
-plus the correspondence loss with weight {config.get('correspondence', 1.0)}; the first
-{config.get('correspondence_warmup_s', 0) / 60:.0f} minutes train the correspondence network alone
-(see `training/README.md` for why). {args.history}
+{last_run_text(config)} (see `training/README.md` for why). {args.history}
 Hours are cumulative training time,
 measured inside the training loop; part of it ran while the same two cores
 built and tested the Rust workspace, so it overstates the CPU time spent.

@@ -443,7 +443,8 @@ def main():
     checkpoint = out / "checkpoint.pt"
     generator = torch.Generator().manual_seed(config.get("seed", 0))
     rng = np.random.default_rng(config.get("seed", 0))
-    if checkpoint.exists():
+    resumed = checkpoint.exists()
+    if resumed:
         saved = torch.load(checkpoint, weights_only=False)
         for name, module in modules.items():
             module.load_state_dict(saved[name])
@@ -471,9 +472,10 @@ def main():
                 torch.nn.init.zeros_(head.weight)
                 torch.nn.init.zeros_(head.bias)
         print(f"initialised from {config['init_from']} (step {state['step']}, {state['train_s'] / 60:.1f} min)", flush=True)
-    if config.get("encoder_from"):
+    if config.get("encoder_from") and not resumed:
         # The frozen encoder of another checkpoint (the one a condition
-        # cache was built with), over whatever init_from held.
+        # cache was built with), over whatever init_from held; a resumed run
+        # has it in its own checkpoint, so encoder_from may be gone.
         encoder.load_state_dict(torch.load(config["encoder_from"], weights_only=False)["encoder"])
     source = config.get("encoder_from") or config.get("init_from")
     cache = condition_cache(encoder, train, config["condition_cache"], source) if frozen else None

@@ -148,12 +148,12 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     check(args)?;
     let library = ModelLibrary::load(&args.models, &args.objects)
         .with_context(|| format!("--models {}: cannot load the object models", args.models.display()))?;
-    let condition = args.mug_handle.map(|handle| ViewCondition {
-        part: ObjectPart::ycbv_mug_handle(),
-        visibility: match handle {
+    let condition = args.mug_handle.map(|handle| {
+        let visibility = match handle {
             HandleArg::Hidden => PartVisibility::Hidden,
             HandleArg::Visible => PartVisibility::Visible,
-        },
+        };
+        ViewCondition::new(ObjectPart::ycbv_mug_handle(), visibility)
     });
     if let Some(condition) = condition
         && !library.objects.iter().any(|o| o.obj_id == condition.part.obj_id)

@@ -10,7 +10,9 @@
 //!
 //! Every scene and every frame draws from its own random stream, derived
 //! from `(seed, scene_id)` and `(seed, scene_id, im_id)`, so any scene can
-//! be re-rendered alone and comes out identical.
+//! be re-rendered alone and comes out identical. Under a view condition a
+//! scene whose arrangement no camera can show it in is arranged again from
+//! its own further streams (`rearranged_scenes` in `poseflow_render.json`).
 
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -26,7 +28,7 @@ use crate::bop::{
     write_mask_png, write_rgb_png,
 };
 use crate::camera_path::{CameraPath, Orbit};
-use crate::part::{MAX_VIEW_ATTEMPTS, ViewCondition};
+use crate::part::ViewCondition;
 use crate::scene::{Occlusion, Scene, View, ViewRange, compose_scene, random_light, render_view};
 use crate::{Camera, DepthNoise, ModelLibrary, SceneError, model_file_name};
 
@@ -94,6 +96,10 @@ struct Provenance<'a> {
     rgb_noise: f64,
     #[serde(skip_serializing_if = "Option::is_none")]
     view_condition: Option<String>,
+    /// Scenes drawn again because no view of their first arrangement met
+    /// `view_condition`.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    rearranged_scenes: Vec<u32>,
 }
 
 /// Folds `parts` into one 64-bit seed (SplitMix64 finaliser on each step),
@@ -145,10 +151,25 @@ fn copy_models(library: &ModelLibrary, out: &Path) -> Result<(), SceneError> {
     Ok(())
 }
 
+/// Arrangements a scene may go through before a view condition that none of
+/// them can meet is reported.
+pub const MAX_ARRANGEMENTS: u32 = 8;
+
 /// The arrangement of scene `scene_id`: the same for the same seed, however
 /// many scenes are rendered and in which order.
 pub fn scene(library: &ModelLibrary, spec: &RenderSpec, scene_id: u32) -> Scene {
-    compose_scene(library, spec.occlusion, &mut seeded_rng(stream_seed(&[spec.seed, scene_id.into()])))
+    arrangement(library, spec, scene_id, 0)
+}
+
+/// Arrangement `k` of scene `scene_id`: 0 is [`scene`]; the later ones are
+/// what [`write_dataset`] falls back to when no view of the earlier ones
+/// meets `spec.condition`.
+pub fn arrangement(library: &ModelLibrary, spec: &RenderSpec, scene_id: u32, k: u32) -> Scene {
+    let stream = match k {
+        0 => stream_seed(&[spec.seed, scene_id.into()]),
+        k => stream_seed(&[spec.seed, scene_id.into(), 0, k.into()]),
+    };
+    compose_scene(library, spec.occlusion, &mut seeded_rng(stream))
 }
 
 /// One frame as it goes into the dataset, in memory.
@@ -165,7 +186,8 @@ pub struct RenderedFrame {
 /// Renders image `im_id` of `scene` (scene `scene_id`): the camera and
 /// light of `spec.path`, sensor noise. With `spec.condition` (random
 /// cameras), cameras and lights are drawn until the view meets it; after
-/// [`MAX_VIEW_ATTEMPTS`] draws the scene is reported as unable to.
+/// its `view_attempts` draws [`SceneError::NoView`] reports the scene as
+/// unable to.
 pub fn frame(
     library: &ModelLibrary,
     spec: &RenderSpec,
@@ -192,11 +214,13 @@ pub fn frame(
                 match &spec.condition {
                     Some(condition) if !condition.accepts(scene, &view, &spec.camera) => {
                         attempts += 1;
-                        if attempts == MAX_VIEW_ATTEMPTS {
-                            return Err(SceneError::Invalid(format!(
-                                "scene {scene_id} image {im_id}: no view in {MAX_VIEW_ATTEMPTS} random cameras \
-                                 shows {condition}"
-                            )));
+                        if attempts >= condition.view_attempts {
+                            return Err(SceneError::NoView {
+                                scene_id,
+                                im_id,
+                                attempts,
+                                condition: condition.to_string(),
+                            });
                         }
                     }
                     _ => break (camera_from_world, view),
@@ -230,6 +254,31 @@ pub fn write_dataset(
     std::fs::create_dir_all(&split_dir).map_err(|source| SceneError::Write { path: split_dir.clone(), source })?;
     copy_models(library, out)?;
     write_json(&out.join("camera.json"), &DatasetCamera::new(&spec.camera, DEPTH_SCALE))?;
+    let total = u64::from(spec.scenes) * u64::from(spec.frames_per_scene);
+    let mut done = 0;
+    let mut targets = Vec::new();
+    let mut rearranged_scenes = Vec::new();
+    for scene_id in spec.first_scene..spec.first_scene + spec.scenes {
+        let done_before = done;
+        let mut k = 0;
+        let written = loop {
+            let started = Instant::now();
+            let scene = arrangement(library, spec, scene_id, k);
+            let progress = Progress { done: &mut done, total, compose_time: started.elapsed() };
+            match write_scene(library, spec, &split_dir, scene_id, &scene, progress, &mut on_frame) {
+                Err(SceneError::NoView { im_id, condition, .. }) if k + 1 < MAX_ARRANGEMENTS => {
+                    tracing::warn!(scene_id, im_id, arrangement = k, %condition, "no view meets the condition: scene arranged again");
+                    done = done_before;
+                    k += 1;
+                }
+                result => break result?,
+            }
+        };
+        if k > 0 {
+            rearranged_scenes.push(scene_id);
+        }
+        targets.extend(written);
+    }
     write_json(
         &out.join("poseflow_render.json"),
         &Provenance {
@@ -249,63 +298,80 @@ pub fn write_dataset(
             depth_noise: spec.depth_noise.is_some(),
             rgb_noise: spec.rgb_noise,
             view_condition: spec.condition.map(|c| c.to_string()),
+            rearranged_scenes,
         },
     )?;
-    let total = u64::from(spec.scenes) * u64::from(spec.frames_per_scene);
-    let mut done = 0;
-    let mut targets = Vec::new();
-    for scene_id in spec.first_scene..spec.first_scene + spec.scenes {
-        let started = Instant::now();
-        let scene = scene(library, spec, scene_id);
-        let mut compose_time = started.elapsed();
-        let dir = SceneDir::new(&split_dir, scene_id);
-        dir.create()?;
-        let (mut cameras, mut gts, mut infos) = (ByImage::new(), ByImage::new(), ByImage::new());
-        for im_id in 0..spec.frames_per_scene {
-            let started = Instant::now();
-            let RenderedFrame { camera_from_world, view, depth } = frame(library, spec, &scene, scene_id, im_id)?;
-            let render_time = started.elapsed() + std::mem::take(&mut compose_time);
-
-            let started = Instant::now();
-            let (w, h) = (spec.camera.width, spec.camera.height);
-            write_rgb_png(&dir.rgb(im_id), w, h, &view.frame.rgb)?;
-            write_depth_png(&dir.depth(im_id), w, h, &depth, DEPTH_SCALE)?;
-            let mut gt = Vec::with_capacity(scene.objects.len());
-            let mut info = Vec::with_capacity(scene.objects.len());
-            for (k, (object, pose)) in scene.objects.iter().zip(&view.object_poses).enumerate() {
-                let full = &view.silhouettes[k];
-                let visible: Vec<bool> = view.frame.label.iter().map(|&l| usize::from(l) == k + 1).collect();
-                write_mask_png(&dir.mask(im_id, k), w, h, full)?;
-                write_mask_png(&dir.mask_visib(im_id, k), w, h, &visible)?;
-                let px_count_all = full.iter().filter(|&&inside| inside).count() as u64;
-                let px_count_visib = visible.iter().filter(|&&inside| inside).count() as u64;
-                info.push(GtInfoEntry {
-                    bbox_obj: bounding_box(full, w),
-                    bbox_visib: bounding_box(&visible, w),
-                    px_count_all,
-                    px_count_valid: full.iter().zip(&depth).filter(|&(&inside, &z)| inside && z > 0.0).count() as u64,
-                    px_count_visib,
-                    visib_fract: if px_count_all > 0 { px_count_visib as f64 / px_count_all as f64 } else { 0.0 },
-                });
-                gt.push(GtEntry::new(object.obj_id, pose));
-            }
-            for obj_id in scene.objects.iter().map(|o| o.obj_id) {
-                targets.push(Target { im_id, inst_count: 1, obj_id, scene_id });
-            }
-            cameras.insert(im_id, CameraEntry::new(&spec.camera, DEPTH_SCALE, Some(&camera_from_world)));
-            gts.insert(im_id, gt);
-            infos.insert(im_id, info);
-            done += 1;
-            on_frame(&FrameDone { scene_id, im_id, done, total, render: render_time, write: started.elapsed() });
-        }
-        write_by_image(&dir.scene_camera(), &cameras)?;
-        write_by_image(&dir.scene_gt(), &gts)?;
-        write_by_image(&dir.scene_gt_info(), &infos)?;
-    }
     if spec.split == "test" {
         write_json(&out.join("test_targets_bop19.json"), &targets)?;
     }
     Ok(())
+}
+
+/// Frames written so far (rewound when a scene is arranged again), and the
+/// scene's composition time, counted into its first frame.
+struct Progress<'a> {
+    done: &'a mut u64,
+    total: u64,
+    compose_time: Duration,
+}
+
+/// Renders and writes every image of one scene arrangement; returns its
+/// BOP19 targets.
+fn write_scene(
+    library: &ModelLibrary,
+    spec: &RenderSpec,
+    split_dir: &Path,
+    scene_id: u32,
+    scene: &Scene,
+    progress: Progress<'_>,
+    on_frame: &mut impl FnMut(&FrameDone),
+) -> Result<Vec<Target>, SceneError> {
+    let Progress { done, total, mut compose_time } = progress;
+    let mut targets = Vec::new();
+    let dir = SceneDir::new(split_dir, scene_id);
+    dir.create()?;
+    let (mut cameras, mut gts, mut infos) = (ByImage::new(), ByImage::new(), ByImage::new());
+    for im_id in 0..spec.frames_per_scene {
+        let started = Instant::now();
+        let RenderedFrame { camera_from_world, view, depth } = frame(library, spec, scene, scene_id, im_id)?;
+        let render_time = started.elapsed() + std::mem::take(&mut compose_time);
+
+        let started = Instant::now();
+        let (w, h) = (spec.camera.width, spec.camera.height);
+        write_rgb_png(&dir.rgb(im_id), w, h, &view.frame.rgb)?;
+        write_depth_png(&dir.depth(im_id), w, h, &depth, DEPTH_SCALE)?;
+        let mut gt = Vec::with_capacity(scene.objects.len());
+        let mut info = Vec::with_capacity(scene.objects.len());
+        for (k, (object, pose)) in scene.objects.iter().zip(&view.object_poses).enumerate() {
+            let full = &view.silhouettes[k];
+            let visible: Vec<bool> = view.frame.label.iter().map(|&l| usize::from(l) == k + 1).collect();
+            write_mask_png(&dir.mask(im_id, k), w, h, full)?;
+            write_mask_png(&dir.mask_visib(im_id, k), w, h, &visible)?;
+            let px_count_all = full.iter().filter(|&&inside| inside).count() as u64;
+            let px_count_visib = visible.iter().filter(|&&inside| inside).count() as u64;
+            info.push(GtInfoEntry {
+                bbox_obj: bounding_box(full, w),
+                bbox_visib: bounding_box(&visible, w),
+                px_count_all,
+                px_count_valid: full.iter().zip(&depth).filter(|&(&inside, &z)| inside && z > 0.0).count() as u64,
+                px_count_visib,
+                visib_fract: if px_count_all > 0 { px_count_visib as f64 / px_count_all as f64 } else { 0.0 },
+            });
+            gt.push(GtEntry::new(object.obj_id, pose));
+        }
+        for obj_id in scene.objects.iter().map(|o| o.obj_id) {
+            targets.push(Target { im_id, inst_count: 1, obj_id, scene_id });
+        }
+        cameras.insert(im_id, CameraEntry::new(&spec.camera, DEPTH_SCALE, Some(&camera_from_world)));
+        gts.insert(im_id, gt);
+        infos.insert(im_id, info);
+        *done += 1;
+        on_frame(&FrameDone { scene_id, im_id, done: *done, total, render: render_time, write: started.elapsed() });
+    }
+    write_by_image(&dir.scene_camera(), &cameras)?;
+    write_by_image(&dir.scene_gt(), &gts)?;
+    write_by_image(&dir.scene_gt_info(), &infos)?;
+    Ok(targets)
 }
 
 /// One entry of BOP's `test_targets_bop19.json`.

@@ -29,6 +29,9 @@ pub enum SceneError {
 
     #[error("{0}")]
     Invalid(String),
+
+    #[error("scene {scene_id} image {im_id}: no view in {attempts} random cameras shows {condition}")]
+    NoView { scene_id: u32, im_id: u32, attempts: usize, condition: String },
 }
 
 impl SceneError {

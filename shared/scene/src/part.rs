@@ -12,8 +12,8 @@ use nalgebra::{Point3, Unit, Vector3};
 use crate::Camera;
 use crate::scene::{Scene, View};
 
-/// Draws of camera and light tried per image before a condition is called
-/// unsatisfiable for the scene.
+/// Draws of camera and light tried per image, by default, before a
+/// condition is called unsatisfiable for the scene's arrangement.
 pub const MAX_VIEW_ATTEMPTS: usize = 400;
 /// At most this many part pixels (at 640×480) for the part to be hidden.
 pub const HIDDEN_MAX_PIXELS: f64 = 10.0;
@@ -79,9 +79,17 @@ pub enum PartVisibility {
 pub struct ViewCondition {
     pub part: ObjectPart,
     pub visibility: PartVisibility,
+    /// Camera and light draws per image before the scene's arrangement is
+    /// given up on ([`MAX_VIEW_ATTEMPTS`] unless a test wants fewer).
+    pub view_attempts: usize,
 }
 
 impl ViewCondition {
+    /// The condition with the default [`MAX_VIEW_ATTEMPTS`].
+    pub fn new(part: ObjectPart, visibility: PartVisibility) -> Self {
+        Self { part, visibility, view_attempts: MAX_VIEW_ATTEMPTS }
+    }
+
     /// Whether `view` of `scene` meets the condition; false when the scene
     /// has no instance of the part's object.
     pub fn accepts(&self, scene: &Scene, view: &View, camera: &Camera) -> bool {

@@ -219,7 +219,7 @@ fn views_are_drawn_until_the_mug_handle_is_hidden_or_in_view() {
     let ycbv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/ycbv/models");
     let library = ModelLibrary::load(&ycbv, &[14]).unwrap();
     let handle = ObjectPart::ycbv_mug_handle();
-    let condition = |visibility| Some(ViewCondition { part: handle, visibility });
+    let condition = |visibility| Some(ViewCondition::new(handle, visibility));
     let spec = |visibility| RenderSpec {
         scenes: 1,
         frames_per_scene: 3,
@@ -242,12 +242,60 @@ fn views_are_drawn_until_the_mug_handle_is_hidden_or_in_view() {
         }
     }
     let absent = RenderSpec {
-        condition: Some(ViewCondition {
-            part: ObjectPart { obj_id: 99, ..handle },
-            visibility: PartVisibility::Hidden,
-        }),
+        condition: Some(ViewCondition::new(ObjectPart { obj_id: 99, ..handle }, PartVisibility::Hidden)),
         ..spec(PartVisibility::Hidden)
     };
     let err = frame(&library, &absent, &truth, 3, 1).unwrap_err().to_string();
     assert!(err.contains("scene 3 image 1") && err.contains("object 99"), "{err}");
+}
+
+/// A scene whose arrangement no camera draw can show under the condition is
+/// arranged again (from its own streams, so the dataset stays reproducible)
+/// instead of failing the render, and `poseflow_render.json` names it; when
+/// no arrangement can, the error names scene, image and condition.
+#[test]
+fn a_scene_no_view_can_show_is_arranged_again_and_recorded() {
+    use poseflow_scene::dataset::{MAX_ARRANGEMENTS, arrangement};
+    use poseflow_scene::part::{ObjectPart, PartVisibility, ViewCondition};
+    let ycbv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/ycbv/models");
+    let library = ModelLibrary::load(&ycbv, &[14]).unwrap();
+    let handle = ObjectPart::ycbv_mug_handle();
+    // Few camera draws per arrangement: some first arrangements fail.
+    let hidden = ViewCondition { view_attempts: 3, ..ViewCondition::new(handle, PartVisibility::Hidden) };
+    let spec = RenderSpec {
+        scenes: 6,
+        frames_per_scene: 1,
+        camera: lmo_camera(160, 120),
+        condition: Some(hidden),
+        ..clean_spec()
+    };
+    let placements = |s: &poseflow_scene::scene::Scene| format!("{:?}", s.objects);
+    assert_eq!(placements(&arrangement(&library, &spec, 3, 0)), placements(&scene(&library, &spec, 3)));
+    assert_ne!(placements(&arrangement(&library, &spec, 3, 1)), placements(&scene(&library, &spec, 3)));
+
+    let out = scratch("rearranged");
+    write_dataset(&library, &spec, &out, |_| {}).unwrap();
+    let provenance: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("poseflow_render.json")).unwrap()).unwrap();
+    let rearranged: Vec<u64> = provenance["rearranged_scenes"]
+        .as_array()
+        .expect("some first arrangement failed its one draw")
+        .iter()
+        .map(|id| id.as_u64().unwrap())
+        .collect();
+    assert!(!rearranged.is_empty() && rearranged.iter().all(|id| (3..9).contains(id)), "{rearranged:?}");
+    for scene_id in 3..9u32 {
+        assert!(SceneDir::new(&out.join(&spec.split), scene_id).rgb(0).exists(), "scene {scene_id} was written");
+    }
+
+    let impossible = ViewCondition { view_attempts: 1, ..ViewCondition::new(handle, PartVisibility::Visible) };
+    let never = RenderSpec {
+        scenes: 1,
+        condition: Some(ViewCondition { part: ObjectPart { beyond: 10.0, ..handle }, ..impossible }),
+        ..spec
+    };
+    let err = write_dataset(&library, &never, &out, |_| {}).unwrap_err().to_string();
+    assert!(err.contains("scene 3 image 0") && err.contains("no view in 1 random cameras"), "{err}");
+    assert!(MAX_ARRANGEMENTS > 1);
+    let _ = std::fs::remove_dir_all(&out);
 }
