@@ -237,9 +237,41 @@ fn evaluate(
     for estimate in estimates {
         by_image.entry((estimate.scene_id, estimate.im_id)).or_default().push(estimate);
     }
+    let jobs: Vec<(&TruthImage, Vec<&Estimated>)> = images
+        .iter()
+        .map(|image| (image, by_image.remove(&(image.scene_id, image.im_id)).unwrap_or_default()))
+        .collect();
+    // Estimates of images the dataset's targets do not name.
+    let mut unmatched: usize = by_image.values().map(Vec::len).sum();
+    // Scoring every sample against every model vertex is the slow part of
+    // an evaluation: images are scored on all cores, in order.
+    let workers = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let per_worker = jobs.len().div_ceil(workers).max(1);
+    let parts: Vec<anyhow::Result<(Vec<InstanceOutcome>, usize)>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = jobs
+            .chunks(per_worker)
+            .map(|part| scope.spawn(move || score_images(part, objects, every_hypothesis)))
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
+    });
+    let mut outcomes = Vec::new();
+    for part in parts {
+        let (part_outcomes, part_unmatched) = part?;
+        outcomes.extend(part_outcomes);
+        unmatched += part_unmatched;
+    }
+    Ok((outcomes, unmatched))
+}
+
+/// [`evaluate`] for some of the images, each with its estimates.
+fn score_images(
+    jobs: &[(&TruthImage, Vec<&Estimated>)],
+    objects: &BTreeMap<u32, ScoredObject>,
+    every_hypothesis: bool,
+) -> anyhow::Result<(Vec<InstanceOutcome>, usize)> {
     let (mut outcomes, mut unmatched) = (Vec::new(), 0);
-    for image in images {
-        let image_estimates = by_image.remove(&(image.scene_id, image.im_id)).unwrap_or_default();
+    for (image, image_estimates) in jobs {
+        let image_estimates = image_estimates.clone();
         let depth = if image.instances.iter().any(|i| i.scored) {
             image.depth.as_ref().map(|file| file.read()).transpose()?
         } else {
@@ -296,8 +328,6 @@ fn evaluate(
             });
         }
     }
-    // Estimates of images the dataset's targets do not name.
-    unmatched += by_image.values().map(Vec::len).sum::<usize>();
     Ok((outcomes, unmatched))
 }
 
