@@ -82,6 +82,10 @@ fn the_demo_runs_the_estimation_graph_and_draws_its_pictures() {
         assert!(o["translation_error_cm"].as_f64().unwrap() < 2.0, "{o}");
         assert_eq!(o["hypotheses"], 12, "{o}");
         assert!(o["kept"].as_u64().unwrap() >= 1);
+        // Folding by the symmetries never widens the kept hypotheses' spread
+        // (the largest std is at most √trace; twins only come closer).
+        let folded = o["rotation_spread_max_deg"].as_f64().unwrap();
+        assert!(folded >= 0.0 && folded <= o["rotation_spread_deg"].as_f64().unwrap() + 0.5, "{o}");
     }
     let overlay = image::open(out_dir.join("overlay.png")).unwrap().to_rgb8();
     assert_eq!(overlay.dimensions(), (640, 480));

@@ -120,6 +120,10 @@ struct ObjectReport {
     /// √(trace Σ) of the kept hypotheses: rotation (degrees), translation (cm).
     rotation_spread_deg: f64,
     translation_spread_cm: f64,
+    /// The largest rotational standard deviation of the kept hypotheses,
+    /// folded by the object's symmetries (degrees; `poseflow eval`'s
+    /// `rotation_spread_max_deg`): a symmetry is not uncertainty.
+    rotation_spread_max_deg: f64,
     modes: u32,
     kept: u32,
     hypotheses: u32,
@@ -140,7 +144,10 @@ struct Report {
 /// What the graph recorded for one object in one frame.
 pub(crate) struct Recorded {
     pub estimate: EstimateHeader,
+    /// The sampler's hypotheses, in sample order.
     pub hypotheses: Vec<Pose>,
+    /// The hypotheses the selector kept, best first.
+    pub kept: Vec<Pose>,
 }
 
 fn poses(payload: &[f32], stride: usize) -> anyhow::Result<Vec<Pose>> {
@@ -161,7 +168,9 @@ pub(crate) fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
         match message.edge.as_str() {
             "estimates" => {
                 let header: EstimateHeader = header_from_bytes(&message.header).context("estimate header")?;
-                estimates.push(header);
+                let scored = crate::eval::estimates::scored_hypotheses(&header, &message.payload)?;
+                let kept = scored.into_iter().take(header.kept_count as usize).map(|(pose, _)| pose).collect();
+                estimates.push((header, kept));
             }
             "hypotheses" => {
                 let header: HypothesesHeader = header_from_bytes(&message.header).context("hypotheses header")?;
@@ -173,9 +182,9 @@ pub(crate) fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
     }
     Ok(estimates
         .into_iter()
-        .map(|estimate| {
+        .map(|(estimate, kept)| {
             let key = (estimate.header.frame_id, estimate.header.object_id);
-            Recorded { hypotheses: hypotheses.remove(&key).unwrap_or_default(), estimate }
+            Recorded { hypotheses: hypotheses.remove(&key).unwrap_or_default(), kept, estimate }
         })
         .collect())
 }
@@ -371,6 +380,11 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
                 e.rotation.to_degrees() < 10.0 && e.translation < 0.05
             })
             .count();
+        let kept: Vec<_> = entry.kept.iter().map(|p| p.rotation).collect();
+        let rotation_spread_max_deg = symmetries
+            .folded_max_rotation_std(&kept, &best.rotation)
+            .with_context(|| format!("object {obj_id}: the spread of its kept hypotheses"))?
+            .to_degrees();
         let c = &estimate.covariance;
         let rotation_trace = f64::from(estimate.rotation_trace);
         let translation_trace = f64::from(c[0] + c[7] + c[14]);
@@ -382,6 +396,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             translation_error_cm: error.translation * 100.0,
             rotation_spread_deg: rotation_trace.max(0.0).sqrt().to_degrees(),
             translation_spread_cm: translation_trace.max(0.0).sqrt() * 100.0,
+            rotation_spread_max_deg,
             modes: estimate.mode_count,
             kept: estimate.kept_count,
             hypotheses: estimate.hypothesis_count,
@@ -424,7 +439,8 @@ pub(crate) fn print_report<R: Serialize>(report: &R, json: bool, table: impl Fn(
 
 fn print_table(report: &Report) {
     println!(
-        "selection {}{}; errors against the ground truth (symmetry-aware), spread = √trace of the kept hypotheses' covariance",
+        "selection {}{}; errors against the ground truth and rotation spread (largest std of the kept hypotheses) \
+         folded by the object's symmetries; translation spread = √trace of their covariance",
         report.selection,
         if report.refined { " + refinement" } else { "" }
     );
@@ -440,7 +456,7 @@ fn print_table(report: &Report) {
             o.translation_m[2],
             o.rotation_error_deg,
             o.translation_error_cm,
-            o.rotation_spread_deg,
+            o.rotation_spread_max_deg,
             o.translation_spread_cm,
             o.modes,
             100.0 * o.samples_within_10deg_5cm

@@ -41,6 +41,16 @@ pub struct Estimated {
 /// selector: the graph is kept saturated, so this is the cost of one more
 /// object (its mean is the inverse of the throughput); the first estimate,
 /// which also waited for the graph to start, has none.
+/// An Estimate's hypotheses with their scores, best first (the kept ones
+/// are the first `kept_count`).
+pub fn scored_hypotheses(header: &EstimateHeader, payload: &[f32]) -> anyhow::Result<Vec<(Pose, f64)>> {
+    let view = header.view(payload).context("estimate payload")?;
+    view.hypotheses
+        .chunks_exact(WEIGHTED_POSE_LEN)
+        .map(|c| Ok((Pose::from_f32_row_major(c[..12].try_into().expect("12 values"))?, f64::from(c[12]))))
+        .collect()
+}
+
 pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<Estimated>> {
     let mut reader = RecordingReader::open(path).with_context(|| format!("{}", path.display()))?;
     let mut estimates = Vec::new();
@@ -49,12 +59,7 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
             continue;
         }
         let header: EstimateHeader = header_from_bytes(&message.header).context("estimate header")?;
-        let view = header.view(&message.payload).context("estimate payload")?;
-        let scored = view
-            .hypotheses
-            .chunks_exact(WEIGHTED_POSE_LEN)
-            .map(|c| Ok((Pose::from_f32_row_major(c[..12].try_into().expect("12 values"))?, f64::from(c[12]))))
-            .collect::<anyhow::Result<Vec<(Pose, f64)>>>()?;
+        let scored = scored_hypotheses(&header, &message.payload)?;
         let frame = header.header.frame_id;
         let image = usize::try_from(frame).ok().and_then(|i| images.get(i)).with_context(|| {
             format!("{}: an estimate of frame {frame}, but the dataset has {} images", path.display(), images.len())

@@ -5,7 +5,7 @@
 
 mod bop_csv;
 mod dataset;
-mod estimates;
+pub(crate) mod estimates;
 mod score;
 mod summary;
 
