@@ -321,7 +321,10 @@ def main():
                   "`evaluation/run selection`: `poseflow eval --selection METHOD [--refine]`, 50 samples, 5 steps. "
                   "`none` scores every sample (one random sample's accuracy); `model-free` takes the Karcher mean of "
                   "the largest DBSCAN cluster; `chamfer` and `sdf` score each hypothesis against the observed points "
-                  "with the object model; `+ refine` refines the kept hypotheses on SE(3) against the points.", "",
+                  "with the object model; `+ refine` refines the best-scored hypotheses on SE(3) against the points "
+                  "and selects the best of them. The "
+                  "hypotheses are scored as the sampler produced them (the selector's `distribution = \"samples\"`), "
+                  "so `none + refine` scores the same samples as `none`.", "",
                   HEADER]
         lines += [row(f"{m}{' + refine' if r else ''}", s) for m, r, s in sel]
         lines.append("")
