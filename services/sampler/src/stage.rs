@@ -13,7 +13,7 @@ use poseflow_runtime::{Emitter, Input, Joined, Transform};
 use poseflow_transport::{Node, RequestClient};
 
 use crate::flow::write_poses;
-use crate::{FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
+use crate::{FieldError, FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
 
 /// The inference stage over iceoryx2 request-response.
 #[derive(Debug)]
@@ -31,29 +31,22 @@ impl RemoteField {
 }
 
 impl VelocityField for RemoteField {
-    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
+    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), FieldError> {
         let reply = self
             .client
             .call(*request, poses.len(), |buffer| buffer.copy_from_slice(poses), self.timeout)
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| FieldError::Call(Box::new(e)))?;
         let response = reply.header();
         if response.status != velocity_status::OK {
-            let meaning = match response.status {
-                velocity_status::UNKNOWN_CONDITION => "unknown condition (the inference stage restarted or evicted it)",
-                velocity_status::INVALID_REQUEST => "invalid request",
-                velocity_status::INFERENCE_FAILED => "the network failed",
-                _ => "unknown status",
-            };
-            return Err(format!("inference answered status {}: {meaning}", response.status));
+            return Err(FieldError::status(response.status));
         }
         if response.request_id != request.request_id || reply.payload().len() != out.len() {
-            return Err(format!(
-                "answer to request {} with {} values, expected request {} with {}",
-                response.request_id,
-                reply.payload().len(),
-                request.request_id,
-                out.len()
-            ));
+            return Err(FieldError::Mismatch {
+                answered: response.request_id,
+                values: reply.payload().len(),
+                expected: request.request_id,
+                expected_values: out.len(),
+            });
         }
         out.copy_from_slice(reply.payload());
         Ok(())
