@@ -294,7 +294,7 @@ params = {nbv_params}
 
     let inference = RefCell::new(InferenceStage::with_model(PoseFlowModel::load(&model, 1).unwrap(), 8));
     let field = |request: &poseflow_contracts::VelocityRequest, poses: &[f32], out: &mut [f32]| {
-        inference.borrow_mut().velocities(request, poses, out).map_err(poseflow_sampler::FieldError::status)
+        inference.borrow_mut().velocities(request, poses, out).map_err(|status| format!("status {status}"))
     };
     let mut sampler = SamplerStage::new(SamplerParams::from_json(&sampler_params).unwrap(), field);
     let mut selector = SelectorStage::new(SelectorParams::from_json(&selector_params).unwrap()).unwrap();

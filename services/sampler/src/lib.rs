@@ -13,6 +13,6 @@ mod flow;
 mod params;
 pub mod stage;
 
-pub use error::{FieldError, SamplerError};
+pub use error::SamplerError;
 pub use flow::{FlowSampler, Start, VelocityField};
 pub use params::{SamplerParams, TrackingParams};

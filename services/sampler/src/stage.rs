@@ -13,7 +13,7 @@ use poseflow_runtime::{Emitter, Input, Joined, Transform};
 use poseflow_transport::{Node, RequestClient};
 
 use crate::flow::write_poses;
-use crate::{FieldError, FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
+use crate::{FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
 
 /// The inference stage over iceoryx2 request-response.
 #[derive(Debug)]
@@ -31,22 +31,29 @@ impl RemoteField {
 }
 
 impl VelocityField for RemoteField {
-    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), FieldError> {
+    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
         let reply = self
             .client
             .call(*request, poses.len(), |buffer| buffer.copy_from_slice(poses), self.timeout)
-            .map_err(|e| FieldError::Call(Box::new(e)))?;
+            .map_err(|e| e.to_string())?;
         let response = reply.header();
         if response.status != velocity_status::OK {
-            return Err(FieldError::status(response.status));
+            let meaning = match response.status {
+                velocity_status::UNKNOWN_CONDITION => "unknown condition (the inference stage restarted or evicted it)",
+                velocity_status::INVALID_REQUEST => "invalid request",
+                velocity_status::INFERENCE_FAILED => "the network failed",
+                _ => "unknown status",
+            };
+            return Err(format!("inference answered status {}: {meaning}", response.status));
         }
         if response.request_id != request.request_id || reply.payload().len() != out.len() {
-            return Err(FieldError::Mismatch {
-                answered: response.request_id,
-                values: reply.payload().len(),
-                expected: request.request_id,
-                expected_values: out.len(),
-            });
+            return Err(format!(
+                "answer to request {} with {} values, expected request {} with {}",
+                response.request_id,
+                reply.payload().len(),
+                request.request_id,
+                out.len()
+            ));
         }
         out.copy_from_slice(reply.payload());
         Ok(())

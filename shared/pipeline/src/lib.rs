@@ -17,7 +17,7 @@ use poseflow_inference::InferenceError;
 use poseflow_inference::stage::{InferenceParams, InferenceStage};
 use poseflow_ingest::{IngestError, IngestParams, ObjectMask, RgbdFrame, prepare};
 use poseflow_sampler::stage::SamplerStage;
-use poseflow_sampler::{FieldError, SamplerError, SamplerParams, VelocityField};
+use poseflow_sampler::{SamplerError, SamplerParams, VelocityField};
 use poseflow_selector::stage::{SelectorStage, estimate_header, estimate_payload_len, write_estimate_payload};
 use poseflow_selector::{SelectorError, SelectorParams};
 
@@ -52,8 +52,8 @@ impl SharedField {
 }
 
 impl VelocityField for SharedField {
-    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), FieldError> {
-        self.stage().velocities(request, poses, out).map_err(FieldError::status)
+    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
+        self.stage().velocities(request, poses, out).map_err(|status| format!("velocity request status {status}"))
     }
 }
 
