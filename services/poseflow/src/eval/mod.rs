@@ -271,14 +271,13 @@ fn score_images(
 ) -> anyhow::Result<(Vec<InstanceOutcome>, usize)> {
     let (mut outcomes, mut unmatched) = (Vec::new(), 0);
     for (image, image_estimates) in jobs {
-        let image_estimates = image_estimates.clone();
         let depth = if image.instances.iter().any(|i| i.scored) {
             image.depth.as_ref().map(|file| file.read()).transpose()?
         } else {
             None
         };
         let mut matched: Vec<Option<&Estimated>> = vec![None; image.instances.len()];
-        for estimate in image_estimates {
+        for &estimate in image_estimates {
             let nearest = image
                 .instances
                 .iter()
