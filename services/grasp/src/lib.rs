@@ -29,3 +29,17 @@ pub use marginal::{GraspField, MeanFieldError, MeanFieldParams, marginal_grasps}
 pub use params::GraspParams;
 pub use planner::{GraspObject, GraspObjects, GraspPlanner, OnnxGraspField, PlannedGrasp, isometry, judge};
 pub use sample::{ObjectGrasp, SampledGrasps, sample_grasps, surface_points};
+
+/// The stage of this crate: `grasp` (Estimate in, Grasps out).
+pub fn registrations() -> Vec<poseflow_runtime::Registration> {
+    vec![poseflow_runtime::Registration::transform("grasp", |wiring| {
+        let planner = GraspPlanner::load(GraspParams::from_json(&wiring.params)?)?;
+        tracing::info!(
+            model = %planner.params().model.display(),
+            objects = ?planner.objects().ids(),
+            hypotheses = planner.params().hypotheses,
+            "grasp stage ready"
+        );
+        Ok::<_, poseflow_runtime::BuildError>(stage::GraspStage::new(planner))
+    })]
+}

@@ -13,3 +13,21 @@ pub mod stage;
 pub use error::InferenceError;
 pub use grasp_model::{GRASP_CONTRACT, GraspFlowModel, GraspModelInfo};
 pub use model::{CONTRACT, Condition, ModelInfo, PoseFlowModel, Velocities};
+
+/// The stage of this crate: `inference` (Observation in, Condition handle
+/// out, velocity requests served).
+pub fn registrations() -> Vec<poseflow_runtime::Registration> {
+    vec![poseflow_runtime::Registration::server("inference", |wiring| {
+        let mut params = stage::InferenceParams::from_json(&wiring.params)?;
+        // A reader a full queue behind, with one handle in hand and one more
+        // held for publishing, must still find its conditions cached.
+        let in_flight = wiring.outputs.iter().map(|o| o.queue + 2).max().unwrap_or(0);
+        if params.cache < in_flight {
+            tracing::info!(cache = params.cache, in_flight, "cache raised to the conditions a reader can lag by");
+            params.cache = in_flight;
+        }
+        let stage = stage::InferenceStage::new(&params)?;
+        tracing::info!(model = %stage.model_dir().display(), threads = params.threads, "model loaded");
+        Ok::<_, poseflow_runtime::BuildError>(stage)
+    })]
+}

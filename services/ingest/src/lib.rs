@@ -33,3 +33,22 @@ pub use jitter::MaskJitter;
 pub use observe::{ObjectMask, Prepared, RgbdFrame, check_frame, prepare};
 pub use params::IngestParams;
 pub use points::{OutlierFilter, back_project, centre, remove_outliers, sample_fixed, thin};
+
+/// The stages of this crate, by the executable names graph files give them:
+/// `frame-source` (Frames from a BOP dataset or the renderer), `ingest`
+/// (Frame in, Observation out) and `truth-prior` (Observation in, the
+/// perturbed ground truth out as an Estimate).
+pub fn registrations() -> Vec<poseflow_runtime::Registration> {
+    use poseflow_runtime::Registration;
+    vec![
+        Registration::source("frame-source", |wiring| {
+            stage::frame_source(&wiring.params).map(stage::FrameSourceStage::new)
+        }),
+        Registration::transform("ingest", |wiring| {
+            IngestParams::from_json(&wiring.params).map(stage::IngestStage::new)
+        }),
+        Registration::transform("truth-prior", |wiring| {
+            truth_prior::TruthPriorParams::from_json(&wiring.params).and_then(truth_prior::TruthPriorStage::new)
+        }),
+    ]
+}

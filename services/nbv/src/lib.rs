@@ -25,3 +25,22 @@ pub use error::NbvError;
 pub use occluders::Occluders;
 pub use params::{NbvParams, ViewSphere};
 pub use planner::{NbvPlanner, NextViewPlan, PlanCost, ScoredView, UNIFORM_ROTATION_TRACE, spread_evenly};
+
+/// The stage of this crate: `nbv` (Estimate in, NextView out; the Frames as
+/// a side input let it judge what hides the object from each candidate).
+pub fn registrations() -> Vec<poseflow_runtime::Registration> {
+    vec![poseflow_runtime::Registration::transform_or_joined("nbv", |wiring| {
+        let planner = NbvPlanner::load(NbvParams::from_json(&wiring.params)?)?;
+        let params = planner.params();
+        tracing::info!(
+            model = %params.inference.model.display(),
+            objects = ?planner.object_ids(),
+            candidates = params.sphere.candidates,
+            hypotheses = params.hypotheses,
+            workers = params.workers,
+            occluders = !wiring.side_inputs.is_empty(),
+            "next-best-view stage ready"
+        );
+        Ok::<_, poseflow_runtime::BuildError>(stage::NbvStage::new(planner))
+    })]
+}

@@ -28,25 +28,25 @@ pub struct Cli {
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Run the end-to-end demo on the embedded default model and data.
-    Demo(crate::demo::DemoArgs),
+    Demo(poseflow_eval::demo::DemoArgs),
     /// Launch a process graph from a graph file (deploy/*.toml).
     Run(crate::run::RunArgs),
     /// Render a BOP-format dataset of random RGB-D tabletop scenes from object models.
-    Render(crate::render::RenderArgs),
+    Render(poseflow_datasets::render::RenderArgs),
     /// Add an object from a PLY or OBJ mesh to a BOP models directory (model file + models_info.json entry).
-    ImportModel(crate::import_model::ImportModelArgs),
+    ImportModel(poseflow_datasets::import_model::ImportModelArgs),
     /// Sample antipodal, collision-free grasps on object models (the grasp flow's training data).
-    GraspData(crate::grasp_data::GraspDataArgs),
+    GraspData(poseflow_datasets::grasp_data::GraspDataArgs),
     /// Write one dataset image's RGB, depth and visible masks side by side as a PNG.
-    Preview(crate::preview::PreviewArgs),
+    Preview(poseflow_datasets::preview::PreviewArgs),
     /// Write a BOP dataset's observations and ground truth as a training shard.
-    Observe(crate::observe::ObserveArgs),
+    Observe(poseflow_datasets::observe::ObserveArgs),
     /// Evaluate on a BOP-format dataset: accuracy, ADD(-S), calibration, runtime.
-    Eval(crate::eval::EvalArgs),
+    Eval(poseflow_eval::EvalArgs),
     /// Benchmark transport latency and end-to-end throughput.
-    Bench(crate::bench::BenchArgs),
+    Bench(poseflow_bench::BenchArgs),
     /// Closed-loop simulations on rendered scenes (grasping under pose uncertainty, next-best view).
-    Sim(crate::sim::SimArgs),
+    Sim(poseflow_sim::SimArgs),
 }
 
 fn report(result: anyhow::Result<ExitCode>) -> ExitCode {
@@ -60,14 +60,14 @@ pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
     let done = |result: anyhow::Result<()>| report(result.map(|()| ExitCode::SUCCESS));
     match command {
         Command::Run(args) => report(crate::run::run(args, log_format)),
-        Command::Bench(args) => report(crate::bench::run(args)),
-        Command::Demo(args) => done(crate::demo::run(&args)),
-        Command::Render(args) => done(crate::render::run(&args)),
-        Command::ImportModel(args) => done(crate::import_model::run(&args)),
-        Command::Preview(args) => done(crate::preview::run(&args)),
-        Command::GraspData(args) => done(crate::grasp_data::run(&args)),
-        Command::Observe(args) => done(crate::observe::run(&args)),
-        Command::Eval(args) => done(crate::eval::run(&args)),
-        Command::Sim(args) => done(crate::sim::run(&args)),
+        Command::Bench(args) => report(poseflow_bench::run(args)),
+        Command::Demo(args) => done(poseflow_eval::demo::run(&args)),
+        Command::Render(args) => done(poseflow_datasets::render::run(&args)),
+        Command::ImportModel(args) => done(poseflow_datasets::import_model::run(&args)),
+        Command::Preview(args) => done(poseflow_datasets::preview::run(&args)),
+        Command::GraspData(args) => done(poseflow_datasets::grasp_data::run(&args)),
+        Command::Observe(args) => done(poseflow_datasets::observe::run(&args)),
+        Command::Eval(args) => done(poseflow_eval::run(&args)),
+        Command::Sim(args) => done(poseflow_sim::run(&args)),
     }
 }

@@ -3,18 +3,13 @@
 
 use std::io::IsTerminal;
 
-use clap::ValueEnum;
+pub use poseflow_launch::LogFormat;
 use tracing_subscriber::EnvFilter;
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum LogFormat {
-    /// Human-readable lines.
-    Pretty,
-    /// One JSON object per line, for log collectors.
-    Json,
-}
-
 pub fn init(format: LogFormat) -> anyhow::Result<()> {
+    // iceoryx2's own notes (which config file it read) are for stage logs,
+    // not for the person at the command line; IOX2_LOG_LEVEL still wins.
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Warn);
     let filter = EnvFilter::try_from_default_env().or_else(|_| EnvFilter::try_new("info"))?;
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)

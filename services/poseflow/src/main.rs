@@ -1,19 +1,10 @@
-//! `poseflow`: the command line of the PoseFlow runtime.
+//! `poseflow`: the command line of the PoseFlow runtime. It parses the
+//! arguments and calls the libraries: the launcher (`run`), the demo and
+//! evaluation, the data commands, the benchmarks and the simulations.
 
-mod bench;
 mod cli;
-mod demo;
-mod eval;
-mod grasp_data;
-mod import_model;
 mod logging;
-mod observe;
-mod preview;
-mod progress;
-mod render;
 mod run;
-mod sim;
-mod timing;
 
 use std::process::ExitCode;
 

@@ -136,3 +136,19 @@ impl<H: MessageHeader> Source for ReplaySource<H> {
         Ok(SourceStep::Continue)
     }
 }
+
+/// The stage of this crate: `replay-source`, which replays a recording's
+/// messages of the output edge's message type.
+pub fn registrations() -> Vec<poseflow_runtime::Registration> {
+    use poseflow_contracts::{MessageHeader, MessageVisitor, visit_message};
+    use poseflow_runtime::Registration;
+
+    struct Typed;
+    impl MessageVisitor for Typed {
+        type Output = Registration;
+        fn visit<H: MessageHeader + Send + 'static>(self) -> Registration {
+            Registration::source("replay-source", ReplaySource::<H>::from_wiring)
+        }
+    }
+    vec![Registration::source_of_any_message("replay-source", |message| visit_message(message, Typed))]
+}

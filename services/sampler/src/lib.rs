@@ -16,3 +16,11 @@ pub mod stage;
 pub use error::SamplerError;
 pub use flow::{FlowSampler, Start, VelocityField};
 pub use params::{SamplerParams, TrackingParams};
+
+/// The stage of this crate: `sampler` (Condition handles in, Hypotheses
+/// out; velocities asked of the inference stage over the request-response
+/// edge in `calls`; with the selector's Estimates as a side input it
+/// tracks).
+pub fn registrations() -> Vec<poseflow_runtime::Registration> {
+    vec![poseflow_runtime::Registration::transform_or_joined("sampler", stage::from_wiring)]
+}

@@ -163,3 +163,24 @@ impl<F: VelocityField> Joined for SamplerStage<F> {
         Ok(())
     }
 }
+
+/// Builds the sampler stage from its wiring: parameters, and a client of
+/// the one request-response edge in `calls`.
+pub fn from_wiring(
+    wiring: &poseflow_graph::StageWiring,
+) -> Result<SamplerStage<RemoteField>, poseflow_runtime::BuildError> {
+    let params = SamplerParams::from_json(&wiring.params)?;
+    let [edge] = wiring.calls.as_slice() else {
+        return Err(format!(
+            "stage `{}`: expected exactly one request-response edge in `calls` (the inference stage's velocities), found {}",
+            wiring.stage,
+            wiring.calls.len()
+        )
+        .into());
+    };
+    let node = poseflow_transport::create_node(&format!("{}-velocity", wiring.stage))?;
+    let client = poseflow_transport::RequestClient::create(&node, &edge.service, edge.max_payload_len)?;
+    let timeout = std::time::Duration::from_millis(params.velocity_timeout_ms);
+    tracing::info!(samples = params.samples, steps = params.steps, tracking = params.tracking.enabled, "sampler ready");
+    Ok(SamplerStage::new(params, RemoteField::new(node, client, timeout)))
+}

@@ -27,3 +27,10 @@ pub use error::SelectorError;
 pub use object_models::{ObjectGeometry, ObjectLibrary};
 pub use params::{Distribution, Method, SelectorParams};
 pub use select::{Selection, select};
+
+/// The stage of this crate: `selector` (Hypotheses in, Estimate out; the
+/// model-based methods and refinement read the Observations as a side
+/// input).
+pub fn registrations() -> Vec<poseflow_runtime::Registration> {
+    vec![poseflow_runtime::Registration::transform_or_joined("selector", stage::from_wiring)]
+}

@@ -177,3 +177,21 @@ impl Joined for SelectorStage {
         self.keep_observation(input.header, input.payload)
     }
 }
+
+/// Builds the selector stage from its wiring; a method that scores the
+/// observed points needs the Observation edge among the side inputs.
+pub fn from_wiring(wiring: &poseflow_graph::StageWiring) -> Result<SelectorStage, poseflow_runtime::BuildError> {
+    let params = SelectorParams::from_json(&wiring.params)?;
+    if params.needs_models() && wiring.side_inputs.is_empty() {
+        return Err(format!(
+            "stage `{}`: method {:?}{} scores the observed points: list the Observation edge in `side_inputs`",
+            wiring.stage,
+            params.method,
+            if params.refine { " with refine" } else { "" }
+        )
+        .into());
+    }
+    let stage = SelectorStage::new(params)?;
+    tracing::info!(method = ?stage.params().method, refine = stage.params().refine, "selector ready");
+    Ok(stage)
+}

@@ -9,7 +9,16 @@ use std::path::PathBuf;
 
 use poseflow_contracts::{Header, HypothesesHeader, MessageHeader, POSE_LEN, Stage, flags};
 use poseflow_graph::StageWiring;
-use poseflow_runtime::{Emitter, Input, Sink, Source, SourceStep, Transform};
+use poseflow_runtime::{Emitter, Input, Registration, Sink, Source, SourceStep, Transform};
+
+/// The smoke stages, by the executable names graph files give them.
+pub fn registrations() -> Vec<Registration> {
+    vec![
+        Registration::source("smoke-source", CountingSource::from_wiring),
+        Registration::transform("smoke-relay", |_| Ok::<_, std::convert::Infallible>(NegatingRelay)),
+        Registration::sink("smoke-sink", CheckingSink::from_wiring),
+    ]
+}
 
 /// The value at index `i` of frame `f`: an integer below 2²⁴, exact in f32.
 pub fn value(frame: u64, index: usize) -> f32 {

@@ -23,6 +23,12 @@ pub enum RuntimeError {
 
     #[error("waitset: {0}")]
     WaitSet(String),
+
+    #[error("stage `{stage}`: a {kind} stage cannot run in-process yet; run the graph as processes")]
+    NotInProcess { stage: String, kind: &'static str },
+
+    #[error(transparent)]
+    Local(#[from] crate::local::LocalGraphError),
 }
 
 /// `err` and each of its sources, joined by ": " (a log line that keeps the

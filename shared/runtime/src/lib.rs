@@ -15,11 +15,15 @@ mod liveness;
 mod local;
 mod logging;
 mod process;
+pub mod progress;
 pub mod recording;
+mod registry;
 mod stage;
+pub mod timing;
 
 pub use error::{BuildError, RuntimeError, error_chain};
-pub use local::{LocalGraph, LocalOverflow, LocalReport};
+pub use local::{LocalGraph, LocalGraphError, LocalOverflow, LocalReport};
 pub use logging::init_logging;
 pub use process::{run_joined, run_server, run_sink, run_source, run_transform, run_transform_or_joined};
+pub use registry::{Registration, Registry, StageKind, run_registered};
 pub use stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};

@@ -17,6 +17,15 @@ use crate::stage::{EmitError, Emitter, Input, Sink, Source, SourceStep, Transfor
 /// How often a blocked stage looks at the stop flag.
 const STOP_POLL: Duration = Duration::from_millis(50);
 
+/// Why a stage cannot be added to a [`LocalGraph`].
+#[derive(Debug, thiserror::Error)]
+pub enum LocalGraphError {
+    #[error("edge `{edge}` is not declared")]
+    Undeclared { edge: String },
+    #[error("edge `{edge}` carries another message type than {expected} expected by this stage")]
+    MessageType { edge: String, expected: &'static str },
+}
+
 /// Overflow policy of a local edge (the graph file's `overflow`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LocalOverflow {
@@ -169,18 +178,20 @@ impl LocalGraph {
         self.specs.insert(name.to_string(), (queue.max(1), overflow));
     }
 
-    fn typed<H: MessageHeader + Send + 'static>(&mut self, name: &str) -> Result<&mut LocalEdge<H>, String> {
+    fn typed<H: MessageHeader + Send + 'static>(&mut self, name: &str) -> Result<&mut LocalEdge<H>, LocalGraphError> {
         if !self.edges.contains_key(name) {
             self.edges.insert(name.to_string(), Box::new(LocalEdge::<H> { readers: Vec::new() }));
         }
-        self.edges[name].is::<LocalEdge<H>>().then_some(()).ok_or_else(|| {
-            format!("edge `{name}` carries another message type than {} expected by this stage", H::NAME)
-        })?;
+        self.edges[name]
+            .is::<LocalEdge<H>>()
+            .then_some(())
+            .ok_or_else(|| LocalGraphError::MessageType { edge: name.to_string(), expected: H::NAME })?;
         Ok(self.edges.get_mut(name).and_then(|e| e.downcast_mut::<LocalEdge<H>>()).expect("checked above"))
     }
 
-    fn subscribe<H: MessageHeader + Send + 'static>(&mut self, name: &str) -> Result<Arc<Queue<H>>, String> {
-        let (capacity, overflow) = *self.specs.get(name).ok_or_else(|| format!("edge `{name}` is not declared"))?;
+    fn subscribe<H: MessageHeader + Send + 'static>(&mut self, name: &str) -> Result<Arc<Queue<H>>, LocalGraphError> {
+        let (capacity, overflow) =
+            *self.specs.get(name).ok_or_else(|| LocalGraphError::Undeclared { edge: name.to_string() })?;
         let queue = Arc::new(Queue {
             state: Mutex::new(QueueState { messages: VecDeque::new(), publishers: 0 }),
             changed: Condvar::new(),
@@ -192,7 +203,10 @@ impl LocalGraph {
     }
 
     /// The readers of an edge, as known when [`run`](Self::run) starts.
-    fn publish<H: MessageHeader + Send + 'static>(&mut self, name: &str) -> Result<PendingPublisher<H>, String> {
+    fn publish<H: MessageHeader + Send + 'static>(
+        &mut self,
+        name: &str,
+    ) -> Result<PendingPublisher<H>, LocalGraphError> {
         self.typed::<H>(name)?;
         Ok(PendingPublisher { edge: name.to_string(), _marker: std::marker::PhantomData })
     }
@@ -215,7 +229,7 @@ impl LocalGraph {
         mut source: S,
         output: &str,
         rate_hz: Option<f64>,
-    ) -> Result<(), String>
+    ) -> Result<(), LocalGraphError>
     where
         S::Out: Send + 'static,
     {
@@ -260,7 +274,7 @@ impl LocalGraph {
         mut stage: T,
         input: &str,
         output: &str,
-    ) -> Result<(), String>
+    ) -> Result<(), LocalGraphError>
     where
         T::In: Send + 'static,
         T::Out: Send + 'static,
@@ -290,7 +304,12 @@ impl LocalGraph {
         Ok(())
     }
 
-    pub fn add_sink<K: Sink + Send + 'static>(&mut self, name: &str, mut sink: K, input: &str) -> Result<(), String>
+    pub fn add_sink<K: Sink + Send + 'static>(
+        &mut self,
+        name: &str,
+        mut sink: K,
+        input: &str,
+    ) -> Result<(), LocalGraphError>
     where
         K::In: Send + 'static,
     {

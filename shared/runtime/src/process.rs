@@ -231,13 +231,16 @@ fn finish_output<H: MessageHeader>(output: &Publisher<H>, meanwhile: impl FnMut(
 fn exit(result: Result<(), RuntimeError>) -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
-        Err(err) => {
-            init_logging();
-            let err = error_chain(&err);
-            tracing::error!(%err, "stage failed");
-            ExitCode::FAILURE
-        }
+        Err(err) => fail(err),
     }
+}
+
+/// Logs why the stage process failed, with the whole cause chain.
+pub(crate) fn fail(err: RuntimeError) -> ExitCode {
+    init_logging();
+    let err = error_chain(&err);
+    tracing::error!(%err, "stage failed");
+    ExitCode::FAILURE
 }
 
 fn build<T, E: Into<BuildError>>(

@@ -1,17 +1,12 @@
 //! `poseflow run`: launch a graph file as supervised processes.
 
-mod local;
-mod record;
-mod status;
-mod supervisor;
-
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
 use clap::Args;
 
-use crate::logging::LogFormat;
+use poseflow_launch::{LaunchOptions, LogFormat};
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
@@ -36,7 +31,7 @@ pub struct RunArgs {
 
     /// Run the stages as threads of this process, connected by in-memory
     /// queues instead of shared memory: the baseline of the latency
-    /// benchmarks. Only stages linked into poseflow can run this way.
+    /// benchmarks. The stages are built by the stage registry.
     #[arg(long)]
     pub in_process: bool,
 
@@ -66,25 +61,12 @@ pub struct RunArgs {
     pub json: bool,
 }
 
-/// Where bare executable names are looked up, in order: `stage_path`
-/// (`--stage-path`), POSEFLOW_STAGE_PATH, poseflow's own directory.
-pub(crate) fn search_path(stage_path: &[PathBuf]) -> Vec<PathBuf> {
-    let mut dirs = stage_path.to_vec();
-    if let Some(env) = std::env::var_os("POSEFLOW_STAGE_PATH") {
-        dirs.extend(std::env::split_paths(&env));
-    }
-    if let Some(own_dir) = std::env::current_exe().ok().and_then(|p| p.parent().map(PathBuf::from)) {
-        dirs.push(own_dir);
-    }
-    dirs
-}
-
 pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
-    let mut graph = poseflow_graph::load(&args.graph, &search_path(&args.stage_path))?;
+    let mut graph = poseflow_graph::load(&args.graph, &poseflow_launch::search_path(&args.stage_path))?;
     for assignment in &args.set {
         graph.set_param(assignment)?;
     }
-    let instance = args.instance.clone().unwrap_or_else(|| format!("{}-{}", graph.name, std::process::id()));
+    let instance = args.instance.clone().unwrap_or_else(|| poseflow_launch::default_instance(&graph));
     poseflow_transport::validate_name("graph instance", &instance).context("--instance")?;
     if args.check {
         println!(
@@ -96,21 +78,19 @@ pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
         );
         return Ok(ExitCode::SUCCESS);
     }
-    let recorded_edges = match &args.record {
-        Some(_) if args.in_process => {
-            anyhow::bail!("--record records shared-memory traffic; it cannot be combined with --in-process")
-        }
-        Some(_) => record::chosen_edges(&graph, &args.record_edges)?,
-        None => Vec::new(),
+    let record = match &args.record {
+        Some(path) => Some((path.clone(), poseflow_launch::chosen_edges(&graph, &args.record_edges)?)),
+        None => None,
     };
-    let options = supervisor::Options {
-        record: args.record.clone().map(|path| (path, recorded_edges)),
+    let options = LaunchOptions {
+        record,
         instance,
         status_every: (args.status_ms > 0).then(|| std::time::Duration::from_millis(args.status_ms)),
         log_format,
+        stage_log: None,
+        in_process: args.in_process,
     };
-    let report =
-        if args.in_process { local::run(&graph, &options.instance)? } else { supervisor::supervise(&graph, &options)? };
+    let report = poseflow_launch::launch(&graph, &options, &poseflow_stages::registry())?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report.to_json())?);
     } else {

@@ -1,3 +1,3 @@
 fn main() -> std::process::ExitCode {
-    poseflow_runtime::run_transform(|_| Ok::<_, std::convert::Infallible>(poseflow_smoke::NegatingRelay))
+    poseflow_runtime::run_registered(poseflow_smoke::registrations(), "smoke-relay")
 }

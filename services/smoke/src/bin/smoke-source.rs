@@ -1,3 +1,3 @@
 fn main() -> std::process::ExitCode {
-    poseflow_runtime::run_source(poseflow_smoke::CountingSource::from_wiring)
+    poseflow_runtime::run_registered(poseflow_smoke::registrations(), "smoke-source")
 }

@@ -8,7 +8,7 @@ use clap::Args;
 use poseflow_inference::PoseFlowModel;
 use serde::Serialize;
 
-use crate::timing::Timing;
+use poseflow_runtime::timing::Timing;
 
 #[derive(Debug, Args)]
 pub struct ModelArgs {

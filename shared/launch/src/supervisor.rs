@@ -5,29 +5,19 @@ use std::collections::BTreeMap;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use poseflow_contracts::Heartbeat;
 use poseflow_graph::{Graph, RestartPolicy, Stage, StageWiring, WIRING_ENV};
 use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Overflow, create_node, remove_dead_nodes};
 
-use super::status::{Outcome, Report, StageReport, edge_flows};
-use crate::logging::LogFormat;
+use crate::status::{Outcome, Report, StageReport, edge_flows};
+use crate::{LaunchError, LaunchOptions, LogFormat};
 
 /// How often children are checked for exit and heartbeats are read. This is
 /// the supervisor's own loop, not the data path.
 const TICK: Duration = Duration::from_millis(20);
 /// How long stages get to exit after SIGTERM before SIGKILL.
 const STOP_GRACE: Duration = Duration::from_secs(5);
-
-#[derive(Debug)]
-pub struct Options {
-    pub instance: String,
-    /// Recording file and the edges to record.
-    pub record: Option<(std::path::PathBuf, Vec<String>)>,
-    pub status_every: Option<Duration>,
-    pub log_format: LogFormat,
-}
 
 /// One supervised stage.
 struct Supervised<'g> {
@@ -44,7 +34,7 @@ struct Supervised<'g> {
 }
 
 impl Supervised<'_> {
-    fn spawn(&mut self, log_format: LogFormat) -> anyhow::Result<()> {
+    fn spawn(&mut self, log_format: LogFormat, stage_log: Option<&std::fs::File>) -> Result<(), LaunchError> {
         // Each process learns how many ran before it (see StageWiring::incarnation).
         self.wiring.incarnation = self.report.restarts;
         let mut command = Command::new(&self.stage.exe);
@@ -58,10 +48,24 @@ impl Supervised<'_> {
                     LogFormat::Json => "json",
                 },
             )
-            .stdin(Stdio::null())
+            .stdin(Stdio::null());
+        match stage_log {
+            Some(file) => {
+                let copy = |file: &std::fs::File| {
+                    file.try_clone().map_err(|source| LaunchError::Spawn {
+                        stage: self.stage.name.clone(),
+                        exe: self.stage.exe.clone(),
+                        source,
+                    })
+                };
+                command.stdout(copy(file)?).stderr(copy(file)?);
+            }
             // Stage output joins the launcher's logs; its stdout is reserved
             // for `--json`.
-            .stdout(std::io::stderr());
+            None => {
+                command.stdout(std::io::stderr());
+            }
+        }
         // SAFETY: prctl is async-signal-safe; it only asks the kernel to send
         // SIGTERM to the child if this supervisor dies, so no stage outlives it.
         unsafe {
@@ -71,9 +75,11 @@ impl Supervised<'_> {
                 Ok(())
             });
         }
-        let child = command
-            .spawn()
-            .with_context(|| format!("stage `{}`: cannot start {}", self.stage.name, self.stage.exe.display()))?;
+        let child = command.spawn().map_err(|source| LaunchError::Spawn {
+            stage: self.stage.name.clone(),
+            exe: self.stage.exe.clone(),
+            source,
+        })?;
         tracing::info!(stage = %self.stage.name, pid = child.id(), "started");
         self.report.pid = child.id();
         self.child = Some(child);
@@ -158,7 +164,7 @@ impl Supervised<'_> {
 
 /// Runs the graph until every stage has finished, a stage fails beyond its
 /// restart policy, or SIGINT/SIGTERM arrives.
-pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
+pub fn supervise(graph: &Graph, options: &LaunchOptions) -> Result<Report, LaunchError> {
     let removed = remove_dead_nodes()?;
     if removed > 0 {
         tracing::info!(removed, "cleaned up resources of dead processes from earlier runs");
@@ -168,7 +174,7 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
     let recorded: &[String] = options.record.as_ref().map_or(&[], |(_, edges)| edges);
     // Before any stage starts, so the first messages are recorded too.
     let recorder = match &options.record {
-        Some((path, edges)) => Some(super::record::Recorder::start(graph, &options.instance, edges, path.clone())?),
+        Some((path, edges)) => Some(crate::record::Recorder::start(graph, &options.instance, edges, path.clone())?),
         None => None,
     };
     for stage in graph.stages.values() {
@@ -197,22 +203,32 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
             report: StageReport::new(&stage.name),
         });
     }
+    let stage_log = match &options.stage_log {
+        Some(path) => Some(
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(path)
+                .map_err(|source| LaunchError::StageLog { path: path.clone(), source })?,
+        ),
+        None => None,
+    };
     let started = Instant::now();
     for s in &mut stages {
-        s.spawn(options.log_format)?;
+        s.spawn(options.log_format, stage_log.as_ref())?;
     }
     tracing::info!(graph = %graph.name, instance = %options.instance, stages = stages.len(), "graph running");
 
-    let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
-    let tick = waitset.attach_interval(TICK).map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+    let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| LaunchError::WaitSet(format!("{e:?}")))?;
+    let tick = waitset.attach_interval(TICK).map_err(|e| LaunchError::WaitSet(format!("{e:?}")))?;
     let mut last_status = Instant::now();
-    let mut failure: Option<anyhow::Error> = None;
+    let mut failure: Option<LaunchError> = None;
     waitset
         .wait_and_process(|id| {
             if !id.has_event_from(&tick) {
                 return CallbackProgression::Continue;
             }
-            if let Err(err) = step(&mut stages, graph, options) {
+            if let Err(err) = step(&mut stages, graph, options, stage_log.as_ref()) {
                 failure = Some(err);
                 return CallbackProgression::Stop;
             }
@@ -220,14 +236,14 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
                 && last_status.elapsed() >= every
             {
                 let reports = stages.iter().map(|s| &s.report);
-                eprintln!("{}", super::status::status_lines(&options.instance, started.elapsed(), reports));
+                eprintln!("{}", crate::status::status_lines(&options.instance, started.elapsed(), reports));
                 last_status = Instant::now();
             }
             let all_finished = stages.iter().all(|s| s.report.outcome == Outcome::Finished);
             let any_failed = stages.iter().any(|s| matches!(s.report.outcome, Outcome::Failed(_)));
             if all_finished || any_failed { CallbackProgression::Stop } else { CallbackProgression::Continue }
         })
-        .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+        .map_err(|e| LaunchError::WaitSet(format!("{e:?}")))?;
     stop_all(&mut stages);
     let recording = recorder.map(|r| r.finish()).transpose()?;
     if let Some(err) = failure {
@@ -247,12 +263,19 @@ pub fn supervise(graph: &Graph, options: &Options) -> anyhow::Result<Report> {
 }
 
 /// One supervisor tick: read heartbeats, reap exits, restart, detect hangs.
-fn step(stages: &mut [Supervised<'_>], graph: &Graph, options: &Options) -> anyhow::Result<()> {
+fn step(
+    stages: &mut [Supervised<'_>],
+    graph: &Graph,
+    options: &LaunchOptions,
+    stage_log: Option<&std::fs::File>,
+) -> Result<(), LaunchError> {
     let now = Instant::now();
     for s in stages.iter_mut() {
         s.read_heartbeats();
         if let Some(child) = &mut s.child {
-            if let Some(status) = child.try_wait().context("waiting for a stage")? {
+            let exited =
+                child.try_wait().map_err(|source| LaunchError::Wait { stage: s.stage.name.clone(), source })?;
+            if let Some(status) = exited {
                 s.on_exit(status);
             } else if let Some(reason) = s.hung(now, graph.heartbeat_timeout) {
                 tracing::error!(stage = %s.stage.name, reason, "stage hung; killing it");
@@ -265,7 +288,7 @@ fn step(stages: &mut [Supervised<'_>], graph: &Graph, options: &Options) -> anyh
             // The dead process's ports still occupy its services until removed.
             remove_dead_nodes()?;
             s.report.restarts += 1;
-            s.spawn(options.log_format)?;
+            s.spawn(options.log_format, stage_log)?;
         }
     }
     Ok(())

@@ -9,7 +9,7 @@ use poseflow_ingest::shard::{ShardInfo, record_bytes, write_shard};
 use poseflow_ingest::sources::{BopFrames, Masks};
 use poseflow_ingest::{IngestParams, MaskJitter};
 
-use crate::progress::Progress;
+use poseflow_runtime::progress::Progress;
 
 #[derive(Debug, Args)]
 #[command(

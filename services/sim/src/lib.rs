@@ -1,5 +1,5 @@
 //! `poseflow sim`: closed-loop simulations on rendered scenes, with the
-//! real pose stages run in-process ([`crate::pipeline`]).
+//! real pose stages run in-process.
 
 mod clutter;
 mod grasp;

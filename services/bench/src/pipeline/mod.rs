@@ -32,8 +32,8 @@ use serde::Serialize;
 use serde_json::json;
 
 use super::graph_run::{GraphRun, GraphRunOptions, Scratch};
-use crate::timing::Timing;
 use graph::{GraphRunFigures, StageLatency};
+use poseflow_runtime::timing::Timing;
 
 #[derive(Debug, Args)]
 pub struct PipelineArgs {
@@ -223,7 +223,7 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
         Mode::Estimation => &args.estimation_graph,
         Mode::Tracking => &args.tracking_graph,
     };
-    let search = crate::run::search_path(&args.run.stage_path);
+    let search = poseflow_launch::search_path(&args.run.stage_path);
     let mut graph = poseflow_graph::load(graph_file, &search)?;
     let source = graph
         .stages

@@ -11,7 +11,7 @@ use poseflow_contracts::{EstimateHeader, Stage};
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
 use super::FrameLatencies;
-use crate::bench::graph_run::{GraphRun, run_summary};
+use crate::graph_run::GraphRun;
 
 /// Process time per message of one stage, from its last heartbeat.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -37,8 +37,7 @@ pub(super) struct GraphRunFigures {
 
 /// Runs the graph to its end and reads what it recorded.
 pub(super) fn measure(run: &GraphRun<'_>, log: &Path, warmup: u64) -> anyhow::Result<GraphRunFigures> {
-    let child = run.start(log)?;
-    let summary = run_summary(child, log)?;
+    let summary = run.launch(log)?;
     let stages = summary["stages"].as_object().context("the run's summary has no `stages`")?;
     for (name, stage) in stages {
         if stage["outcome"] != "finished" {

@@ -13,7 +13,7 @@ use serde::Serialize;
 
 use super::pictures::error_plot;
 use super::{DemoArgs, ground_truth, print_report, read_recording, symmetries};
-use crate::timing::Timing;
+use poseflow_runtime::timing::Timing;
 
 /// Accuracy thresholds of the report: (degrees, metres).
 const TIGHT: (f64, f64) = (5.0, 0.05);

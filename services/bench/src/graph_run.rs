@@ -1,6 +1,7 @@
-//! A graph run by a benchmark: `poseflow run` as a child process with one
-//! edge recorded, its JSON summary read at the end, its log kept in a
-//! scratch directory.
+//! A graph run by a benchmark, with one edge recorded and its log kept in a
+//! scratch directory: launched from this process, or (for the soak, which
+//! kills and measures processes) `poseflow run` as a child process whose
+//! JSON summary is read at the end.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -43,6 +44,23 @@ pub(super) struct GraphRun<'a> {
 }
 
 impl GraphRun<'_> {
+    /// Launches the graph from this process and waits for its end; returns
+    /// the launch report as `poseflow run --json` prints it.
+    pub fn launch(&self, log: &Path) -> anyhow::Result<serde_json::Value> {
+        let mut graph = poseflow_graph::load(self.graph, &poseflow_launch::search_path(self.stage_path))?;
+        for assignment in self.set {
+            graph.set_param(assignment)?;
+        }
+        let options = poseflow_launch::LaunchOptions {
+            instance: self.instance.clone(),
+            record: Some((self.record.0.to_path_buf(), vec![self.record.1.to_string()])),
+            ..Default::default()
+        };
+        let report = poseflow_launch::launch_quietly(&graph, &options, &poseflow_stages::registry(), log, || {})
+            .with_context(|| format!("{}: its log: {}", self.graph.display(), log.display()))?;
+        Ok(report.to_json())
+    }
+
     /// Starts `poseflow run --json` with stdout piped (the summary) and
     /// stderr into `log`.
     pub fn start(&self, log: &Path) -> anyhow::Result<Child> {

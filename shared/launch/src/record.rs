@@ -1,4 +1,4 @@
-//! `poseflow run --record FILE`: a recorder thread in the launcher that
+//! Recording (`poseflow run --record FILE`): a recorder thread in the launcher that
 //! subscribes to chosen edges and writes their messages to a recording.
 
 use std::path::PathBuf;
@@ -7,7 +7,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use anyhow::{Context, bail};
 use iceoryx2::prelude::{
     CallbackProgression, FileDescriptorBased, SignalHandlingMode, SynchronousMultiplexing, WaitSetBuilder,
 };
@@ -16,14 +15,16 @@ use poseflow_graph::{EdgePattern, Graph};
 use poseflow_runtime::recording::{RecordedEdge, RecordedMessage, RecordingInfo, RecordingWriter, header_bytes};
 use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Node, create_node, edge_service_name};
 
+use crate::LaunchError;
+
 /// How often the recorder checks whether it should stop.
 const STOP_POLL: Duration = Duration::from_millis(50);
 
 /// One recorded edge, whatever its message type.
 trait RecordedInput: FileDescriptorBased + SynchronousMultiplexing + std::fmt::Debug {
     /// Writes every queued message; returns whether END_OF_STREAM was seen.
-    fn drain(&self, writer: &mut RecordingWriter) -> anyhow::Result<bool>;
-    fn acknowledge_end(&self) -> anyhow::Result<()>;
+    fn drain(&self, writer: &mut RecordingWriter) -> Result<bool, LaunchError>;
+    fn acknowledge_end(&self) -> Result<(), LaunchError>;
     fn recorded(&self) -> u64;
 }
 
@@ -43,7 +44,7 @@ impl<H: MessageHeader> FileDescriptorBased for TypedInput<H> {
 impl<H: MessageHeader> SynchronousMultiplexing for TypedInput<H> {}
 
 impl<H: MessageHeader> RecordedInput for TypedInput<H> {
-    fn drain(&self, writer: &mut RecordingWriter) -> anyhow::Result<bool> {
+    fn drain(&self, writer: &mut RecordingWriter) -> Result<bool, LaunchError> {
         let ended = self.subscriber.take_events()?;
         while let Some(message) = self.subscriber.receive()? {
             writer.write(&RecordedMessage {
@@ -57,7 +58,7 @@ impl<H: MessageHeader> RecordedInput for TypedInput<H> {
         Ok(ended)
     }
 
-    fn acknowledge_end(&self) -> anyhow::Result<()> {
+    fn acknowledge_end(&self) -> Result<(), LaunchError> {
         Ok(self.subscriber.acknowledge_end()?)
     }
 
@@ -74,7 +75,7 @@ struct Subscribe<'a> {
 }
 
 impl MessageVisitor for Subscribe<'_> {
-    type Output = anyhow::Result<Box<dyn RecordedInput>>;
+    type Output = Result<Box<dyn RecordedInput>, LaunchError>;
 
     fn visit<H: MessageHeader + Send + 'static>(self) -> Self::Output {
         let subscriber = EdgeSubscriber::<H>::create(self.node, &self.service, &self.options)?;
@@ -86,11 +87,11 @@ impl MessageVisitor for Subscribe<'_> {
 #[derive(Debug)]
 pub struct Recorder {
     stop: Arc<AtomicBool>,
-    handle: JoinHandle<anyhow::Result<Vec<(String, u64)>>>,
+    handle: JoinHandle<Result<Vec<(String, u64)>, LaunchError>>,
 }
 
 /// The edges `--record-edges` names, or every publish-subscribe edge.
-pub fn chosen_edges(graph: &Graph, requested: &[String]) -> anyhow::Result<Vec<String>> {
+pub fn chosen_edges(graph: &Graph, requested: &[String]) -> Result<Vec<String>, LaunchError> {
     if requested.is_empty() {
         return Ok(graph
             .edges
@@ -102,14 +103,14 @@ pub fn chosen_edges(graph: &Graph, requested: &[String]) -> anyhow::Result<Vec<S
     for edge in requested {
         match graph.edges.get(edge) {
             Some(e) if e.pattern == EdgePattern::PublishSubscribe => {}
-            Some(_) => {
-                bail!("--record-edges: `{edge}` is a request-response edge; only publish-subscribe edges are recorded")
+            Some(_) => return Err(LaunchError::RecordRequestResponse { edge: edge.clone() }),
+            None => {
+                return Err(LaunchError::RecordUnknownEdge {
+                    edge: edge.clone(),
+                    file: graph.file.clone(),
+                    edges: graph.edges.keys().cloned().collect(),
+                });
             }
-            None => bail!(
-                "--record-edges: `{edge}` is not an edge of {} (edges: {:?})",
-                graph.file.display(),
-                graph.edges.keys().collect::<Vec<_>>()
-            ),
         }
     }
     Ok(requested.to_vec())
@@ -118,7 +119,7 @@ pub fn chosen_edges(graph: &Graph, requested: &[String]) -> anyhow::Result<Vec<S
 impl Recorder {
     /// Subscribes to `edges` and starts writing `path`. Returns once the
     /// subscriptions exist, so the stages started next are all recorded.
-    pub fn start(graph: &Graph, instance: &str, edges: &[String], path: PathBuf) -> anyhow::Result<Self> {
+    pub fn start(graph: &Graph, instance: &str, edges: &[String], path: PathBuf) -> Result<Self, LaunchError> {
         let info = RecordingInfo {
             graph: graph.name.clone(),
             instance: instance.to_string(),
@@ -134,18 +135,19 @@ impl Recorder {
                 let options = edge.options();
                 Ok((name.clone(), edge_service_name(instance, name)?, options))
             })
-            .collect::<anyhow::Result<_>>()?;
+            .collect::<Result<_, LaunchError>>()?;
         let stop = Arc::new(AtomicBool::new(false));
         let (ready_tx, ready_rx) = std::sync::mpsc::channel();
         let handle = std::thread::spawn({
             let stop = stop.clone();
-            move || -> anyhow::Result<Vec<(String, u64)>> {
+            move || -> Result<Vec<(String, u64)>, LaunchError> {
                 let node = create_node("poseflow-recorder")?;
                 let mut inputs = Vec::new();
                 for (edge, service, options) in &specs {
                     let message = &info.edges.iter().find(|e| &e.edge == edge).expect("listed").message;
                     let subscribe = Subscribe { node: &node, edge, service: service.clone(), options: *options };
-                    inputs.push(visit_message(message, subscribe).context("unknown message type")??);
+                    let unknown = || LaunchError::UnknownMessage { edge: edge.clone(), message: message.clone() };
+                    inputs.push(visit_message(message, subscribe).ok_or_else(unknown)??);
                 }
                 let mut writer = RecordingWriter::create(&path, &info)?;
                 let _ = ready_tx.send(());
@@ -158,33 +160,37 @@ impl Recorder {
             // The thread ended before it was ready: report why.
             return Err(handle
                 .join()
-                .map_err(|_| anyhow::anyhow!("recorder panicked"))?
+                .map_err(|_| LaunchError::Recorder("panicked"))?
                 .err()
-                .unwrap_or_else(|| anyhow::anyhow!("recorder stopped")));
+                .unwrap_or(LaunchError::Recorder("stopped before it was ready")));
         }
         Ok(Self { stop, handle })
     }
 
     /// Stops recording (after what is queued) and returns the number of
     /// messages written per edge.
-    pub fn finish(self) -> anyhow::Result<Vec<(String, u64)>> {
+    pub fn finish(self) -> Result<Vec<(String, u64)>, LaunchError> {
         self.stop.store(true, Ordering::Relaxed);
-        self.handle.join().map_err(|_| anyhow::anyhow!("recorder panicked"))?
+        self.handle.join().map_err(|_| LaunchError::Recorder("panicked"))?
     }
 }
 
-fn record(inputs: &[Box<dyn RecordedInput>], writer: &mut RecordingWriter, stop: &AtomicBool) -> anyhow::Result<()> {
+fn record(
+    inputs: &[Box<dyn RecordedInput>],
+    writer: &mut RecordingWriter,
+    stop: &AtomicBool,
+) -> Result<(), LaunchError> {
     // SIGINT/SIGTERM belong to the supervisor's loop; this WaitSet must not
     // consume them.
     let waitset = WaitSetBuilder::new()
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<Ipc>()
-        .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+        .map_err(waitset_error)?;
     let guards = inputs
         .iter()
-        .map(|input| waitset.attach_notification(input.as_ref()).map_err(|e| anyhow::anyhow!("waitset: {e:?}")))
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    let tick = waitset.attach_interval(STOP_POLL).map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+        .map(|input| waitset.attach_notification(input.as_ref()).map_err(waitset_error))
+        .collect::<Result<Vec<_>, _>>()?;
+    let tick = waitset.attach_interval(STOP_POLL).map_err(waitset_error)?;
     let mut ended = vec![false; inputs.len()];
     let mut failure = None;
     waitset
@@ -209,7 +215,7 @@ fn record(inputs: &[Box<dyn RecordedInput>], writer: &mut RecordingWriter, stop:
             }
             if ended.iter().all(|e| *e) { CallbackProgression::Stop } else { CallbackProgression::Continue }
         })
-        .map_err(|e| anyhow::anyhow!("waitset: {e:?}"))?;
+        .map_err(waitset_error)?;
     if let Some(err) = failure {
         return Err(err);
     }
@@ -218,4 +224,8 @@ fn record(inputs: &[Box<dyn RecordedInput>], writer: &mut RecordingWriter, stop:
         input.drain(writer)?;
     }
     Ok(())
+}
+
+fn waitset_error(err: impl std::fmt::Debug) -> LaunchError {
+    LaunchError::WaitSet(format!("{err:?}"))
 }

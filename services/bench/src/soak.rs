@@ -93,7 +93,7 @@ struct EstimateCheck {
 
 pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     let graph = {
-        let mut graph = poseflow_graph::load(&args.graph, &crate::run::search_path(&args.run.stage_path))?;
+        let mut graph = poseflow_graph::load(&args.graph, &poseflow_launch::search_path(&args.run.stage_path))?;
         for assignment in &args.run.set {
             graph.set_param(assignment)?;
         }

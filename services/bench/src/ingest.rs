@@ -12,7 +12,7 @@ use poseflow_ingest::sources::{BopFrames, FrameSource, Masks};
 use poseflow_ingest::{IngestParams, prepare};
 use serde::Serialize;
 
-use crate::timing::Timing;
+use poseflow_runtime::timing::Timing;
 
 #[derive(Debug, Args)]
 pub struct IngestArgs {

@@ -1,3 +1,5 @@
+//! `poseflow eval` and `poseflow demo` as libraries.
+//!
 //! `poseflow eval`: runs the estimation graph over a BOP-format dataset and
 //! scores every targeted instance: n°m cm accuracy, ADD(-S), MSSD/MSPD
 //! recall, mode recall, calibration and runtime; writes the estimates in
@@ -5,6 +7,7 @@
 
 mod bop_csv;
 mod dataset;
+pub mod demo;
 pub(crate) mod estimates;
 mod score;
 mod summary;
@@ -31,7 +34,7 @@ use self::summary::{InstanceOutcome, Summary, instances_csv, summarise};
 use crate::demo::SelectionArg;
 use crate::demo::graph::{Overrides, graph_with_overrides};
 use crate::demo::{print_report, run_graph};
-use crate::progress::Progress;
+use poseflow_runtime::progress::Progress;
 
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root after `cargo build --release --workspace` (the stages are \

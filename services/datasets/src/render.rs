@@ -12,8 +12,8 @@ use poseflow_scene::scene::{Occlusion, ViewRange};
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
 
-use crate::progress::Progress;
-use crate::timing::Timing;
+use poseflow_runtime::progress::Progress;
+use poseflow_runtime::timing::Timing;
 
 /// Largest image side accepted: beyond it a typo, not a camera.
 const MAX_IMAGE_SIDE: u32 = 8192;

@@ -8,8 +8,6 @@ mod tracking;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::Command;
-use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
@@ -168,7 +166,7 @@ pub(crate) fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
         match message.edge.as_str() {
             "estimates" => {
                 let header: EstimateHeader = header_from_bytes(&message.header).context("estimate header")?;
-                let scored = crate::eval::estimates::scored_hypotheses(&header, &message.payload)?;
+                let scored = crate::estimates::scored_hypotheses(&header, &message.payload)?;
                 let kept = scored.into_iter().take(header.kept_count as usize).map(|(pose, _)| pose).collect();
                 estimates.push((header, kept));
             }
@@ -220,12 +218,9 @@ pub(crate) fn render_scene(
 /// --json`: per stage messages in and out, drops, errors) to `run.json`
 /// beside the recording, and `waiting` is called every few hundred
 /// milliseconds while the graph runs.
-pub(crate) fn run_graph(graph: &Path, recording: &Path, edges: &str, mut waiting: impl FnMut()) -> anyhow::Result<()> {
-    let exe = std::env::current_exe().context("cannot find the poseflow executable")?;
+pub(crate) fn run_graph(graph_file: &Path, recording: &Path, edges: &str, waiting: impl FnMut()) -> anyhow::Result<()> {
     let log_path = recording.with_file_name("graph.log");
-    let log = std::fs::File::create(&log_path).with_context(|| format!("{}", log_path.display()))?;
     let report_path = recording.with_file_name("run.json");
-    let report = std::fs::File::create(&report_path).with_context(|| format!("{}", report_path.display()))?;
     // A recording left by an earlier run in the same folder would show as
     // progress until the new run truncates it.
     match std::fs::remove_file(recording) {
@@ -234,30 +229,30 @@ pub(crate) fn run_graph(graph: &Path, recording: &Path, edges: &str, mut waiting
         }
         _ => {}
     }
-    let mut child = Command::new(&exe)
-        .args(["run", "--status-ms", "0", "--json", "--record"])
-        .arg(recording)
-        .args(["--record-edges", edges, "--graph"])
-        .arg(graph)
-        .stdout(report)
-        .stderr(log)
-        .spawn()
-        .with_context(|| format!("cannot start {}", exe.display()))?;
-    let status = loop {
-        if let Some(status) = child.try_wait().context("waiting for the graph")? {
-            break status;
-        }
-        waiting();
-        std::thread::sleep(Duration::from_millis(250));
+    let graph = poseflow_graph::load(graph_file, &poseflow_launch::search_path(&[]))?;
+    let edges: Vec<String> = edges.split(',').map(str::to_string).collect();
+    let options = poseflow_launch::LaunchOptions {
+        instance: poseflow_launch::default_instance(&graph),
+        record: Some((recording.to_path_buf(), poseflow_launch::chosen_edges(&graph, &edges)?)),
+        ..Default::default()
     };
-    if !status.success() {
+    let launched = poseflow_launch::launch_quietly(&graph, &options, &poseflow_stages::registry(), &log_path, waiting);
+    let failure = match &launched {
+        Ok(report) => {
+            let json = serde_json::to_string_pretty(&report.to_json())?;
+            std::fs::write(&report_path, json).with_context(|| format!("{}: cannot write", report_path.display()))?;
+            report.failed().then(|| "a stage failed".to_string())
+        }
+        Err(err) => Some(poseflow_runtime::error_chain(err)),
+    };
+    if let Some(failure) = failure {
         const TAIL_LINES: usize = 30;
         let log = std::fs::read_to_string(&log_path).unwrap_or_default();
         let lines: Vec<&str> = log.lines().collect();
         let tail = lines[lines.len().saturating_sub(TAIL_LINES)..].join("\n");
         bail!(
-            "the graph {} failed ({status}); the end of its log ({}):\n{tail}\n(build every stage first: cargo build --release --workspace)",
-            graph.display(),
+            "the graph {} failed ({failure}); the end of its log ({}):\n{tail}\n(build every stage first: cargo build --release --workspace)",
+            graph_file.display(),
             log_path.display(),
         );
     }

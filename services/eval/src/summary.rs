@@ -7,7 +7,7 @@ use std::time::Duration;
 use serde::Serialize;
 
 use super::score::InstanceScore;
-use crate::timing::Timing;
+use poseflow_runtime::timing::Timing;
 
 /// One ground-truth instance's outcome: its scores, or none when the graph
 /// gave no estimate for it (a miss: 0 on every accuracy).

@@ -1,0 +1,76 @@
+use std::path::PathBuf;
+
+use poseflow_graph::GraphError;
+use poseflow_runtime::RuntimeError;
+use poseflow_runtime::recording::RecordingError;
+use poseflow_transport::TransportError;
+
+/// Why a graph could not be launched or had to be stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum LaunchError {
+    #[error(transparent)]
+    Graph(#[from] GraphError),
+
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+
+    #[error("stage `{stage}`: cannot start {}", exe.display())]
+    Spawn {
+        stage: String,
+        exe: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    #[error("stage `{stage}`: cannot learn whether it exited")]
+    Wait {
+        stage: String,
+        #[source]
+        source: std::io::Error,
+    },
+
+    #[error("{}: cannot create the stage log", path.display())]
+    StageLog {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    #[error("waitset: {0}")]
+    WaitSet(String),
+
+    #[error(transparent)]
+    Recording(#[from] RecordingError),
+
+    #[error("--record-edges: `{edge}` is a request-response edge; only publish-subscribe edges are recorded")]
+    RecordRequestResponse { edge: String },
+
+    #[error("--record-edges: `{edge}` is not an edge of {} (edges: {edges:?})", file.display())]
+    RecordUnknownEdge { edge: String, file: PathBuf, edges: Vec<String> },
+
+    #[error("recording records shared-memory traffic; it cannot be combined with an in-process run")]
+    RecordInProcess,
+
+    #[error("edge `{edge}`: message type `{message}` is not a contract message")]
+    UnknownMessage { edge: String, message: String },
+
+    #[error("the launcher thread panicked")]
+    LauncherPanicked,
+
+    #[error("the recorder thread {0}")]
+    Recorder(&'static str),
+
+    #[error(
+        "{}: `stages.{stage}.exe`: {exe:?} cannot run in-process; the stages that can: {available}",
+        file.display()
+    )]
+    NotInProcess { file: PathBuf, stage: String, exe: String, available: String },
+
+    #[error("{}: stage `{stage}`", file.display())]
+    Stage {
+        file: PathBuf,
+        stage: String,
+        #[source]
+        source: RuntimeError,
+    },
+}
