@@ -1,7 +1,7 @@
 //! The pose stages as processes: the ingest stage on the bad-input corpus,
-//! the inference stage serving velocities, and the estimation graph (with
-//! grasp and next-best-view) against the in-process run, bit for bit. Whole
-//! graphs of real processes over real iceoryx2 shared memory, launched by
+//! the inference stage serving velocities, and every graph in `deploy/` as
+//! processes against the same graph in-process, bit for bit. Whole graphs
+//! of real processes over real iceoryx2 shared memory, launched by
 //! `poseflow run`.
 
 use std::path::{Path, PathBuf};
@@ -163,225 +163,160 @@ params = {{ report = "{report}" }}
     assert_nothing_leaked(&before);
 }
 
-/// frames → ingest → inference ⇄ sampler → selector (Observations as its
-/// side input) → grasp and next-best view, each its own process: the
-/// hypotheses, estimates, grasps and next views that cross shared memory
-/// are bit for bit those of the same stages run in-process on the recorded
-/// observations with the same seed.
-#[test]
-fn the_estimation_grasp_and_next_view_graph_matches_the_in_process_run_bit_for_bit() {
-    use std::cell::RefCell;
-
+/// A recorded message's header without what differs between any two runs:
+/// the timestamps, and the inference stage's per-run condition ids.
+fn without_stamps(message: &str, header: &[u8]) -> Vec<u8> {
     use poseflow_contracts::{
-        CANDIDATE_LEN, EstimateHeader, GRASP_LEN, GraspsHeader, HypothesesHeader, MessageHeader, NextViewHeader,
-        ObservationHeader,
+        ConditionHandle, MessageHeader, MessageVisitor, StageStamps, header_bytes, header_from_bytes,
     };
-    use poseflow_grasp::stage::{grasp_values, kept_hypotheses};
-    use poseflow_grasp::{GraspParams, GraspPlanner};
-    use poseflow_inference::PoseFlowModel;
-    use poseflow_inference::stage::InferenceStage;
-    use poseflow_nbv::stage::NbvStage;
-    use poseflow_nbv::{NbvParams, NbvPlanner};
-    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
-    use poseflow_sampler::SamplerParams;
-    use poseflow_sampler::stage::SamplerStage;
-    use poseflow_selector::SelectorParams;
-    use poseflow_selector::stage::{SelectorStage, estimate_header, estimate_payload_len, write_estimate_payload};
 
+    if message == ConditionHandle::NAME {
+        let mut handle: ConditionHandle = header_from_bytes(header).expect("a Condition header");
+        handle.header.stamps = StageStamps::default();
+        handle.condition_id = 0;
+        return header_bytes(&handle);
+    }
+    struct Zeroed<'a>(&'a [u8]);
+    impl MessageVisitor for Zeroed<'_> {
+        type Output = Vec<u8>;
+        fn visit<H: MessageHeader + Send + 'static>(self) -> Vec<u8> {
+            let mut header: H = header_from_bytes(self.0).expect("a header of the edge's type");
+            header.header_mut().stamps = StageStamps::default();
+            header_bytes(&header)
+        }
+    }
+    poseflow_contracts::visit_message(message, Zeroed(header)).expect("a contract message")
+}
+
+/// Per edge: the messages in order, as (header without stamps, payload bits).
+type EdgeMessages = std::collections::BTreeMap<String, Vec<(Vec<u8>, Vec<u32>)>>;
+
+fn recorded_messages(recording: &Path) -> EdgeMessages {
+    use poseflow_runtime::recording::RecordingReader;
+
+    let mut reader = RecordingReader::open(recording).unwrap();
+    let types: std::collections::BTreeMap<String, String> =
+        reader.info.edges.iter().map(|e| (e.edge.clone(), e.message.clone())).collect();
+    let mut edges = EdgeMessages::new();
+    while let Some(message) = reader.next_message().unwrap() {
+        let header = without_stamps(&types[&message.edge], &message.header);
+        let bits = message.payload.iter().map(|v| v.to_bits()).collect();
+        edges.entry(message.edge).or_default().push((header, bits));
+    }
+    edges
+}
+
+/// Every graph in `deploy/`, built through the stage registry once as
+/// processes over iceoryx2 and once as threads of one process: every edge
+/// carries the same messages, bit for bit (timestamps aside). Where the
+/// graph is not deterministic the comparison says what still must agree:
+/// on drop-oldest edges the messages both runs kept; in the tracking graph
+/// (whose prior is whichever estimate arrived first) the counts, and the
+/// messages upstream of the sampler.
+#[test]
+fn every_deploy_graph_gives_the_same_messages_as_processes_and_in_process() {
     let _serial = serial();
     let before = shared_memory_files();
-    let scratch = Scratch::new("estimation");
+    let scratch = Scratch::new("equivalence");
     let root = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
-    let model = root.join("models/test-tiny");
-    let models = root.join("objects/lmo");
-    let sampler_params = serde_json::json!({ "samples": 16, "steps": 3, "seed": 7 });
-    let selector_params = serde_json::json!({
-        "method": "sdf", "models": models, "refine": true, "score_points": 128, "sdf_resolution": 32,
-    });
-    let grasp_params = serde_json::json!({
-        "model": root.join("models/grasp-flow"), "models": models, "grasps": 6, "steps": 3, "hypotheses": 3, "seed": 5,
-    });
-    let nbv_params = serde_json::json!({
-        "models": models, "candidates": 3, "hypotheses": 2, "workers": 2,
-        "inference": { "model": model }, "sampler": { "samples": 4, "steps": 2 },
-    });
-    let graph = scratch.dir.join("estimation.toml");
-    std::fs::write(
-        &graph,
-        encoding_graph("estimation-e2e", &model)
-            + &format!(
-                r#"
-[edges.hypotheses]
-message = "Hypotheses"
-queue = 4
-overflow = "block"
-max_payload_len = 600
-
-[edges.estimates]
-message = "Estimate"
-queue = 4
-overflow = "block"
-max_payload_len = 2000
-
-[stages.sampler]
-exe = "sampler"
-inputs = ["conditions"]
-calls = ["velocities"]
-outputs = ["hypotheses"]
-params = {sampler_params}
-
-[edges.grasps]
-message = "Grasps"
-queue = 4
-overflow = "block"
-max_payload_len = 200
-
-[stages.selector]
-exe = "selector"
-inputs = ["hypotheses"]
-side_inputs = ["observations"]
-outputs = ["estimates"]
-params = {selector_params}
-
-[stages.grasp]
-exe = "grasp"
-inputs = ["estimates"]
-outputs = ["grasps"]
-params = {grasp_params}
-
-[edges.next_views]
-message = "NextView"
-queue = 4
-overflow = "block"
-max_payload_len = 100
-
-[stages.nbv]
-exe = "nbv"
-inputs = ["estimates"]
-side_inputs = ["frames"]
-outputs = ["next_views"]
-params = {nbv_params}
-"#,
-                sampler_params = toml_inline(&sampler_params),
-                selector_params = toml_inline(&selector_params),
-                grasp_params = toml_inline(&grasp_params),
-                nbv_params = toml_inline(&nbv_params),
-            ),
-    )
-    .unwrap();
-    let recording = scratch.dir.join("estimation.rec");
-    let edges = "frames,observations,hypotheses,estimates,grasps,next_views";
-    let (result, stderr) = run_recording(&graph, edges, &recording);
-    for stage in ["ingest", "inference", "sampler", "selector", "grasp", "nbv"] {
-        assert_eq!(result["stages"][stage]["outcome"], "finished", "{result}\n{stderr}");
-    }
-    for stage in ["inference", "sampler", "selector", "grasp", "nbv"] {
-        assert_eq!(result["stages"][stage]["errors"], 0, "{stage}: {result}\n{stderr}");
-        assert_eq!(result["stages"][stage]["dropped"], 0, "{stage}: {result}\n{stderr}");
-    }
-
-    let mut recorded: std::collections::BTreeMap<String, Vec<_>> = Default::default();
-    let mut reader = RecordingReader::open(&recording).unwrap();
-    while let Some(message) = reader.next_message().unwrap() {
-        recorded.entry(message.edge.clone()).or_default().push(message);
-    }
-    let [frames, observations, hypotheses, estimates, grasps, next_views] =
-        ["frames", "observations", "hypotheses", "estimates", "grasps", "next_views"]
-            .map(|edge| recorded.remove(edge).unwrap_or_default());
-    let counts = (observations.len(), hypotheses.len(), estimates.len(), grasps.len(), next_views.len());
-    assert_eq!(counts, (3, 3, 3, 3, 3), "{result}");
-    assert!(!frames.is_empty(), "{result}");
-
-    let inference = RefCell::new(InferenceStage::with_model(PoseFlowModel::load(&model, 1).unwrap(), 8));
-    let field = |request: &poseflow_contracts::VelocityRequest, poses: &[f32], out: &mut [f32]| {
-        inference.borrow_mut().velocities(request, poses, out).map_err(|status| format!("status {status}"))
-    };
-    let mut sampler = SamplerStage::new(SamplerParams::from_json(&sampler_params).unwrap(), field);
-    let mut selector = SelectorStage::new(SelectorParams::from_json(&selector_params).unwrap()).unwrap();
-    let mut planner = GraspPlanner::load(GraspParams::from_json(&grasp_params).unwrap()).unwrap();
-    // The nbv stage in-process, holding the recorded frames (its side
-    // input) for their objects' occluders.
-    let mut next_view_stage = NbvStage::new(NbvPlanner::load(NbvParams::from_json(&nbv_params).unwrap()).unwrap());
-    for frame in &frames {
-        let header: poseflow_contracts::FrameHeader = header_from_bytes(&frame.header).unwrap();
-        next_view_stage.keep_frame(&header, &frame.payload).unwrap();
-    }
-    let served = observations.iter().zip(&hypotheses).zip(&estimates).zip(&grasps).zip(&next_views);
-    for ((((observation, hypothesis), estimate), grasp), next_view) in served {
-        let obs: ObservationHeader = header_from_bytes(&observation.header).unwrap();
-        let handle = inference.borrow_mut().encode(&obs, &observation.payload).unwrap();
-        let (expected_header, poses) = sampler.hypotheses(&handle).unwrap();
-        let expected: Vec<f32> = poses.iter().flat_map(|p| p.to_f32_row_major()).collect();
-        let served: HypothesesHeader = header_from_bytes(&hypothesis.header).unwrap();
-        assert_eq!(served.header.frame_id, obs.header.frame_id);
-        assert_eq!(served.header.object_id, obs.header.object_id);
-        assert_eq!(
-            (served.sample_count, served.step_count),
-            (expected_header.sample_count, expected_header.step_count)
-        );
-        assert_eq!(
-            hypothesis.payload, expected,
-            "hypotheses of frame {} object {}",
-            obs.header.frame_id, obs.header.object_id
-        );
-
-        selector.keep_observation(&obs, &observation.payload).unwrap();
-        let selection = selector.select_for(&served, &hypothesis.payload).unwrap();
-        let mut expected = vec![0.0; estimate_payload_len(&selection)];
-        write_estimate_payload(&selection, &mut expected);
-        let served: EstimateHeader = header_from_bytes(&estimate.header).unwrap();
-        served.check_payload(&estimate.payload).unwrap();
-        let local = estimate_header(&selection, served.header);
-        assert_eq!(served, local, "estimate header of frame {}", obs.header.frame_id);
-        assert_eq!(estimate.payload, expected, "estimate of frame {}", obs.header.frame_id);
-        assert_eq!((served.kept_count, served.refined), (4, 1));
-
-        // The grasp process: the same grasps as the planner in-process,
-        // under the first three kept hypotheses.
-        let kept = kept_hypotheses(&served, &estimate.payload).unwrap();
-        let planned = planner.plan(served.header.frame_id, served.header.object_id, &kept).unwrap();
-        let gripper = planner.params().gripper;
-        let expected: Vec<f32> = planned.iter().flat_map(|g| grasp_values(g, &gripper)).collect();
-        let grasps_header: GraspsHeader = header_from_bytes(&grasp.header).unwrap();
-        grasps_header.check_payload(&grasp.payload).unwrap();
-        assert_eq!((grasps_header.grasp_count, grasps_header.hypothesis_count), (6, 3));
-        assert_eq!(grasps_header.header.frame_id, served.header.frame_id);
-        assert_eq!(grasp.payload, expected, "grasps of frame {}", served.header.frame_id);
-        for values in grasp.payload.chunks_exact(GRASP_LEN) {
-            let share = values[GRASP_LEN - 2];
-            assert!([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0].iter().any(|s| (s - share).abs() < 1e-6), "{share}");
+    let mut graphs: Vec<PathBuf> = std::fs::read_dir(root.join("deploy"))
+        .unwrap()
+        .map(|entry| entry.unwrap().path())
+        .filter(|path| path.extension().is_some_and(|e| e == "toml"))
+        .collect();
+    graphs.sort();
+    assert!(graphs.len() >= 6, "{graphs:?}");
+    // And the estimation graph with a one-slot conditions queue: the
+    // inference stage must answer the sampler while its output is full.
+    let one_slot = scratch.dir.join("estimation-one-slot.toml");
+    let estimation = std::fs::read_to_string(root.join("deploy/estimation.toml")).unwrap();
+    let narrowed = estimation
+        .replace(
+            "[edges.conditions]\nmessage = \"Condition\"\nqueue = 8",
+            "[edges.conditions]\nmessage = \"Condition\"\nqueue = 1",
+        )
+        .replace("\"../config/", &format!("\"{}/config/", root.display()));
+    assert_ne!(narrowed, estimation);
+    std::fs::write(&one_slot, narrowed).unwrap();
+    graphs.push(one_slot);
+    for graph in &graphs {
+        let name = graph.file_stem().unwrap().to_str().unwrap();
+        // Less work for the unoptimised test build (what is compared is each
+        // message, not their number or the defaults' accuracy): two frames,
+        // coarse signed-distance grids, few next-best-view candidates and grasps.
+        let text = std::fs::read_to_string(graph).unwrap();
+        let mut shorter: Vec<&str> = Vec::new();
+        for (stage, assignment) in [
+            ("frames", "frames.frames_per_scene=2"),
+            ("selector", "selector.sdf_resolution=16"),
+            ("nbv", "nbv.candidates=3"),
+            ("nbv", "nbv.hypotheses=1"),
+            ("grasp", "grasp.grasps=8"),
+            ("grasp", "grasp.hypotheses=2"),
+        ] {
+            if text.contains(&format!("[stages.{stage}]")) {
+                shorter.extend(["--set", assignment]);
+            }
         }
-
-        // The next-best-view process: the same ranking as the stage
-        // in-process (occluders from the frame), best first, chosen = first.
-        let occluders = next_view_stage.occluders(served.header.frame_id, served.header.object_id);
-        assert!(occluders.is_some_and(|o| !o.is_empty()), "frame {}", served.header.frame_id);
-        let (expected_header, expected) = next_view_stage.next_view(&served, &estimate.payload).unwrap();
-        let view: NextViewHeader = header_from_bytes(&next_view.header).unwrap();
-        view.check_payload(&next_view.payload).unwrap();
-        assert_eq!(view.header.frame_id, served.header.frame_id);
-        assert_eq!(NextViewHeader { header: expected_header.header, ..view }, expected_header);
-        assert_eq!(next_view.payload, expected, "next views of frame {}", served.header.frame_id);
-        let traces: Vec<f32> = next_view.payload.chunks_exact(CANDIDATE_LEN).map(|c| c[CANDIDATE_LEN - 1]).collect();
-        assert!(traces.windows(2).all(|w| w[0] <= w[1]), "{traces:?}");
-        // The current viewpoint and the sphere's three.
-        assert_eq!(view.candidate_count, 4);
+        let mut runs = Vec::new();
+        for mode in ["processes", "in-process"] {
+            let recording = scratch.dir.join(format!("{name}-{mode}.rec"));
+            let mut args = vec!["--json", "--status-ms", "0", "--record", recording.to_str().unwrap()];
+            args.extend_from_slice(&shorter);
+            if mode == "in-process" {
+                args.push("--in-process");
+            }
+            let output = run_graph(&args, graph).current_dir(&root).output().unwrap();
+            let summary = summary(&output);
+            let stderr = String::from_utf8_lossy(&output.stderr);
+            assert!(output.status.success(), "{name} ({mode}): {summary}\n{stderr}");
+            // A restarted stage flags its first output and may lose frames.
+            for (stage, report) in summary["stages"].as_object().unwrap() {
+                assert_eq!(report["restarts"], 0, "{name} ({mode}): stage `{stage}` restarted: {summary}\n{stderr}");
+            }
+            runs.push(recorded_messages(&recording));
+        }
+        let (processes, in_process) = (&runs[0], &runs[1]);
+        assert!(!processes.is_empty(), "{name}: nothing recorded");
+        // A drop-oldest edge loses what timing decides, so there only the
+        // messages both runs kept are compared, matched by frame and object.
+        let drops = text.contains("drop-oldest");
+        if !drops {
+            assert_eq!(
+                processes.iter().map(|(edge, messages)| (edge, messages.len())).collect::<Vec<_>>(),
+                in_process.iter().map(|(edge, messages)| (edge, messages.len())).collect::<Vec<_>>(),
+                "{name}: messages per edge"
+            );
+        }
+        let mut differences = Vec::new();
+        for (edge, messages) in processes {
+            // Downstream of the tracking sampler the prior is whichever
+            // estimate arrived first.
+            if name == "tracking" && !["frames", "observations", "conditions"].contains(&edge.as_str()) {
+                continue;
+            }
+            let theirs: std::collections::BTreeMap<&[u8], &(Vec<u8>, Vec<u32>)> =
+                in_process[edge].iter().map(|m| (&m.0[..12], m)).collect();
+            let mut compared = 0;
+            for (i, a) in messages.iter().enumerate() {
+                let b = if drops { theirs.get(&a.0[..12]).copied() } else { in_process[edge].get(i) };
+                let Some(b) = b else { continue };
+                compared += 1;
+                if a != b {
+                    let header_byte = a.0.iter().zip(&b.0).position(|(x, y)| x != y);
+                    let value = a.1.iter().zip(&b.1).position(|(x, y)| x != y);
+                    differences.push(format!(
+                        "edge `{edge}`, message {i} of {}: first difference at header byte {header_byte:?}, \
+                         payload value {value:?}",
+                        messages.len()
+                    ));
+                    break;
+                }
+            }
+            assert!(compared > 0, "{name}: edge `{edge}`: no message in both runs");
+        }
+        assert!(differences.is_empty(), "{name}: processes and in-process differ:\n{}", differences.join("\n"));
     }
     drop(scratch);
     assert_nothing_leaked(&before);
-}
-
-/// A JSON object as a TOML inline table.
-fn toml_inline(value: &serde_json::Value) -> String {
-    let fields: Vec<String> = value
-        .as_object()
-        .unwrap()
-        .iter()
-        .map(|(k, v)| match v {
-            serde_json::Value::String(s) => format!("{k} = {s:?}"),
-            table @ serde_json::Value::Object(_) => format!("{k} = {}", toml_inline(table)),
-            other => format!("{k} = {other}"),
-        })
-        .collect();
-    format!("{{ {} }}", fields.join(", "))
 }

@@ -9,55 +9,64 @@ use poseflow_contracts::{
     status as velocity_status,
 };
 use poseflow_geometry::Pose;
-use poseflow_runtime::{Emitter, Input, Joined, Transform};
-use poseflow_transport::{Node, RequestClient};
+use poseflow_runtime::{Call, Emitter, Input, Joined, Transform};
 
 use crate::flow::write_poses;
 use crate::{FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
 
-/// The inference stage over iceoryx2 request-response.
+/// The inference stage over its request-response edge (iceoryx2 between
+/// processes, its thread in-process).
 #[derive(Debug)]
 pub struct RemoteField {
-    // Declared before the node it was created on, so it is dropped first.
-    client: RequestClient<VelocityRequest, VelocityResponse>,
-    _node: Node,
+    client: Box<dyn Call<VelocityRequest, VelocityResponse>>,
     timeout: Duration,
 }
 
 impl RemoteField {
-    pub fn new(node: Node, client: RequestClient<VelocityRequest, VelocityResponse>, timeout: Duration) -> Self {
-        Self { client, _node: node, timeout }
+    pub fn new(client: Box<dyn Call<VelocityRequest, VelocityResponse>>, timeout: Duration) -> Self {
+        Self { client, timeout }
     }
 }
 
 impl VelocityField for RemoteField {
     fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
-        let reply = self
-            .client
-            .call(*request, poses.len(), |buffer| buffer.copy_from_slice(poses), self.timeout)
+        let mut answer = Err(String::from("no response"));
+        self.client
+            .call(*request, poses, self.timeout, &mut |response, payload| {
+                answer = check_response(request, response, payload, out);
+            })
             .map_err(|e| e.to_string())?;
-        let response = reply.header();
-        if response.status != velocity_status::OK {
-            let meaning = match response.status {
-                velocity_status::UNKNOWN_CONDITION => "unknown condition (the inference stage restarted or evicted it)",
-                velocity_status::INVALID_REQUEST => "invalid request",
-                velocity_status::INFERENCE_FAILED => "the network failed",
-                _ => "unknown status",
-            };
-            return Err(format!("inference answered status {}: {meaning}", response.status));
-        }
-        if response.request_id != request.request_id || reply.payload().len() != out.len() {
-            return Err(format!(
-                "answer to request {} with {} values, expected request {} with {}",
-                response.request_id,
-                reply.payload().len(),
-                request.request_id,
-                out.len()
-            ));
-        }
-        out.copy_from_slice(reply.payload());
-        Ok(())
+        answer
     }
+}
+
+/// Copies a velocity response into `out` if it is the good answer to `request`.
+fn check_response(
+    request: &VelocityRequest,
+    response: &VelocityResponse,
+    payload: &[f32],
+    out: &mut [f32],
+) -> Result<(), String> {
+    if response.status != velocity_status::OK {
+        let meaning = match response.status {
+            velocity_status::UNKNOWN_CONDITION => "unknown condition (the inference stage restarted or evicted it)",
+            velocity_status::INVALID_REQUEST => "invalid request",
+            velocity_status::INFERENCE_FAILED => "the network failed",
+            _ => "unknown status",
+        };
+        return Err(format!("inference answered status {}: {meaning}", response.status));
+    }
+    if response.request_id != request.request_id || payload.len() != out.len() {
+        return Err(format!(
+            "answer to request {} with {} values, expected request {} with {}",
+            response.request_id,
+            payload.len(),
+            request.request_id,
+            out.len()
+        ));
+    }
+    out.copy_from_slice(payload);
+    Ok(())
 }
 
 /// Estimates kept per object: a side input may run ahead of the frames
@@ -178,9 +187,8 @@ pub fn from_wiring(
         )
         .into());
     };
-    let node = poseflow_transport::create_node(&format!("{}-velocity", wiring.stage))?;
-    let client = poseflow_transport::RequestClient::create(&node, &edge.service, edge.max_payload_len)?;
+    let client = poseflow_runtime::connect(&wiring.stage, edge)?;
     let timeout = std::time::Duration::from_millis(params.velocity_timeout_ms);
     tracing::info!(samples = params.samples, steps = params.steps, tracking = params.tracking.enabled, "sampler ready");
-    Ok(SamplerStage::new(params, RemoteField::new(node, client, timeout)))
+    Ok(SamplerStage::new(params, RemoteField::new(client, timeout)))
 }

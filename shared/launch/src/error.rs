@@ -48,9 +48,6 @@ pub enum LaunchError {
     #[error("--record-edges: `{edge}` is not an edge of {} (edges: {edges:?})", file.display())]
     RecordUnknownEdge { edge: String, file: PathBuf, edges: Vec<String> },
 
-    #[error("recording records shared-memory traffic; it cannot be combined with an in-process run")]
-    RecordInProcess,
-
     #[error("edge `{edge}`: message type `{message}` is not a contract message")]
     UnknownMessage { edge: String, message: String },
 
@@ -65,6 +62,13 @@ pub enum LaunchError {
         file.display()
     )]
     NotInProcess { file: PathBuf, stage: String, exe: String, available: String },
+
+    #[error("{}: in-process run", file.display())]
+    InProcess {
+        file: PathBuf,
+        #[source]
+        source: RuntimeError,
+    },
 
     #[error("{}: stage `{stage}`", file.display())]
     Stage {

@@ -38,7 +38,7 @@ pub struct LaunchOptions {
     /// The namespace of the graph's shared-memory services, so two
     /// instances can run side by side (see [`default_instance`]).
     pub instance: String,
-    /// Record these edges' messages to this file (processes only).
+    /// Record these edges' messages to this file.
     pub record: Option<(PathBuf, Vec<String>)>,
     /// Print a status line per stage this often.
     pub status_every: Option<Duration>,
@@ -76,10 +76,7 @@ pub fn search_path(stage_path: &[PathBuf]) -> Vec<PathBuf> {
 pub fn launch(graph: &Graph, options: &LaunchOptions, registry: &Registry) -> Result<Report, LaunchError> {
     poseflow_transport::validate_name("graph instance", &options.instance)?;
     if options.in_process {
-        if options.record.is_some() {
-            return Err(LaunchError::RecordInProcess);
-        }
-        local::run(graph, &options.instance, registry)
+        local::run(graph, &options.instance, registry, options.record.as_ref())
     } else {
         supervisor::supervise(graph, options)
     }

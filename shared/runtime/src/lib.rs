@@ -9,6 +9,7 @@
 //! timestamps, counts drops and errors, publishes a heartbeat, propagates
 //! end-of-stream, and exits cleanly on SIGINT/SIGTERM.
 
+mod call;
 mod error;
 mod heartbeat;
 mod liveness;
@@ -21,6 +22,7 @@ mod registry;
 mod stage;
 pub mod timing;
 
+pub use call::{Call, CallError, connect};
 pub use error::{BuildError, RuntimeError, error_chain};
 pub use local::{LocalGraph, LocalGraphError, LocalOverflow, LocalReport};
 pub use logging::init_logging;

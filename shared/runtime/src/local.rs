@@ -11,8 +11,10 @@ use std::time::{Duration, Instant};
 
 use poseflow_contracts::{Heartbeat, MessageHeader, Stage, StageState};
 
+use crate::call::{Endpoint, PendingRequest, close_endpoint, open_endpoint};
+use crate::error::{BuildError, RuntimeError};
 use crate::liveness::Liveness;
-use crate::stage::{EmitError, Emitter, Input, Sink, Source, SourceStep, Transform};
+use crate::stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};
 
 /// How often a blocked stage looks at the stop flag.
 const STOP_POLL: Duration = Duration::from_millis(50);
@@ -33,6 +35,33 @@ pub enum LocalOverflow {
     Block,
 }
 
+/// Wakes a stage that waits on more than one thing (its input and side
+/// inputs, or its input and its requests): every push rings it.
+#[derive(Debug, Default)]
+pub(crate) struct Doorbell {
+    rung: Mutex<u64>,
+    changed: Condvar,
+}
+
+impl Doorbell {
+    pub fn ring(&self) {
+        *self.rung.lock().unwrap_or_else(|e| e.into_inner()) += 1;
+        self.changed.notify_all();
+    }
+
+    pub fn count(&self) -> u64 {
+        *self.rung.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Sleeps until it rings after `seen` was read, or `timeout` passes.
+    pub fn wait_past(&self, seen: u64, timeout: Duration) {
+        let rung = self.rung.lock().unwrap_or_else(|e| e.into_inner());
+        if *rung == seen {
+            let _ = self.changed.wait_timeout(rung, timeout);
+        }
+    }
+}
+
 /// One reader's bounded queue.
 #[derive(Debug)]
 struct Queue<H> {
@@ -40,6 +69,7 @@ struct Queue<H> {
     changed: Condvar,
     capacity: usize,
     overflow: LocalOverflow,
+    doorbell: Option<Arc<Doorbell>>,
 }
 
 #[derive(Debug)]
@@ -47,12 +77,68 @@ struct QueueState<H> {
     messages: VecDeque<(H, Vec<f32>)>,
     /// Publishers still attached; the stream ends when it reaches 0.
     publishers: usize,
+    /// The reader has ended: later messages are dropped, not queued, so no
+    /// publisher waits for room that never comes.
+    closed: bool,
 }
 
 impl<H> Queue<H> {
+    fn ring(&self) {
+        self.changed.notify_all();
+        if let Some(doorbell) = &self.doorbell {
+            doorbell.ring();
+        }
+    }
+
+    /// Queues `message` unless the queue is full under [`LocalOverflow::Block`]:
+    /// then it is handed back.
+    fn try_push(&self, message: (H, Vec<f32>)) -> Result<(), (H, Vec<f32>)> {
+        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        if state.closed {
+            return Ok(());
+        }
+        if state.messages.len() >= self.capacity {
+            match self.overflow {
+                LocalOverflow::DropOldest => {
+                    state.messages.pop_front();
+                }
+                LocalOverflow::Block => return Err(message),
+            }
+        }
+        state.messages.push_back(message);
+        drop(state);
+        self.ring();
+        Ok(())
+    }
+
+    fn try_pop(&self) -> Option<(H, Vec<f32>)> {
+        let message = self.state.lock().unwrap_or_else(|e| e.into_inner()).messages.pop_front();
+        if message.is_some() {
+            self.changed.notify_all();
+        }
+        message
+    }
+
+    /// Every publisher is gone and the queue is drained.
+    fn ended(&self) -> bool {
+        let state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        state.publishers == 0 && state.messages.is_empty()
+    }
+
+    fn close(&self) {
+        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        state.closed = true;
+        state.messages.clear();
+        drop(state);
+        self.changed.notify_all();
+    }
+
     fn push(&self, message: (H, Vec<f32>), stop: &AtomicBool) {
         let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        while state.messages.len() >= self.capacity {
+        if state.closed {
+            return;
+        }
+        while state.messages.len() >= self.capacity && !state.closed {
             match self.overflow {
                 LocalOverflow::DropOldest => {
                     state.messages.pop_front();
@@ -65,8 +151,12 @@ impl<H> Queue<H> {
                 }
             }
         }
+        if state.closed {
+            return;
+        }
         state.messages.push_back(message);
-        self.changed.notify_all();
+        drop(state);
+        self.ring();
     }
 
     /// The next message; `None` once every publisher is gone and the queue
@@ -88,7 +178,8 @@ impl<H> Queue<H> {
     fn detach_publisher(&self) {
         let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
         state.publishers -= 1;
-        self.changed.notify_all();
+        drop(state);
+        self.ring();
     }
 }
 
@@ -139,7 +230,11 @@ impl<H> Drop for LocalEmitter<'_, H> {
     }
 }
 
-type StageThread = Box<dyn FnOnce(Arc<AtomicBool>) + Send>;
+/// A stage's thread: builds the stage (on the thread that will own it:
+/// iceoryx2 ports are not `Send`), then runs it.
+type StageThread = Box<dyn FnOnce(Arc<AtomicBool>) -> StageEnd + Send>;
+/// How a stage's thread ended: `Err` when the stage could not be built.
+type StageEnd = Result<(), BuildError>;
 type Edges = HashMap<String, Box<dyn Any + Send>>;
 /// Builds a stage's thread once every reader of every edge is known.
 type Deferred = Box<dyn FnOnce(&Edges) -> StageThread>;
@@ -151,6 +246,8 @@ pub struct LocalGraph {
     edges: Edges,
     specs: HashMap<String, (usize, LocalOverflow)>,
     pending: Vec<(String, Arc<Liveness>, Deferred)>,
+    /// Request-response services served in-process, closed when the graph ends.
+    services: Vec<String>,
 }
 
 impl std::fmt::Debug for LocalGraph {
@@ -170,7 +267,7 @@ impl Default for LocalGraph {
 
 impl LocalGraph {
     pub fn new() -> Self {
-        Self { edges: HashMap::new(), specs: HashMap::new(), pending: Vec::new() }
+        Self { edges: HashMap::new(), specs: HashMap::new(), pending: Vec::new(), services: Vec::new() }
     }
 
     /// Declares an edge's queue size and overflow policy.
@@ -190,13 +287,23 @@ impl LocalGraph {
     }
 
     fn subscribe<H: MessageHeader + Send + 'static>(&mut self, name: &str) -> Result<Arc<Queue<H>>, LocalGraphError> {
+        self.subscribe_ringing(name, None)
+    }
+
+    /// Subscribes with a queue that also rings `doorbell` on every push.
+    fn subscribe_ringing<H: MessageHeader + Send + 'static>(
+        &mut self,
+        name: &str,
+        doorbell: Option<Arc<Doorbell>>,
+    ) -> Result<Arc<Queue<H>>, LocalGraphError> {
         let (capacity, overflow) =
             *self.specs.get(name).ok_or_else(|| LocalGraphError::Undeclared { edge: name.to_string() })?;
         let queue = Arc::new(Queue {
-            state: Mutex::new(QueueState { messages: VecDeque::new(), publishers: 0 }),
+            state: Mutex::new(QueueState { messages: VecDeque::new(), publishers: 0, closed: false }),
             changed: Condvar::new(),
             capacity,
             overflow,
+            doorbell,
         });
         self.typed::<H>(name)?.readers.push(queue.clone());
         Ok(queue)
@@ -223,10 +330,10 @@ impl LocalGraph {
         readers
     }
 
-    pub fn add_source<S: Source + Send + 'static>(
+    pub fn add_source<S: Source + 'static>(
         &mut self,
         name: &str,
-        mut source: S,
+        make: impl FnOnce() -> Result<S, BuildError> + Send + 'static,
         output: &str,
         rate_hz: Option<f64>,
     ) -> Result<(), LocalGraphError>
@@ -239,6 +346,7 @@ impl LocalGraph {
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<S::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
+                let mut source = build_or_stop(make, &stop)?;
                 let mut emitter = LocalEmitter { readers, slot: S::SLOT, liveness: &live, stop: &stop };
                 let period = rate_hz.filter(|hz| *hz > 0.0).map(|hz| Duration::from_secs_f64(1.0 / hz));
                 let mut next = Instant::now();
@@ -262,16 +370,17 @@ impl LocalGraph {
                         }
                     }
                 }
+                Ok(())
             })
         });
         self.defer(name, liveness, run);
         Ok(())
     }
 
-    pub fn add_transform<T: Transform + Send + 'static>(
+    pub fn add_transform<T: Transform + 'static>(
         &mut self,
         name: &str,
-        mut stage: T,
+        make: impl FnOnce() -> Result<T, BuildError> + Send + 'static,
         input: &str,
         output: &str,
     ) -> Result<(), LocalGraphError>
@@ -286,28 +395,148 @@ impl LocalGraph {
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<T::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
+                let mut stage = build_or_stop(make, &stop)?;
                 let mut emitter = LocalEmitter { readers, slot: T::SLOT, liveness: &live, stop: &stop };
                 while let Some((header, payload)) = queue.pop(&stop) {
-                    live.count_received(header.header().frame_id);
-                    let started = Instant::now();
-                    live.work_started();
-                    if let Err(err) = stage.process(Input { header: &header, payload: &payload }, &mut emitter) {
-                        live.count_error();
-                        tracing::warn!(%err, "process failed; frame skipped");
-                    }
-                    live.count_errors(stage.take_rejected());
-                    live.work_finished(started.elapsed());
+                    transform_one(&mut stage, &header, &payload, &mut emitter, &live);
                 }
+                queue.close();
+                Ok(())
             })
         });
         self.defer(name, liveness, run);
         Ok(())
     }
 
-    pub fn add_sink<K: Sink + Send + 'static>(
+    /// Adds a [`Joined`] stage: `side` messages are handed to it before
+    /// each input, so every side message published before an input is seen
+    /// before that input (as in a process, where causality orders them).
+    pub fn add_joined<J: Joined + 'static>(
         &mut self,
         name: &str,
-        mut sink: K,
+        make: impl FnOnce() -> Result<J, BuildError> + Send + 'static,
+        input: &str,
+        side: &str,
+        output: &str,
+    ) -> Result<(), LocalGraphError>
+    where
+        J::In: Send + 'static,
+        J::Side: Send + 'static,
+        J::Out: Send + 'static,
+    {
+        let doorbell = Arc::new(Doorbell::default());
+        let queue = self.subscribe_ringing::<J::In>(input, Some(doorbell.clone()))?;
+        let side_queue = self.subscribe_ringing::<J::Side>(side, Some(doorbell.clone()))?;
+        let pending = self.publish::<J::Out>(output)?;
+        let liveness = Arc::new(Liveness::new());
+        let live = liveness.clone();
+        let run: Deferred = Box::new(move |edges| {
+            let readers = Self::readers_of::<J::Out>(edges, &pending.edge);
+            Box::new(move |stop: Arc<AtomicBool>| {
+                let mut stage = build_or_stop(make, &stop)?;
+                let mut emitter = LocalEmitter { readers, slot: J::SLOT, liveness: &live, stop: &stop };
+                while !stop.load(Ordering::Relaxed) {
+                    let seen = doorbell.count();
+                    while let Some((header, payload)) = side_queue.try_pop() {
+                        if let Err(err) = stage.side(Input { header: &header, payload: &payload }) {
+                            live.count_error();
+                            tracing::warn!(%err, "side input failed; message skipped");
+                        }
+                    }
+                    if let Some((header, payload)) = queue.try_pop() {
+                        transform_one(&mut stage, &header, &payload, &mut emitter, &live);
+                        continue;
+                    }
+                    if queue.ended() {
+                        break;
+                    }
+                    doorbell.wait_past(seen, STOP_POLL);
+                }
+                queue.close();
+                side_queue.close();
+                Ok(())
+            })
+        });
+        self.defer(name, liveness, run);
+        Ok(())
+    }
+
+    /// Adds a [`Server`]: a transform that also answers the requests of the
+    /// in-process callers of `service` (see [`crate::call::connect`]). It
+    /// answers requests before taking the next input, keeps answering while
+    /// its output is full (its caller may be the reader it waits for), and
+    /// after its input has ended until every caller has gone.
+    pub fn add_server<S: Server + 'static>(
+        &mut self,
+        name: &str,
+        make: impl FnOnce() -> Result<S, BuildError> + Send + 'static,
+        input: &str,
+        service: &str,
+        output: &str,
+    ) -> Result<(), LocalGraphError>
+    where
+        S::In: Send + 'static,
+        S::Out: Send + 'static,
+        S::Request: Send + 'static,
+        S::Response: Send + 'static,
+    {
+        let doorbell = Arc::new(Doorbell::default());
+        let endpoint = Arc::new(Endpoint::<S::Request, S::Response>::new(doorbell.clone()));
+        open_endpoint(service, endpoint.clone());
+        self.services.push(service.to_string());
+        let queue = self.subscribe_ringing::<S::In>(input, Some(doorbell.clone()))?;
+        let pending = self.publish::<S::Out>(output)?;
+        let liveness = Arc::new(Liveness::new());
+        let live = liveness.clone();
+        let run: Deferred = Box::new(move |edges| {
+            let readers = Self::readers_of::<S::Out>(edges, &pending.edge);
+            Box::new(move |stop: Arc<AtomicBool>| {
+                let mut stage = build_or_stop(make, &stop)?;
+                let answer_all = |stage: &mut S| {
+                    while let Some(request) = endpoint.take() {
+                        answer(stage, request, &live);
+                    }
+                };
+                let mut held = HeldOutputs { messages: Vec::new(), slot: S::SLOT };
+                while !stop.load(Ordering::Relaxed) {
+                    let seen = doorbell.count();
+                    answer_all(&mut stage);
+                    let Some((header, payload)) = queue.try_pop() else {
+                        if queue.ended() {
+                            break;
+                        }
+                        doorbell.wait_past(seen, STOP_POLL);
+                        continue;
+                    };
+                    transform_one(&mut stage, &header, &payload, &mut held, &live);
+                    for message in held.messages.drain(..) {
+                        deliver(message, &readers, &live, &stop, &mut || answer_all(&mut stage));
+                    }
+                }
+                queue.close();
+                // The end of the output stream reaches the callers, which may
+                // still ask about the conditions they hold.
+                for reader in &readers {
+                    reader.detach_publisher();
+                }
+                while !stop.load(Ordering::Relaxed) && endpoint.clients.load(Ordering::SeqCst) > 0 {
+                    let seen = doorbell.count();
+                    answer_all(&mut stage);
+                    doorbell.wait_past(seen, STOP_POLL);
+                }
+                endpoint.open.store(false, Ordering::SeqCst);
+                answer_all(&mut stage);
+                Ok(())
+            })
+        });
+        self.defer(name, liveness, run);
+        Ok(())
+    }
+
+    pub fn add_sink<K: Sink + 'static>(
+        &mut self,
+        name: &str,
+        make: impl FnOnce() -> Result<K, BuildError> + Send + 'static,
         input: &str,
     ) -> Result<(), LocalGraphError>
     where
@@ -318,6 +547,7 @@ impl LocalGraph {
         let live = liveness.clone();
         let run: Deferred = Box::new(move |_| {
             Box::new(move |stop: Arc<AtomicBool>| {
+                let mut sink = build_or_stop(make, &stop)?;
                 while let Some((header, payload)) = queue.pop(&stop) {
                     live.count_received(header.header().frame_id);
                     let started = Instant::now();
@@ -328,9 +558,11 @@ impl LocalGraph {
                     }
                     live.work_finished(started.elapsed());
                 }
+                queue.close();
                 if let Err(err) = sink.finish() {
                     tracing::error!(%err, "sink could not finish");
                 }
+                Ok(())
             })
         });
         self.defer(name, liveness, run);
@@ -343,12 +575,12 @@ impl LocalGraph {
 
     /// Runs every stage in its own thread until all have finished (the
     /// sources ended and everything drained) or `stop` is set.
-    pub fn run(self, stop: Arc<AtomicBool>) -> LocalReport {
+    pub fn run(self, stop: Arc<AtomicBool>) -> Result<LocalReport, RuntimeError> {
         // Every publisher attaches to its readers before any thread starts,
         // so no reader mistakes "not started yet" for "finished".
         let threads: Vec<(String, Arc<Liveness>, StageThread)> =
             self.pending.into_iter().map(|(name, live, deferred)| (name, live, deferred(&self.edges))).collect();
-        let handles: Vec<(String, Arc<Liveness>, JoinHandle<()>)> = threads
+        let handles: Vec<(String, Arc<Liveness>, JoinHandle<StageEnd>)> = threads
             .into_iter()
             .map(|(name, live, thread)| {
                 let stop = stop.clone();
@@ -360,21 +592,137 @@ impl LocalGraph {
                 (name, live, handle)
             })
             .collect();
-        handles
-            .into_iter()
-            .map(|(name, live, handle)| {
-                if handle.join().is_err() {
+        let mut failure = None;
+        let mut report = LocalReport::new();
+        for (name, live, handle) in handles {
+            match handle.join() {
+                Ok(Ok(())) => {}
+                Ok(Err(source)) => {
+                    live.count_error();
+                    failure.get_or_insert(RuntimeError::Build { stage: name.clone(), source });
+                }
+                Err(_) => {
                     live.count_error();
                     tracing::error!(stage = %name, "stage thread panicked");
                 }
-                live.set_state(StageState::Finished);
-                (name, live.heartbeat())
-            })
-            .collect()
+            }
+            live.set_state(StageState::Finished);
+            report.insert(name, live.heartbeat());
+        }
+        for service in &self.services {
+            close_endpoint(service);
+        }
+        match failure {
+            Some(err) => Err(err),
+            None => Ok(report),
+        }
     }
 }
 
 struct PendingPublisher<H> {
     edge: String,
     _marker: std::marker::PhantomData<fn() -> H>,
+}
+
+/// A server's outputs of one input, held until it has returned.
+struct HeldOutputs<H> {
+    messages: Vec<(H, Vec<f32>)>,
+    slot: Option<Stage>,
+}
+
+impl<H: MessageHeader> Emitter<H> for HeldOutputs<H> {
+    fn emit(&mut self, mut header: H, len: usize, fill: &mut dyn FnMut(&mut [f32])) -> Result<(), EmitError> {
+        check_len(&header, len)?;
+        if let Some(slot) = self.slot {
+            header.header_mut().stamps.stamp(slot);
+        }
+        let mut payload = vec![0.0f32; len];
+        fill(&mut payload);
+        self.messages.push((header, payload));
+        Ok(())
+    }
+}
+
+fn check_len<H: MessageHeader>(header: &H, len: usize) -> Result<(), EmitError> {
+    let expected = header.payload_len().map_err(|e| EmitError(e.to_string()))?;
+    if expected != len {
+        return Err(EmitError(format!("{}: payload of {len} values, the header announces {expected}", H::NAME)));
+    }
+    Ok(())
+}
+
+/// Queues `message` for every reader, calling `meanwhile` while a blocking
+/// queue is full.
+fn deliver<H: Clone>(
+    message: (H, Vec<f32>),
+    readers: &[Arc<Queue<H>>],
+    liveness: &Liveness,
+    stop: &AtomicBool,
+    meanwhile: &mut dyn FnMut(),
+) {
+    /// How long a server waits for room before answering requests again.
+    const FULL_RETRY: Duration = Duration::from_micros(200);
+    liveness.send_started();
+    for queue in readers {
+        let mut message = message.clone();
+        while let Err(back) = queue.try_push(message) {
+            if stop.load(Ordering::Relaxed) {
+                break;
+            }
+            meanwhile();
+            std::thread::sleep(FULL_RETRY);
+            message = back;
+        }
+    }
+    liveness.send_finished();
+    liveness.count_sent();
+}
+
+/// Answers one in-process request (an invalid one with an error status).
+fn answer<S: Server>(stage: &mut S, request: PendingRequest<S::Request, S::Response>, liveness: &Liveness) {
+    let started = Instant::now();
+    liveness.work_started();
+    let mut reply = HeldOutputs { messages: Vec::new(), slot: S::SLOT };
+    let answered = match request.header.check_payload(&request.payload) {
+        Ok(()) => stage.answer(Input { header: &request.header, payload: &request.payload }, &mut reply),
+        Err(err) => {
+            liveness.count_error();
+            tracing::warn!(%err, "request breaks its contract; answered as invalid");
+            stage.answer_invalid(&request.header, &mut reply)
+        }
+    };
+    liveness.work_finished(started.elapsed());
+    liveness.count_errors(stage.take_rejected());
+    if let Err(err) = answered {
+        liveness.count_error();
+        tracing::warn!(%err, "request not answered");
+    }
+    if let Some(response) = reply.messages.pop() {
+        // The caller may have timed out and gone: nothing to do then.
+        let _ = request.reply.send(response);
+    }
+}
+
+/// Builds a stage on its thread; a failure stops the whole graph.
+fn build_or_stop<T>(make: impl FnOnce() -> Result<T, BuildError>, stop: &AtomicBool) -> Result<T, BuildError> {
+    make().inspect_err(|_| stop.store(true, Ordering::Relaxed))
+}
+
+/// Hands one input to a transform, timing and counting it as a process does.
+fn transform_one<T: Transform>(
+    stage: &mut T,
+    header: &T::In,
+    payload: &[f32],
+    output: &mut dyn Emitter<T::Out>,
+    live: &Liveness,
+) {
+    live.count_received(header.header().frame_id);
+    let started = Instant::now();
+    live.work_started();
+    if let Err(err) = stage.process(Input { header, payload }, output) {
+        live.count_error();
+        tracing::warn!(%err, "process failed; frame skipped");
+    }
+    live.count_errors(stage.take_rejected());
+    live.work_finished(started.elapsed());
 }

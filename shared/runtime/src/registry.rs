@@ -78,17 +78,58 @@ fn single<'a>(wiring: &'a StageWiring, field: &'static str, edges: &'a [EdgeWiri
     }
 }
 
-fn build<T, E: Into<BuildError>>(
+/// `make` bound to a copy of `wiring`, to run on the stage's own thread.
+fn deferred<T: 'static, E: Into<BuildError> + 'static>(
     wiring: &StageWiring,
     make: fn(&StageWiring) -> Result<T, E>,
-) -> Result<T, RuntimeError> {
-    make(wiring).map_err(|source| RuntimeError::Build { stage: wiring.stage.clone(), source: source.into() })
+) -> impl FnOnce() -> Result<T, BuildError> + Send + 'static {
+    let wiring = wiring.clone();
+    move || make(&wiring).map_err(Into::into)
+}
+
+/// The one edge of a kind a stage must have exactly one of.
+fn exactly_one<'a>(
+    wiring: &'a StageWiring,
+    edges: &'a [EdgeWiring],
+    expected: &'static str,
+) -> Result<&'a EdgeWiring, RuntimeError> {
+    match edges {
+        [edge] => Ok(edge),
+        _ => Err(RuntimeError::Shape {
+            stage: wiring.stage.clone(),
+            expected,
+            found: format!("{} such edge(s)", edges.len()),
+        }),
+    }
+}
+
+/// Adds a transform, joined with its side input if the graph gives one.
+fn add_transform_or_joined<J, E>(
+    local: &mut LocalGraph,
+    wiring: &StageWiring,
+    make: fn(&StageWiring) -> Result<J, E>,
+    side_required: bool,
+) -> Result<(), RuntimeError>
+where
+    J: Transform + Joined + 'static,
+    J::In: Send + 'static,
+    J::Out: Send + 'static,
+    J::Side: Send + 'static,
+    E: Into<BuildError> + 'static,
+{
+    let input = single(wiring, "inputs", &wiring.inputs)?;
+    let output = single(wiring, "outputs", &wiring.outputs)?;
+    if wiring.side_inputs.is_empty() && !side_required {
+        return Ok(local.add_transform(&wiring.stage, deferred(wiring, make), input, output)?);
+    }
+    let side = exactly_one(wiring, &wiring.side_inputs, "exactly one side input")?;
+    Ok(local.add_joined(&wiring.stage, deferred(wiring, make), input, &side.edge, output)?)
 }
 
 impl Registration {
     pub fn source<S, E>(exe: &'static str, make: fn(&StageWiring) -> Result<S, E>) -> Self
     where
-        S: Source + Send + 'static,
+        S: Source + 'static,
         S::Out: Send + 'static,
         E: Into<BuildError> + 'static,
     {
@@ -99,14 +140,14 @@ impl Registration {
             add_local: Some(Box::new(move |local, wiring| {
                 let output = single(wiring, "outputs", &wiring.outputs)?;
                 let rate_hz = wiring.params.get("rate_hz").and_then(|v| v.as_f64());
-                Ok(local.add_source(&wiring.stage, build(wiring, make)?, output, rate_hz)?)
+                Ok(local.add_source(&wiring.stage, deferred(wiring, make), output, rate_hz)?)
             })),
         }
     }
 
     pub fn transform<T, E>(exe: &'static str, make: fn(&StageWiring) -> Result<T, E>) -> Self
     where
-        T: Transform + Send + 'static,
+        T: Transform + 'static,
         T::In: Send + 'static,
         T::Out: Send + 'static,
         E: Into<BuildError> + 'static,
@@ -118,14 +159,14 @@ impl Registration {
             add_local: Some(Box::new(move |local, wiring| {
                 let input = single(wiring, "inputs", &wiring.inputs)?;
                 let output = single(wiring, "outputs", &wiring.outputs)?;
-                Ok(local.add_transform(&wiring.stage, build(wiring, make)?, input, output)?)
+                Ok(local.add_transform(&wiring.stage, deferred(wiring, make), input, output)?)
             })),
         }
     }
 
     pub fn sink<K, E>(exe: &'static str, make: fn(&StageWiring) -> Result<K, E>) -> Self
     where
-        K: Sink + Send + 'static,
+        K: Sink + 'static,
         K::In: Send + 'static,
         E: Into<BuildError> + 'static,
     {
@@ -135,7 +176,7 @@ impl Registration {
             run_process: Box::new(move || run_sink(make)),
             add_local: Some(Box::new(move |local, wiring| {
                 let input = single(wiring, "inputs", &wiring.inputs)?;
-                Ok(local.add_sink(&wiring.stage, build(wiring, make)?, input)?)
+                Ok(local.add_sink(&wiring.stage, deferred(wiring, make), input)?)
             })),
         }
     }
@@ -143,29 +184,64 @@ impl Registration {
     pub fn server<S, E>(exe: &'static str, make: fn(&StageWiring) -> Result<S, E>) -> Self
     where
         S: Server + 'static,
+        S::In: Send + 'static,
+        S::Out: Send + 'static,
+        S::Request: Send + 'static,
+        S::Response: Send + 'static,
         E: Into<BuildError> + 'static,
     {
-        Self { exe, kind: StageKind::Server, run_process: Box::new(move || run_server(make)), add_local: None }
+        Self {
+            exe,
+            kind: StageKind::Server,
+            run_process: Box::new(move || run_server(make)),
+            add_local: Some(Box::new(move |local, wiring| {
+                let input = single(wiring, "inputs", &wiring.inputs)?;
+                let output = single(wiring, "outputs", &wiring.outputs)?;
+                let served = exactly_one(wiring, &wiring.serves, "one request-response edge it serves")?;
+                Ok(local.add_server(&wiring.stage, deferred(wiring, make), input, &served.service, output)?)
+            })),
+        }
     }
 
     pub fn joined<J, E>(exe: &'static str, make: fn(&StageWiring) -> Result<J, E>) -> Self
     where
-        J: Joined + 'static,
+        J: Transform + Joined + 'static,
+        J::In: Send + 'static,
+        J::Out: Send + 'static,
+        J::Side: Send + 'static,
         E: Into<BuildError> + 'static,
     {
-        Self { exe, kind: StageKind::Joined, run_process: Box::new(move || run_joined(make)), add_local: None }
+        Self::with_side_input(exe, make, true)
     }
 
     pub fn transform_or_joined<J, E>(exe: &'static str, make: fn(&StageWiring) -> Result<J, E>) -> Self
     where
         J: Transform + Joined + 'static,
+        J::In: Send + 'static,
+        J::Out: Send + 'static,
+        J::Side: Send + 'static,
+        E: Into<BuildError> + 'static,
+    {
+        Self::with_side_input(exe, make, false)
+    }
+
+    fn with_side_input<J, E>(exe: &'static str, make: fn(&StageWiring) -> Result<J, E>, required: bool) -> Self
+    where
+        J: Transform + Joined + 'static,
+        J::In: Send + 'static,
+        J::Out: Send + 'static,
+        J::Side: Send + 'static,
         E: Into<BuildError> + 'static,
     {
         Self {
             exe,
-            kind: StageKind::TransformOrJoined,
-            run_process: Box::new(move || run_transform_or_joined(make)),
-            add_local: None,
+            kind: if required { StageKind::Joined } else { StageKind::TransformOrJoined },
+            run_process: if required {
+                Box::new(move || run_joined(make))
+            } else {
+                Box::new(move || run_transform_or_joined(make))
+            },
+            add_local: Some(Box::new(move |local, wiring| add_transform_or_joined(local, wiring, make, required))),
         }
     }
 
