@@ -62,6 +62,28 @@ impl Doorbell {
     }
 }
 
+/// Queues `message` for every reader at once (all their locks held), so a
+/// stage reading two of them (an input and a side input) never sees the
+/// message on one before the other. A full blocking queue is waited for
+/// before (see [`Queue::wait_for_room`]); a full drop-oldest one loses its
+/// oldest message; a closed one drops it.
+fn push_all<H: Clone>(readers: &[Arc<Queue<H>>], message: (H, Vec<f32>)) {
+    let mut states: Vec<_> = readers.iter().map(|q| q.state.lock().unwrap_or_else(|e| e.into_inner())).collect();
+    for (queue, state) in readers.iter().zip(states.iter_mut()) {
+        if state.closed {
+            continue;
+        }
+        if state.messages.len() >= queue.capacity {
+            state.messages.pop_front();
+        }
+        state.messages.push_back(message.clone());
+    }
+    drop(states);
+    for queue in readers {
+        queue.ring();
+    }
+}
+
 /// One reader's bounded queue.
 #[derive(Debug)]
 struct Queue<H> {
@@ -90,25 +112,23 @@ impl<H> Queue<H> {
         }
     }
 
-    /// Queues `message` unless the queue is full under [`LocalOverflow::Block`]:
-    /// then it is handed back.
-    fn try_push(&self, message: (H, Vec<f32>)) -> Result<(), (H, Vec<f32>)> {
+    /// Whether a message can be queued now without waiting.
+    fn has_room(&self) -> bool {
+        let state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        state.closed || self.overflow == LocalOverflow::DropOldest || state.messages.len() < self.capacity
+    }
+
+    /// Waits until [`Self::has_room`] or `stop`. Only the edge's one
+    /// publisher queues here, so the room is still there when it pushes.
+    fn wait_for_room(&self, stop: &AtomicBool) {
         let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        if state.closed {
-            return Ok(());
+        while self.overflow == LocalOverflow::Block
+            && state.messages.len() >= self.capacity
+            && !state.closed
+            && !stop.load(Ordering::Relaxed)
+        {
+            state = self.changed.wait_timeout(state, STOP_POLL).unwrap_or_else(|e| e.into_inner()).0;
         }
-        if state.messages.len() >= self.capacity {
-            match self.overflow {
-                LocalOverflow::DropOldest => {
-                    state.messages.pop_front();
-                }
-                LocalOverflow::Block => return Err(message),
-            }
-        }
-        state.messages.push_back(message);
-        drop(state);
-        self.ring();
-        Ok(())
     }
 
     fn try_pop(&self) -> Option<(H, Vec<f32>)> {
@@ -131,32 +151,6 @@ impl<H> Queue<H> {
         state.messages.clear();
         drop(state);
         self.changed.notify_all();
-    }
-
-    fn push(&self, message: (H, Vec<f32>), stop: &AtomicBool) {
-        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        if state.closed {
-            return;
-        }
-        while state.messages.len() >= self.capacity && !state.closed {
-            match self.overflow {
-                LocalOverflow::DropOldest => {
-                    state.messages.pop_front();
-                }
-                LocalOverflow::Block => {
-                    if stop.load(Ordering::Relaxed) {
-                        return;
-                    }
-                    state = self.changed.wait_timeout(state, STOP_POLL).unwrap_or_else(|e| e.into_inner()).0;
-                }
-            }
-        }
-        if state.closed {
-            return;
-        }
-        state.messages.push_back(message);
-        drop(state);
-        self.ring();
     }
 
     /// The next message; `None` once every publisher is gone and the queue
@@ -210,11 +204,11 @@ impl<H: MessageHeader> Emitter<H> for LocalEmitter<'_, H> {
         let mut payload = vec![0.0f32; len];
         fill(&mut payload);
         self.liveness.send_started();
-        if let Some((last, others)) = self.readers.split_last() {
-            for queue in others {
-                queue.push((header, payload.clone()), self.stop);
-            }
-            last.push((header, payload), self.stop);
+        for queue in &self.readers {
+            queue.wait_for_room(self.stop);
+        }
+        if !self.stop.load(Ordering::Relaxed) {
+            push_all(&self.readers, (header, payload));
         }
         self.liveness.send_finished();
         self.liveness.count_sent();
@@ -663,17 +657,15 @@ fn deliver<H: Clone>(
     /// How long a server waits for room before answering requests again.
     const FULL_RETRY: Duration = Duration::from_micros(200);
     liveness.send_started();
-    for queue in readers {
-        let mut message = message.clone();
-        while let Err(back) = queue.try_push(message) {
-            if stop.load(Ordering::Relaxed) {
-                break;
-            }
-            meanwhile();
-            std::thread::sleep(FULL_RETRY);
-            message = back;
+    while !readers.iter().all(|q| q.has_room()) {
+        if stop.load(Ordering::Relaxed) {
+            liveness.send_finished();
+            return;
         }
+        meanwhile();
+        std::thread::sleep(FULL_RETRY);
     }
+    push_all(readers, message);
     liveness.send_finished();
     liveness.count_sent();
 }
@@ -725,4 +717,218 @@ fn transform_one<T: Transform>(
     }
     live.count_errors(stage.take_rejected());
     live.work_finished(started.elapsed());
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::{Arc, Mutex};
+
+    use poseflow_contracts::{
+        Header, HypothesesHeader, POSE_LEN, VELOCITY_LEN, VelocityRequest, VelocityResponse, status,
+    };
+    use poseflow_graph::{EdgeWiring, OverflowPolicy};
+
+    use super::*;
+    use crate::call::{Call, connect};
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("{0}")]
+    struct TestError(String);
+
+    impl From<EmitError> for TestError {
+        fn from(err: EmitError) -> Self {
+            TestError(err.to_string())
+        }
+    }
+
+    fn hypotheses(frame: u64) -> HypothesesHeader {
+        HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 }
+    }
+
+    /// Frames 0..n, one pose each, every value the frame number.
+    struct Counter(u64, u64);
+
+    impl Source for Counter {
+        type Out = HypothesesHeader;
+        type Error = TestError;
+        const SLOT: Option<Stage> = None;
+
+        fn next(&mut self, output: &mut dyn Emitter<HypothesesHeader>) -> Result<SourceStep, TestError> {
+            if self.0 == self.1 {
+                return Ok(SourceStep::Finished);
+            }
+            let frame = self.0;
+            self.0 += 1;
+            output.emit(hypotheses(frame), POSE_LEN, &mut |out| out.fill(frame as f32))?;
+            Ok(SourceStep::Continue)
+        }
+    }
+
+    /// Passes its input on and answers each velocity request with twice the
+    /// request's first value.
+    struct Doubler;
+
+    impl Transform for Doubler {
+        type In = HypothesesHeader;
+        type Out = HypothesesHeader;
+        type Error = TestError;
+        const SLOT: Option<Stage> = None;
+
+        fn process(
+            &mut self,
+            input: Input<'_, HypothesesHeader>,
+            output: &mut dyn Emitter<HypothesesHeader>,
+        ) -> Result<(), TestError> {
+            Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
+        }
+    }
+
+    impl Server for Doubler {
+        type Request = VelocityRequest;
+        type Response = VelocityResponse;
+
+        fn answer(
+            &mut self,
+            request: Input<'_, VelocityRequest>,
+            reply: &mut dyn Emitter<VelocityResponse>,
+        ) -> Result<(), TestError> {
+            let header = VelocityResponse {
+                header: request.header.header,
+                request_id: request.header.request_id,
+                sample_count: 1,
+                status: status::OK,
+            };
+            let doubled = 2.0 * request.payload[0];
+            Ok(reply.emit(header, VELOCITY_LEN, &mut |out| out.fill(doubled))?)
+        }
+
+        fn answer_invalid(
+            &mut self,
+            _request: &VelocityRequest,
+            _reply: &mut dyn Emitter<VelocityResponse>,
+        ) -> Result<(), TestError> {
+            Err(TestError("invalid request".into()))
+        }
+    }
+
+    /// Asks the server about each input; outputs the answer. Also a joined
+    /// stage: it notes whether each input's frame came by the side input
+    /// first.
+    struct Asker {
+        client: Box<dyn Call<VelocityRequest, VelocityResponse>>,
+        seen_on_side: Vec<u64>,
+        side_first: Arc<Mutex<Vec<bool>>>,
+    }
+
+    impl Transform for Asker {
+        type In = HypothesesHeader;
+        type Out = HypothesesHeader;
+        type Error = TestError;
+        const SLOT: Option<Stage> = None;
+
+        fn process(
+            &mut self,
+            input: Input<'_, HypothesesHeader>,
+            output: &mut dyn Emitter<HypothesesHeader>,
+        ) -> Result<(), TestError> {
+            let frame = input.header.header.frame_id;
+            self.side_first.lock().unwrap().push(self.seen_on_side.contains(&frame));
+            let request = VelocityRequest {
+                header: input.header.header,
+                condition_id: 0,
+                request_id: frame,
+                sample_count: 1,
+                t: 0.5,
+                step_index: 0,
+                step_count: 1,
+            };
+            let mut answer = None;
+            self.client
+                .call(request, input.payload, Duration::from_secs(5), &mut |_, payload| answer = Some(payload[0]))
+                .map_err(|e| TestError(e.to_string()))?;
+            let answer = answer.ok_or_else(|| TestError("no answer".into()))?;
+            Ok(output.emit(*input.header, POSE_LEN, &mut |out| out.fill(answer))?)
+        }
+    }
+
+    impl Joined for Asker {
+        type Side = HypothesesHeader;
+
+        fn side(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestError> {
+            self.seen_on_side.push(input.header.header.frame_id);
+            Ok(())
+        }
+    }
+
+    struct Collect(Arc<Mutex<Vec<f32>>>);
+
+    impl Sink for Collect {
+        type In = HypothesesHeader;
+        type Error = TestError;
+
+        fn consume(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestError> {
+            self.0.lock().unwrap().push(input.payload[0]);
+            Ok(())
+        }
+
+        fn finish(&mut self) -> Result<(), TestError> {
+            Ok(())
+        }
+    }
+
+    fn velocities_edge(service: &str) -> EdgeWiring {
+        EdgeWiring {
+            edge: "velocities".into(),
+            service: service.into(),
+            message: "Velocity".into(),
+            queue: 1,
+            overflow: OverflowPolicy::Block,
+            max_payload_len: 64,
+            readers: 1,
+        }
+    }
+
+    /// counter → doubler (serving velocities) → asker (calling it; the
+    /// counter's output as its side input) → collect, with one-slot
+    /// blocking queues: every frame arrives doubled and in order, each
+    /// input's side message was handed over before it, and the server
+    /// answers while its own output is full.
+    #[test]
+    fn a_server_answers_its_in_process_caller_and_side_inputs_come_first() {
+        const FRAMES: u64 = 200;
+        let service = "poseflow/local-test/velocities";
+        let mut local = LocalGraph::new();
+        for edge in ["raw", "passed", "asked"] {
+            local.edge(edge, 1, LocalOverflow::Block);
+        }
+        let collected = Arc::new(Mutex::new(Vec::new()));
+        let side_first = Arc::new(Mutex::new(Vec::new()));
+        local.add_source("counter", || Ok(Counter(0, FRAMES)), "raw", None).unwrap();
+        local.add_server("doubler", || Ok(Doubler), "raw", service, "passed").unwrap();
+        let side = side_first.clone();
+        let make_asker = move || -> Result<Asker, BuildError> {
+            let client = connect(&"asker".to_string(), &velocities_edge(service))?;
+            Ok(Asker { client, seen_on_side: Vec::new(), side_first: side })
+        };
+        local.add_joined("asker", make_asker, "passed", "raw", "asked").unwrap();
+        let sink = collected.clone();
+        local.add_sink("collect", move || Ok(Collect(sink)), "asked").unwrap();
+
+        let report = local.run(Arc::new(AtomicBool::new(false))).unwrap();
+        let expected: Vec<f32> = (0..FRAMES).map(|f| 2.0 * f as f32).collect();
+        assert_eq!(*collected.lock().unwrap(), expected);
+        assert!(side_first.lock().unwrap().iter().all(|&first| first));
+        assert_eq!(report["asker"].errors, 0);
+        assert_eq!(report["doubler"].frames_out, FRAMES);
+    }
+
+    #[test]
+    fn a_stage_that_cannot_be_built_stops_the_graph_and_is_named() {
+        let mut local = LocalGraph::new();
+        local.edge("raw", 1, LocalOverflow::Block);
+        local.add_source("counter", || Ok(Counter(0, u64::MAX)), "raw", None).unwrap();
+        local.add_sink("broken", || Err::<Collect, _>("no such model".into()), "raw").unwrap();
+        let err = local.run(Arc::new(AtomicBool::new(false))).unwrap_err();
+        assert_eq!(crate::error_chain(&err), "stage `broken`: cannot build from its parameters: no such model");
+    }
 }
