@@ -907,7 +907,7 @@ mod tests {
         local.add_server("doubler", || Ok(Doubler), "raw", service, "passed").unwrap();
         let side = side_first.clone();
         let make_asker = move || -> Result<Asker, BuildError> {
-            let client = connect(&"asker".to_string(), &velocities_edge(service))?;
+            let client = connect("asker", &velocities_edge(service))?;
             Ok(Asker { client, seen_on_side: Vec::new(), side_first: side })
         };
         local.add_joined("asker", make_asker, "passed", "raw", "asked").unwrap();
