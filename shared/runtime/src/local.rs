@@ -404,7 +404,8 @@ impl LocalGraph {
 
     /// Adds a [`Joined`] stage: `side` messages are handed to it before
     /// each input, so every side message published before an input is seen
-    /// before that input (as in a process, where causality orders them).
+    /// before that input (a message reaches all readers of its edge at
+    /// once, see [`push_all`]).
     pub fn add_joined<J: Joined + 'static>(
         &mut self,
         name: &str,
