@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use poseflow_contracts::{MessageHeader, MessageVisitor, monotonic_ns, visit_message};
 use poseflow_graph::{Graph, OverflowPolicy};
-use poseflow_runtime::recording::{RecordedEdge, RecordedMessage, RecordingError, RecordingInfo, RecordingWriter};
+use poseflow_runtime::recording::{RecordedMessage, RecordingError, RecordingWriter};
 use poseflow_runtime::{BuildError, Input, LocalGraph, LocalOverflow, Registry, Sink};
 
 use crate::LaunchError;
@@ -69,14 +69,7 @@ fn add_taps(
     path: &Path,
     edges: &[String],
 ) -> Result<Arc<Mutex<RecordingWriter>>, LaunchError> {
-    let info = RecordingInfo {
-        graph: graph.name.clone(),
-        instance: instance.to_string(),
-        edges: edges
-            .iter()
-            .map(|e| RecordedEdge { edge: e.clone(), message: graph.edges[e].message.clone() })
-            .collect(),
-    };
+    let info = crate::record::recording_info(graph, instance, edges);
     let writer = Arc::new(Mutex::new(RecordingWriter::create(path, &info)?));
     for edge in &info.edges {
         let unknown = || LaunchError::UnknownMessage { edge: edge.edge.clone(), message: edge.message.clone() };

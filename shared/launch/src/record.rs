@@ -83,6 +83,18 @@ impl MessageVisitor for Subscribe<'_> {
     }
 }
 
+/// What a recording of `edges` of `graph` says about itself.
+pub(crate) fn recording_info(graph: &Graph, instance: &str, edges: &[String]) -> RecordingInfo {
+    RecordingInfo {
+        graph: graph.name.clone(),
+        instance: instance.to_string(),
+        edges: edges
+            .iter()
+            .map(|e| RecordedEdge { edge: e.clone(), message: graph.edges[e].message.clone() })
+            .collect(),
+    }
+}
+
 /// A running recorder; [`Recorder::finish`] stops it and reports counts.
 #[derive(Debug)]
 pub struct Recorder {
@@ -120,14 +132,7 @@ impl Recorder {
     /// Subscribes to `edges` and starts writing `path`. Returns once the
     /// subscriptions exist, so the stages started next are all recorded.
     pub fn start(graph: &Graph, instance: &str, edges: &[String], path: PathBuf) -> Result<Self, LaunchError> {
-        let info = RecordingInfo {
-            graph: graph.name.clone(),
-            instance: instance.to_string(),
-            edges: edges
-                .iter()
-                .map(|e| RecordedEdge { edge: e.clone(), message: graph.edges[e].message.clone() })
-                .collect(),
-        };
+        let info = recording_info(graph, instance, edges);
         let specs: Vec<(String, String, EdgeOptions)> = edges
             .iter()
             .map(|name| {

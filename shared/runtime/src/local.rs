@@ -69,19 +69,28 @@ impl Doorbell {
 /// oldest message; a closed one drops it.
 fn push_all<H: Clone>(readers: &[Arc<Queue<H>>], message: (H, Vec<f32>)) {
     let mut states: Vec<_> = readers.iter().map(|q| q.state.lock().unwrap_or_else(|e| e.into_inner())).collect();
-    for (queue, state) in readers.iter().zip(states.iter_mut()) {
-        if state.closed {
-            continue;
+    let mut open: Vec<(&Arc<Queue<H>>, &mut QueueState<H>)> =
+        readers.iter().zip(states.iter_mut().map(|state| &mut **state)).filter(|(_, state)| !state.closed).collect();
+    if let Some((last, others)) = open.split_last_mut() {
+        for (queue, state) in others.iter_mut() {
+            enqueue(queue, state, message.clone());
         }
-        if state.messages.len() >= queue.capacity {
-            state.messages.pop_front();
-        }
-        state.messages.push_back(message.clone());
+        // The last reader takes the message itself: a Frame is megabytes.
+        enqueue(last.0, last.1, message);
     }
     drop(states);
     for queue in readers {
         queue.ring();
     }
+}
+
+/// Appends to a locked, open queue; a full one loses its oldest message
+/// (a blocking one was waited for before it was locked).
+fn enqueue<H>(queue: &Queue<H>, state: &mut QueueState<H>, message: (H, Vec<f32>)) {
+    if state.messages.len() >= queue.capacity {
+        state.messages.pop_front();
+    }
+    state.messages.push_back(message);
 }
 
 /// One reader's bounded queue.
@@ -194,10 +203,7 @@ struct LocalEmitter<'a, H> {
 
 impl<H: MessageHeader> Emitter<H> for LocalEmitter<'_, H> {
     fn emit(&mut self, mut header: H, len: usize, fill: &mut dyn FnMut(&mut [f32])) -> Result<(), EmitError> {
-        let expected = header.payload_len().map_err(|e| EmitError(e.to_string()))?;
-        if expected != len {
-            return Err(EmitError(format!("{}: payload of {len} values, the header announces {expected}", H::NAME)));
-        }
+        check_len(&header, len)?;
         if let Some(slot) = self.slot {
             header.header_mut().stamps.stamp(slot);
         }
