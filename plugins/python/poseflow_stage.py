@@ -24,12 +24,15 @@ structures below mirror them field by field.
 import ctypes
 import json
 import os
+import signal
 import time
 
 import iceoryx2 as iox2
 
 STAGE_SLOTS = 8
-SLOT_SAMPLER = 3
+# Timestamp slots (shared/contracts/src/header.rs, `Stage`).
+SLOT_SOURCE, SLOT_INGEST, SLOT_ENCODE, SLOT_SAMPLER, SLOT_SELECTOR, SLOT_GRASP, SLOT_NEXT_VIEW, SLOT_SINK = range(8)
+SELECTION_METHODS = {0: "none", 1: "model-free", 2: "chamfer", 3: "sdf"}
 
 # Event ids on `<edge>` and on `<edge>/ack` (shared/transport/src/pubsub.rs).
 DATA, END_OF_STREAM, PUBLISHER_CONNECTED = 0, 1, 2
@@ -486,50 +489,166 @@ class Counters:
         return beat
 
 
-def run_transform(process, header_type=HypothesesHeader, slot=SLOT_SAMPLER):
-    """Runs `process(header, floats) -> (header, values) or None` as a one-input,
-    one-output stage until end-of-stream or SIGINT/SIGTERM. `slot` is the
-    timestamp slot the stage writes on its outputs (None: none)."""
-    wire = wiring()
-    assert len(wire["inputs"]) == 1 and len(wire["outputs"]) == 1, "a transform has one input and one output"
-    node = iox2.NodeBuilder.new().name(iox2.NodeName.new(wire["stage"])).create(iox2.ServiceType.Ipc)
-    beat_edge = {"service": wire["heartbeat_service"], "queue": 1, "overflow": "drop-oldest", "max_payload_len": 1}
-    heartbeat = Output(node, beat_edge, Heartbeat)
-    source = Input(node, wire["inputs"][0], header_type)
-    sink = Output(node, wire["outputs"][0], header_type)
-    sink.wait_for_receivers(wire["outputs"][0]["readers"])
-    counters = Counters()
+class _Stage:
+    """What every stage kind shares: its wiring, node, heartbeat and counters."""
 
-    waitset = iox2.WaitSetBuilder.new().create(iox2.ServiceType.Ipc)
-    input_guard = waitset.attach_notification(source.listener)
-    beat_guard = waitset.attach_interval(iox2.Duration.from_millis(wire["heartbeat_ms"]))
-    heartbeat.publish(counters.heartbeat(STATE_RUNNING), [])
-    ended = False
-    while not ended:
-        attachments, result = waitset.wait_and_process()
-        if result in (iox2.WaitSetRunResult.TerminationRequest, iox2.WaitSetRunResult.Interrupt):
-            break
-        for attachment in attachments:
-            if attachment.has_event_from(beat_guard):
-                heartbeat.publish(counters.heartbeat(STATE_RUNNING), [])
-            if attachment.has_event_from(input_guard):
-                ended = source.take_events()
-                for header, floats, _sample in source.receive():
-                    if len(floats) != header.payload_len():
-                        counters.errors += 1
-                        continue
-                    counters.received(header.header.frame_id)
-                    started = time.perf_counter()
-                    out = process(header, floats)
-                    if out is not None:
-                        out_header, values = out
-                        if slot is not None:
-                            out_header.header.stamps.ns[slot] = monotonic_ns()
-                        sink.publish(out_header, values)
-                        counters.frames_out += 1
-                    counters.latencies_us.append(int((time.perf_counter() - started) * 1e6) + 1)
-    if ended:
+    def __init__(self, kind, inputs, outputs):
+        self.wire = wiring()
+        got = (len(self.wire["inputs"]), len(self.wire["outputs"]))
+        if got != (inputs, outputs):
+            raise SystemExit(
+                f"stage `{self.wire['stage']}`: a {kind} has {inputs} input(s) and {outputs} output(s); "
+                f"the graph gives {got[0]} and {got[1]}"
+            )
+        self.params = self.wire.get("params") or {}
+        self.node = iox2.NodeBuilder.new().name(iox2.NodeName.new(self.wire["stage"])).create(iox2.ServiceType.Ipc)
+        beat_edge = {"service": self.wire["heartbeat_service"], "queue": 1, "overflow": "drop-oldest", "max_payload_len": 1}
+        self.heartbeat = Output(self.node, beat_edge, Heartbeat)
+        self.counters = Counters()
+        self.heartbeat.publish(self.counters.heartbeat(STATE_RUNNING), [])
+
+    def output(self, header_type):
+        out = Output(self.node, self.wire["outputs"][0], header_type)
+        out.wait_for_receivers(self.wire["outputs"][0]["readers"])
+        return out
+
+    def beat(self):
+        self.heartbeat.publish(self.counters.heartbeat(STATE_RUNNING), [])
+
+    def run_input(self, header_type, handle):
+        """Hands every message of the one input to `handle(header, floats)`
+        (a contract-breaking one is counted as an error) until end-of-stream
+        (returns True) or SIGINT/SIGTERM (returns False)."""
+        source = Input(self.node, self.wire["inputs"][0], header_type)
+        waitset = iox2.WaitSetBuilder.new().create(iox2.ServiceType.Ipc)
+        input_guard = waitset.attach_notification(source.listener)
+        beat_guard = waitset.attach_interval(iox2.Duration.from_millis(self.wire["heartbeat_ms"]))
+        ended = False
+        while not ended:
+            attachments, result = waitset.wait_and_process()
+            if result in (iox2.WaitSetRunResult.TerminationRequest, iox2.WaitSetRunResult.Interrupt):
+                break
+            for attachment in attachments:
+                if attachment.has_event_from(beat_guard):
+                    self.beat()
+                if attachment.has_event_from(input_guard):
+                    ended = source.take_events()
+                    for header, floats, _sample in source.receive():
+                        if len(floats) != header.payload_len():
+                            self.counters.errors += 1
+                            continue
+                        self.counters.received(header.header.frame_id)
+                        started = time.perf_counter()
+                        handle(header, floats)
+                        self.counters.latencies_us.append(int((time.perf_counter() - started) * 1e6) + 1)
+        self.source = source
+        return ended
+
+    def finish(self):
+        self.heartbeat.publish(self.counters.heartbeat(STATE_FINISHED), [])
+        self.heartbeat.end_of_stream(1.0)
+
+
+def _stamped(header, slot):
+    if slot is not None:
+        header.header.stamps.ns[slot] = monotonic_ns()
+    return header
+
+
+def run_transform(process, header_type=HypothesesHeader, slot=SLOT_SAMPLER, output_type=None):
+    """Runs `process(header, floats) -> (header, values) or None` as a one-input,
+    one-output stage until end-of-stream or SIGINT/SIGTERM. Inputs are
+    `header_type` messages, outputs `output_type` ones (default: the same).
+    `slot` is the timestamp slot the stage writes on its outputs (None: none)."""
+    stage = _Stage("transform", 1, 1)
+    sink = stage.output(output_type or header_type)
+
+    def handle(header, floats):
+        out = process(header, floats)
+        if out is not None:
+            out_header, values = out
+            sink.publish(_stamped(out_header, slot), values)
+            stage.counters.frames_out += 1
+
+    if stage.run_input(header_type, handle):
         sink.end_of_stream()
-        source.acknowledge_end()
-    heartbeat.publish(counters.heartbeat(STATE_FINISHED), [])
-    heartbeat.end_of_stream(1.0)
+        stage.source.acknowledge_end()
+    stage.finish()
+
+
+def run_sink(consume, header_type):
+    """Runs `consume(header, floats)` on every message of the one input until
+    end-of-stream or SIGINT/SIGTERM. `floats` is a view into shared memory,
+    valid during the call only: copy what you keep (`list(floats)`)."""
+    stage = _Stage("sink", 1, 0)
+    if stage.run_input(header_type, consume):
+        stage.source.acknowledge_end()
+    stage.finish()
+
+
+def run_source(produce, header_type, slot=SLOT_SOURCE):
+    """Publishes `produce() -> (header, values)` until it returns None (the
+    end of the stream) or SIGINT/SIGTERM. The stage's `rate_hz` parameter,
+    when set, paces it; otherwise it sends as fast as its readers take."""
+    stage = _Stage("source", 0, 1)
+    out = stage.output(header_type)
+    stop = []
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.append(True))
+    rate_hz = float(stage.params.get("rate_hz", 0.0) or 0.0)
+    period = 1.0 / rate_hz if rate_hz > 0 else 0.0
+    next_send, next_beat = time.monotonic(), time.monotonic()
+    beat_every = stage.wire["heartbeat_ms"] / 1000.0
+    while not stop:
+        if period:
+            time.sleep(max(0.0, next_send - time.monotonic()))
+            next_send += period
+        message = produce()
+        if message is None:
+            break
+        header, values = message
+        out.publish(_stamped(header, slot), values)
+        stage.counters.frames_out += 1
+        if time.monotonic() >= next_beat:
+            stage.beat()
+            next_beat = time.monotonic() + beat_every
+    out.end_of_stream()
+    stage.finish()
+
+
+def estimate_dict(header, floats):
+    """An Estimate as plain Python: what a robot program reads.
+
+    `modes` carry their `weight` (share of the samples), `kept` hypotheses
+    their selection `score` (best first). Poses are object-to-camera (`x_cam = R x_obj + t`), `R` a 3×3 list of
+    rows, `t` in metres, camera frame (OpenCV axes). `covariance` is the 6×6
+    tangent covariance at `mean`, order [t; ω] (m², rad²)."""
+
+    def pose(values):
+        values = list(values)
+        return {"R": [values[0:3], values[3:6], values[6:9]], "t": values[9:12]}
+
+    def weighted(start, count, key):
+        records = []
+        for i in range(count):
+            at = start + i * WEIGHTED_POSE_LEN
+            record = pose(floats[at : at + POSE_LEN])
+            record[key] = float(floats[at + POSE_LEN])
+            records.append(record)
+        return records
+
+    modes = header.mode_count
+    cov = list(header.covariance)
+    return {
+        "frame": header.header.frame_id,
+        "object": header.header.object_id,
+        "best": pose(header.best),
+        "mean": pose(header.mean),
+        "covariance": [cov[6 * r : 6 * r + 6] for r in range(6)],
+        "rotation_trace_rad2": float(header.rotation_trace),
+        "selection": SELECTION_METHODS.get(header.selection, header.selection),
+        "refined": bool(header.refined),
+        "modes": weighted(0, modes, "weight"),
+        "kept": weighted(WEIGHTED_POSE_LEN * modes, header.kept_count, "score"),
+        "hypotheses": header.hypothesis_count,
+    }

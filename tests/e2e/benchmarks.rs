@@ -88,7 +88,7 @@ fn the_pipeline_benchmark_measures_both_graphs_through_processes_and_in_process(
         assert!(path["source→ingest"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{path}");
         assert!(path["selector→received"]["p50_ms"].as_f64().is_some(), "{path}");
         let in_process = &report[format!("{mode}_in_process_stages")];
-        assert!(in_process["encode"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{in_process}");
+        assert!(in_process["ingest→encode"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{in_process}");
     }
     for stage in ["frames", "ingest", "inference", "sampler", "selector"] {
         let latency = &report["stages"][stage];

@@ -13,7 +13,7 @@ fn a_python_stage_replaces_a_rust_one() {
     let before = shared_memory_files();
     let scratch = Scratch::new("python");
     let graph = scratch.graph(500, 0.0, "block");
-    let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/negating_relay.py");
+    let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/examples/negating_relay.py");
     let text = std::fs::read_to_string(&graph)
         .unwrap()
         .replace("exe = \"smoke-relay\"", &format!("exe = \"{}\"\nargs = [\"{plugin}\"]", plugin_python().display()));
@@ -69,7 +69,7 @@ fn a_python_detector_plugs_in_between_frames_and_ingest() {
     let _serial = serial();
     let before = shared_memory_files();
     let scratch = Scratch::new("detector");
-    let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/detector_template.py");
+    let plugin = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python/examples/detector_template.py");
     let graph = ingest_graph(&scratch, "detector.toml", &corpus_frames(), Some((plugin, "{ min_area = 150 }")));
     let recording = scratch.dir.join("observations.rec");
     let (result, stderr) = run_recording(&graph, "observations", &recording);

@@ -1,8 +1,9 @@
-//! The Python stage module's ctypes mirrors of the contracts
-//! (`plugins/python/poseflow_stage.py`) against the Rust layouts: size,
-//! alignment, every field's offset, and the iceoryx2 type name a service
-//! is opened with. A mismatch would corrupt every message silently or keep
-//! the Python side from opening the service.
+//! Python as a stage language (`plugins/python`): the module's ctypes
+//! mirrors of the contracts against the Rust layouts (size, alignment,
+//! every field's offset, and the iceoryx2 type name a service is opened
+//! with: a mismatch would corrupt every message silently or keep the
+//! Python side from opening the service), and the example source and
+//! Estimate sink in real graphs, through the installed module.
 
 use std::collections::BTreeMap;
 use std::mem::{align_of, offset_of, size_of};
@@ -13,7 +14,10 @@ use poseflow_contracts::{
     CameraIntrinsics, ConditionHandle, EstimateHeader, FrameHeader, GraspsHeader, Header, Heartbeat, HypothesesHeader,
     NextViewHeader, ObservationHeader, StageStamps, TensorHeader, VelocityRequest, VelocityResponse,
 };
+use poseflow_e2e::harness::*;
 use poseflow_e2e::plugin_python;
+use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+use poseflow_transport::shared_memory_files;
 use serde_json::{Value, json};
 
 /// `{size, align, type_name, fields: {name: offset}}` of one Rust contract.
@@ -142,4 +146,115 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
             assert_eq!(mirror["type_name"], expected["type_name"], "{name}: iceoryx2 type name");
         }
     }
+}
+
+/// The installed module (`pip install plugins/python`, as `deploy/setup`
+/// does), not the file beside the examples: a script in `examples/` finds
+/// only the installed copy.
+fn example(name: &str) -> String {
+    format!("{}/../plugins/python/examples/{name}", env!("CARGO_MANIFEST_DIR"))
+}
+
+/// A source written in Python feeds the Rust relay and checking sink,
+/// which verifies all 500 frames value by value.
+#[test]
+fn a_python_source_feeds_rust_stages() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("python-source");
+    let graph = scratch.graph(500, 0.0, "block");
+    let text = std::fs::read_to_string(&graph).unwrap().replace(
+        "exe = \"smoke-source\"",
+        &format!("exe = \"{}\"\nargs = [\"{}\"]", plugin_python().display(), example("counting_source.py")),
+    );
+    std::fs::write(&graph, text).unwrap();
+    let (summary, stderr) = run_to_end(&graph);
+    for stage in ["source", "relay", "sink"] {
+        assert_eq!(summary["stages"][stage]["outcome"], "finished", "{summary}\n{stderr}");
+    }
+    assert_eq!(summary["stages"]["source"]["frames_out"], 500, "{summary}");
+    let report = scratch.report();
+    assert_eq!((report.received, report.intact, report.gaps), (500, 500, 0), "{report:?}");
+    assert_nothing_leaked(&before);
+}
+
+/// The Python Estimate sink on the estimation graph: one JSON line per
+/// Estimate, each equal to the Estimate recorded on the same edge (frame,
+/// object, best pose, modes and kept hypotheses, value for value).
+#[test]
+fn a_python_sink_reads_every_estimate_of_the_estimation_graph() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("python-sink");
+    let root = std::path::PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
+    let lines = scratch.dir.join("estimates.jsonl");
+    let graph = scratch.dir.join("estimation-printed.toml");
+    let text = std::fs::read_to_string(root.join("deploy/estimation.toml"))
+        .unwrap()
+        .replace("\"../config/", &format!("\"{}/config/", root.display()))
+        + &format!(
+            "\n[stages.printer]\nexe = \"{}\"\nargs = [\"{}\"]\ninputs = [\"estimates\"]\n\
+             params = {{ format = \"json\", output = \"{}\" }}\n",
+            plugin_python().display(),
+            example("print_estimates.py"),
+            lines.display()
+        );
+    std::fs::write(&graph, text).unwrap();
+    let recording = scratch.dir.join("estimates.rec");
+    let args = [
+        "--json",
+        "--status-ms",
+        "0",
+        "--record",
+        recording.to_str().unwrap(),
+        "--record-edges",
+        "estimates",
+        "--set",
+        "frames.frames_per_scene=2",
+        "--set",
+        "selector.sdf_resolution=16",
+    ];
+    let output = run_graph(&args, &graph).current_dir(&root).output().unwrap();
+    let summary = summary(&output);
+    assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
+    assert_eq!(summary["stages"]["printer"]["outcome"], "finished", "{summary}");
+
+    let mut reader = RecordingReader::open(&recording).unwrap();
+    let mut recorded = Vec::new();
+    while let Some(message) = reader.next_message().unwrap() {
+        let header: EstimateHeader = header_from_bytes(&message.header).unwrap();
+        recorded.push((header, message.payload));
+    }
+    let printed: Vec<Value> =
+        std::fs::read_to_string(&lines).unwrap().lines().map(|line| serde_json::from_str(line).unwrap()).collect();
+    assert!(!recorded.is_empty());
+    assert_eq!(printed.len(), recorded.len(), "one line per Estimate");
+    let floats = |value: &Value| -> Vec<f32> {
+        let pose = |p: &Value| -> Vec<f32> {
+            let rows = p["R"].as_array().unwrap().iter().flat_map(|row| row.as_array().unwrap().clone());
+            rows.chain(p["t"].as_array().unwrap().iter().cloned()).map(|v| v.as_f64().unwrap() as f32).collect()
+        };
+        match value.as_array() {
+            Some(list) => list
+                .iter()
+                .flat_map(|item| {
+                    let weight = item.get("weight").or(item.get("score")).unwrap();
+                    pose(item).into_iter().chain([weight.as_f64().unwrap() as f32])
+                })
+                .collect(),
+            None => pose(value),
+        }
+    };
+    for ((header, payload), line) in recorded.iter().zip(&printed) {
+        assert_eq!(line["frame"], header.header.frame_id, "{line}");
+        assert_eq!(line["object"], header.header.object_id, "{line}");
+        assert_eq!(floats(&line["best"]), header.best, "{line}");
+        let modes = 13 * header.mode_count as usize;
+        assert_eq!(floats(&line["modes"]), payload[..modes], "{line}");
+        let kept = modes + 13 * header.kept_count as usize;
+        assert_eq!(floats(&line["kept"]), payload[modes..kept], "{line}");
+        assert_eq!(line["hypotheses"], header.hypothesis_count, "{line}");
+    }
+    drop(scratch);
+    assert_nothing_leaked(&before);
 }

@@ -2,14 +2,14 @@
 """A plug-in relay that breaks the message contract on purpose: every
 EVERY-th frame (argv[1], default 50) goes out with a header announcing one
 more sample than its payload holds; the others are negated as by
-plugins/python/negating_relay.py. The Rust sink must reject exactly those
+plugins/python/examples/negating_relay.py. The Rust sink must reject exactly those
 (counted as errors, logged with the message type and both lengths) and
 keep going. Used by tests/e2e/plugins.rs."""
 
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "plugins" / "python"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "plugins" / "python" / "examples"))
 
 import poseflow_stage  # noqa: E402
 from negating_relay import negate  # noqa: E402

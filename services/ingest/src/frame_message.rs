@@ -73,6 +73,14 @@ impl FrameLayout {
     }
 }
 
+/// `loaded` as a Frame message: its header and payload.
+pub fn frame_message(loaded: &LoadedFrame) -> (FrameHeader, Vec<f32>) {
+    let layout = FrameLayout::of(loaded);
+    let mut payload = vec![0.0; layout.payload_len()];
+    layout.write(loaded, &mut payload);
+    (layout.header, payload)
+}
+
 /// The frame and object masks of a Frame message (checked against its
 /// contract). Colours are rounded and clamped to 0–255; non-finite or
 /// negative depths become 0 (no measurement).

@@ -28,7 +28,7 @@ pub mod truth_prior;
 pub use crop::{CropBox, Normalisation, write_crop, write_token_mask};
 pub use edges::EdgeFilter;
 pub use error::IngestError;
-pub use frame_message::{FrameLayout, read_frame};
+pub use frame_message::{FrameLayout, frame_message, read_frame};
 pub use jitter::MaskJitter;
 pub use observe::{ObjectMask, Prepared, RgbdFrame, check_frame, prepare};
 pub use params::IngestParams;

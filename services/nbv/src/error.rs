@@ -10,8 +10,16 @@ pub enum NbvError {
     #[error("{path}: {detail}")]
     Objects { path: PathBuf, detail: String },
 
-    #[error(transparent)]
-    Pipeline(#[from] poseflow_pipeline::PipelineError),
+    #[error("the pose stages that score views")]
+    Estimation(#[source] Box<poseflow_launch::LaunchError>),
+
+    #[error("frame {frame} object {object}: a simulated view")]
+    View {
+        frame: u64,
+        object: u32,
+        #[source]
+        source: Box<crate::PoseStagesError>,
+    },
 
     #[error("frame {frame} object {object}: {detail}")]
     Frame { frame: u64, object: u32, detail: String },
@@ -21,4 +29,10 @@ pub enum NbvError {
 
     #[error(transparent)]
     Emit(#[from] poseflow_runtime::EmitError),
+}
+
+impl From<poseflow_launch::LaunchError> for NbvError {
+    fn from(err: poseflow_launch::LaunchError) -> Self {
+        NbvError::Estimation(Box::new(err))
+    }
 }

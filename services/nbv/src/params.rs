@@ -1,14 +1,11 @@
 //! The next-best-view stage's parameters (graph `params` over
 //! `config/nbv.toml`).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
-use poseflow_inference::stage::InferenceParams;
-use poseflow_ingest::IngestParams;
-use poseflow_sampler::SamplerParams;
+use poseflow_graph::Graph;
 use poseflow_scene::Camera;
 use poseflow_scene::dataset::lmo_camera;
-use poseflow_selector::SelectorParams;
 use serde::Deserialize;
 
 use crate::NbvError;
@@ -28,7 +25,7 @@ use crate::NbvError;
 /// | `seed` | seed of the simulated sensor noise (with the frame, candidate and hypothesis) | 0 |
 /// | `models` | BOP models directory the views are rendered from | `objects/lmo` |
 /// | `camera` | intrinsics of the camera that moves (`fx`, `fy`, `cx`, `cy`, `width`, `height`) | LM-O 640×480 |
-/// | `ingest`, `inference`, `sampler`, `selector` | the pose stages run on each simulated view: tables over those stages' defaults (fewer samples and steps than estimation) | 112 px / 8 patches; `models/poseflow-lmo10`, 1 thread; 16 samples, 3 steps; no selection |
+/// | `ingest`, `inference`, `sampler`, `selector` | the pose stages run on each simulated view ([`ESTIMATION_GRAPH`], built through the stage registry): tables over those stages' defaults (fewer samples and steps than estimation) | 112 px / 8 patches; `models/poseflow-lmo10`, 1 thread; 16 samples, 3 steps; no selection |
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Raw {
@@ -134,10 +131,87 @@ pub struct NbvParams {
     pub seed: u64,
     pub models: PathBuf,
     pub camera: Camera,
-    pub ingest: IngestParams,
-    pub inference: InferenceParams,
-    pub sampler: SamplerParams,
-    pub selector: SelectorParams,
+    /// The pose stages run on each simulated view, `frames` in,
+    /// `estimates` out ([`ESTIMATION_GRAPH`] with the stage tables).
+    pub estimation: Graph,
+}
+
+/// The graph of the pose stages the planner runs on simulated views; the
+/// stages' parameters are the `ingest`, `inference`, `sampler` and
+/// `selector` tables laid over their defaults.
+pub const ESTIMATION_GRAPH: &str = r#"
+[graph]
+name = "nbv-views"
+description = "The next-best-view planner's pose estimation on simulated views"
+
+[edges.frames]
+message = "Frame"
+queue = 1
+max_payload_len = 67108864
+
+[edges.observations]
+message = "Observation"
+queue = 2
+max_payload_len = 67108864
+
+[edges.conditions]
+message = "Condition"
+queue = 2
+
+[edges.velocities]
+message = "Velocity"
+pattern = "request-response"
+max_payload_len = 67108864
+
+[edges.hypotheses]
+message = "Hypotheses"
+queue = 2
+max_payload_len = 67108864
+
+[edges.estimates]
+message = "Estimate"
+queue = 2
+max_payload_len = 67108864
+
+# The planner feeds the simulated views in its place.
+[stages.views]
+exe = "frame-source"
+outputs = ["frames"]
+
+[stages.ingest]
+exe = "ingest"
+inputs = ["frames"]
+outputs = ["observations"]
+
+[stages.inference]
+exe = "inference"
+inputs = ["observations"]
+outputs = ["conditions"]
+serves = ["velocities"]
+
+[stages.sampler]
+exe = "sampler"
+inputs = ["conditions"]
+calls = ["velocities"]
+outputs = ["hypotheses"]
+
+[stages.selector]
+exe = "selector"
+inputs = ["hypotheses"]
+side_inputs = ["observations"]
+outputs = ["estimates"]
+"#;
+
+/// [`ESTIMATION_GRAPH`] with each stage's parameters.
+fn estimation_graph(tables: [(&str, serde_json::Value); 4]) -> Result<Graph, NbvError> {
+    let mut graph = poseflow_graph::parse_in_process(ESTIMATION_GRAPH, Path::new("<nbv estimation graph>"))
+        .map_err(|e| NbvError::Params { key: "estimation graph".into(), detail: e.to_string() })?;
+    for (stage, params) in tables {
+        if let Some(stage) = graph.stages.get_mut(stage) {
+            stage.params = params;
+        }
+    }
+    Ok(graph)
 }
 
 /// `overrides` laid over `defaults`, as a JSON object.
@@ -187,19 +261,12 @@ impl NbvParams {
         if let Some((key, _, detail)) = checks.into_iter().find(|(_, ok, _)| !ok) {
             return Err(bad(key, detail));
         }
-        let stage = |key: &str, detail: String| bad(key, detail);
-        let ingest =
-            IngestParams::from_json(&over(serde_json::json!({"image_size": 112, "patch_grid": 8}), raw.ingest))
-                .map_err(|e| stage("ingest", e.to_string()))?;
-        let inference = InferenceParams::from_json(&over(
-            serde_json::json!({"model": "models/poseflow-lmo10", "threads": 1}),
-            raw.inference,
-        ))
-        .map_err(|e| stage("inference", e.to_string()))?;
-        let sampler = SamplerParams::from_json(&over(serde_json::json!({"samples": 16, "steps": 3}), raw.sampler))
-            .map_err(|e| stage("sampler", e.to_string()))?;
-        let selector = SelectorParams::from_json(&over(serde_json::json!({"method": "none"}), raw.selector))
-            .map_err(|e| stage("selector", e.to_string()))?;
+        let estimation = estimation_graph([
+            ("ingest", over(serde_json::json!({"image_size": 112, "patch_grid": 8}), raw.ingest)),
+            ("inference", over(serde_json::json!({"model": "models/poseflow-lmo10", "threads": 1}), raw.inference)),
+            ("sampler", over(serde_json::json!({"samples": 16, "steps": 3}), raw.sampler)),
+            ("selector", over(serde_json::json!({"method": "none"}), raw.selector)),
+        ])?;
         let camera = raw.camera.map_or_else(
             || lmo_camera(640, 480),
             |c| Camera { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, width: c.width, height: c.height },
@@ -220,10 +287,7 @@ impl NbvParams {
             seed: raw.seed,
             models: raw.models,
             camera,
-            ingest,
-            inference,
-            sampler,
-            selector,
+            estimation,
         })
     }
 }
@@ -240,8 +304,10 @@ mod tests {
         .unwrap();
         assert_eq!(params.sphere.candidates, 8);
         assert_eq!(params.sphere.radius, Some(0.5));
-        assert_eq!((params.sampler.samples, params.sampler.steps), (8, 3));
-        assert_eq!((params.ingest.image_size, params.ingest.patch_grid), (112, 8));
+        let stage = |name: &str| &params.estimation.stages[name].params;
+        assert_eq!((&stage("sampler")["samples"], &stage("sampler")["steps"]), (&8.into(), &3.into()));
+        assert_eq!((&stage("ingest")["image_size"], &stage("ingest")["patch_grid"]), (&112.into(), &8.into()));
+        assert_eq!(stage("selector")["method"], "model-free");
         assert_eq!(params.up, nalgebra::Vector3::new(0.0, -1.0, 0.0));
         assert_eq!(params.camera.width, 640);
         assert!(NbvParams::from_json(&serde_json::json!({})).unwrap().sphere.radius.is_none());
@@ -251,8 +317,6 @@ mod tests {
         assert!(err.contains("`elevation_deg`") && err.contains("min < max"), "{err}");
         let err = error(serde_json::json!({"up": [0.0, 0.0, 0.0]}));
         assert!(err.contains("`up`"), "{err}");
-        let err = error(serde_json::json!({"sampler": {"samples": 0}}));
-        assert!(err.contains("`sampler`") && err.contains("samples"), "{err}");
         let err = error(serde_json::json!({"candidate": 3}));
         assert!(err.contains("unknown field `candidate`"), "{err}");
         let err = error(

@@ -12,11 +12,10 @@ use nalgebra::{Point3, Vector3};
 use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::{sample_seed, seeded_rng};
 use poseflow_geometry::symmetry::{BOP_MAX_SYMMETRY_STEP, SymmetrySet};
-use poseflow_ingest::IngestError;
-use poseflow_pipeline::{PipelineError, PosePipeline};
 use poseflow_scene::{ModelLibrary, RenderModel};
 
 use crate::candidates::candidate_views;
+use crate::pose_stages::PoseStages;
 use crate::simulate::{Viewpoint, simulated_view};
 use crate::{NbvError, NbvParams, Occluders};
 
@@ -76,33 +75,26 @@ struct Job {
     estimate_ms: f64,
 }
 
-/// The object models and the pose pipelines that score views.
+/// The object models and the pose stages that score views.
 #[derive(Debug)]
 pub struct NbvPlanner {
     params: NbvParams,
     library: ModelLibrary,
     /// Each library object's symmetries (BOP discretisation).
     symmetries: Vec<SymmetrySet>,
-    pipelines: Vec<PosePipeline>,
+    estimators: Vec<PoseStages>,
 }
 
 impl NbvPlanner {
     pub fn load(params: NbvParams) -> Result<Self, NbvError> {
         let library = ModelLibrary::load(&params.models, &[])
             .map_err(|e| NbvError::Objects { path: params.models.clone(), detail: e.to_string() })?;
-        let pipelines = (0..params.workers)
-            .map(|_| {
-                PosePipeline::new(
-                    params.ingest.clone(),
-                    &params.inference,
-                    params.sampler.clone(),
-                    params.selector.clone(),
-                )
-            })
-            .collect::<Result<_, _>>()?;
+        let registry = PoseStages::registry();
+        let estimators =
+            (0..params.workers).map(|_| PoseStages::start(&params.estimation, &registry)).collect::<Result<_, _>>()?;
         let symmetries =
             library.objects.iter().map(|o| SymmetrySet::from_model_info(&o.info, BOP_MAX_SYMMETRY_STEP)).collect();
-        Ok(Self { params, library, symmetries, pipelines })
+        Ok(Self { params, library, symmetries, estimators })
     }
 
     pub fn params(&self) -> &NbvParams {
@@ -200,23 +192,23 @@ impl NbvPlanner {
             .collect();
 
         // The jobs are dealt round-robin to the workers, each with its own
-        // pipeline; a job's result depends on its inputs alone, so the
+        // pose stages; a job's result depends on its inputs alone, so the
         // ranking does not depend on the worker count.
         let params = &self.params;
-        let workers = self.pipelines.len();
+        let workers = self.estimators.len();
         let results: Vec<Result<(), NbvError>> = std::thread::scope(|scope| {
             let mut shares: Vec<Vec<&mut Job>> = (0..workers).map(|_| Vec::new()).collect();
             for (i, job) in jobs.iter_mut().enumerate() {
                 shares[i % workers].push(job);
             }
             let handles: Vec<_> = self
-                .pipelines
+                .estimators
                 .iter_mut()
                 .zip(shares)
-                .map(|(pipeline, share)| {
+                .map(|(estimator, share)| {
                     scope.spawn(move || {
                         for job in share {
-                            run_job(pipeline, params, (model, symmetries), (frame, obj_id), occluders, job)?;
+                            run_job(estimator, params, (model, symmetries), (frame, obj_id), occluders, job)?;
                         }
                         Ok(())
                     })
@@ -269,7 +261,7 @@ fn find_object(library: &ModelLibrary, params: &NbvParams, frame: u64, obj_id: u
 /// Renders one job's view and estimates on it; a view the ingest rejects
 /// (too few points) is uninformative, any other failure is the plan's.
 fn run_job(
-    pipeline: &mut PosePipeline,
+    estimator: &mut PoseStages,
     params: &NbvParams,
     (model, symmetries): (&RenderModel, &SymmetrySet),
     (frame, obj_id): (u64, u32),
@@ -290,19 +282,19 @@ fn run_job(
         return Ok(());
     };
     let started = Instant::now();
-    let estimated = pipeline.estimate(&rgbd, &mask);
+    let estimated = estimator.estimate(&rgbd, &mask);
     job.estimate_ms = started.elapsed().as_secs_f64() * 1e3;
-    match estimated {
-        Ok(estimate) => {
-            let kept = estimate.header.kept_poses(&estimate.payload).map_err(PipelineError::from)?;
-            let rotations = kept
-                .map(|values| Pose::from_f32_row_major(values).map(|pose| pose.rotation))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(|e| NbvError::Frame { frame, object: obj_id, detail: format!("simulated estimate: {e}") })?;
-            job.trace = Some(symmetries.folded_rotation_spread(&rotations));
-        }
-        Err(PipelineError::Ingest(IngestError::Object { .. })) => {}
-        Err(other) => return Err(other.into()),
+    let failed =
+        |detail: String| NbvError::Frame { frame, object: obj_id, detail: format!("simulated view: {detail}") };
+    if let Some((header, payload)) =
+        estimated.map_err(|source| NbvError::View { frame, object: obj_id, source: Box::new(source) })?
+    {
+        let kept = header.kept_poses(&payload).map_err(|e| failed(e.to_string()))?;
+        let rotations = kept
+            .map(|values| Pose::from_f32_row_major(values).map(|pose| pose.rotation))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| failed(e.to_string()))?;
+        job.trace = Some(symmetries.folded_rotation_spread(&rotations));
     }
     Ok(())
 }

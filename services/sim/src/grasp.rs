@@ -20,10 +20,10 @@ use poseflow_scene::part::ObjectPart;
 use serde::Serialize;
 
 use super::mug::{Handle, render_mug};
-use super::{pose_pipeline, rounded, stage_params, write_trials_csv};
+use super::{load_graph, pose_stages, rounded, stage_params, write_trials_csv};
 
 #[derive(Debug, Args)]
-#[command(after_help = "Run from the repository root (reads config/*.toml as the graph does).\n\n\
+#[command(after_help = "Run from the repository root (reads --graph and its config files).\n\n\
     Each trial renders the YCB-V mug alone on a table (camera 0.45–0.65 m away, 15–35° above the table) with its \
     handle turned 60–120° from the line of sight (visible), away from the camera (occluded: hidden behind the body; \
     views where more than 10 handle pixels show are drawn again), or hidden but turned 25–70° from pointing away \
@@ -67,9 +67,10 @@ pub struct GraspSimArgs {
     /// Grasps sampled per plan.
     #[arg(long, default_value_t = 32)]
     pub grasps: usize,
-    /// Stage parameter files (the graph's).
-    #[arg(long, default_value = "config")]
-    pub config: PathBuf,
+    /// The graph whose pose stages estimate (in-process, from `frames` to `estimates`) and whose `grasp`
+    /// stage's parameters the planners start from.
+    #[arg(long, default_value = "deploy/grasping.toml")]
+    pub graph: PathBuf,
     /// Also write one row per trial to <out>/trials.csv.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -262,11 +263,11 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
         bail!("--trials 0: expected at least one trial per condition");
     }
     let library = ModelLibrary::load(&args.objects, &[args.mug])?;
-    let config = &args.config;
-    let mut pipeline = pose_pipeline(config, &args.model, &args.objects)?;
+    let graph = load_graph(&args.graph)?;
+    let mut pose = pose_stages(&graph, &args.model, &args.objects)?;
     let grasp = |hypotheses: usize| -> anyhow::Result<GraspPlanner<OnnxGraspField>> {
         let params = GraspParams::from_json(&stage_params(
-            config,
+            &graph,
             "grasp",
             serde_json::json!({
                 "model": args.grasp_model, "models": args.objects, "grasps": args.grasps, "hypotheses": hypotheses,
@@ -295,13 +296,14 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
             let frame_id = (c * args.trials + trial) as u64;
             let mut rng = seeded_rng(args.seed.wrapping_mul(1_000_003).wrapping_add(frame_id));
             let (_, view) = render_mug(&library, handle, frame_id, &mut rng);
-            let estimate = pipeline
+            let (header, payload) = pose
                 .estimate(&view.frame, &view.mask)
-                .with_context(|| format!("trial {trial} ({handle:?}): pose estimation"))?;
-            let kept = kept_hypotheses(&estimate.header, &estimate.payload)?;
+                .with_context(|| format!("trial {trial} ({handle:?}): pose estimation"))?
+                .with_context(|| format!("trial {trial} ({handle:?}): the view shows too little of the mug"))?;
+            let kept = kept_hypotheses(&header, &payload)?;
             let truth = view.camera_from_object;
             let world_from_camera = view.camera_from_world.inverse();
-            let best = Pose::from_f32_row_major(&estimate.header.best)?;
+            let best = Pose::from_f32_row_major(&header.best)?;
             let started = Instant::now();
             let one_plan = single.plan(frame_id, args.mug, &[best])?;
             plan_ms[0].push(started.elapsed().as_secs_f64() * 1e3);

@@ -1,5 +1,6 @@
 //! `poseflow sim`: closed-loop simulations on rendered scenes, with the
-//! real pose stages run in-process.
+//! pose stages of a graph file run in-process (built by their
+//! registrations, as in every graph).
 
 mod clutter;
 mod grasp;
@@ -11,14 +12,11 @@ use std::path::Path;
 use anyhow::Context;
 use clap::{Args, Subcommand};
 use poseflow_geometry::sampling::SeededRng;
-use poseflow_inference::stage::InferenceParams;
-use poseflow_ingest::IngestParams;
+use poseflow_graph::Graph;
 use poseflow_ingest::{ObjectMask, RgbdFrame};
-use poseflow_pipeline::PosePipeline;
-use poseflow_sampler::SamplerParams;
+use poseflow_nbv::PoseStages;
 use poseflow_scene::bop::Raster;
 use poseflow_scene::{Camera, DepthNoise, Frame};
-use poseflow_selector::SelectorParams;
 
 #[derive(Debug, Args)]
 pub struct SimArgs {
@@ -41,36 +39,39 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     }
 }
 
-/// A stage's parameters: its config file with `overrides` laid over it.
-fn stage_params(config: &Path, stage: &str, overrides: serde_json::Value) -> anyhow::Result<serde_json::Value> {
-    let path = config.join(format!("{stage}.toml"));
-    let text = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let table: toml::Table = toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
-    let mut params = serde_json::to_value(table)?;
+/// A graph file read for an in-process run (its stages are built from the
+/// registry, so their executables need not exist).
+fn load_graph(file: &Path) -> anyhow::Result<Graph> {
+    let text = std::fs::read_to_string(file).with_context(|| format!("{}: cannot read", file.display()))?;
+    Ok(poseflow_graph::parse_in_process(&text, file)?)
+}
+
+/// A stage's parameters in `graph` with `overrides` laid over them.
+fn stage_params(graph: &Graph, stage: &str, overrides: serde_json::Value) -> anyhow::Result<serde_json::Value> {
+    let known = || graph.stages.keys().cloned().collect::<Vec<_>>().join(", ");
+    let stage = graph.stages.get(stage).with_context(|| {
+        format!("{}: no stage `{stage}`; the simulation needs one (stages: {})", graph.file.display(), known())
+    })?;
+    let mut params = stage.params.clone();
     if let (Some(params), Some(overrides)) = (params.as_object_mut(), overrides.as_object()) {
         params.extend(overrides.clone());
     }
     Ok(params)
 }
 
-/// The pose stages as the simulations estimate with them: the graph's
-/// config with the default model's input size, `model`, and SDF selection
-/// with refinement against the models in `objects`.
-fn pose_pipeline(config: &Path, model: &Path, objects: &Path) -> anyhow::Result<PosePipeline> {
-    let ingest = IngestParams::from_json(&stage_params(
-        config,
-        "ingest",
-        serde_json::json!({"image_size": 112, "patch_grid": 8}),
-    )?)?;
-    let inference =
-        InferenceParams::from_json(&stage_params(config, "inference", serde_json::json!({"model": model}))?)?;
-    let sampler = SamplerParams::from_json(&stage_params(config, "sampler", serde_json::json!({}))?)?;
-    let selector = SelectorParams::from_json(&stage_params(
-        config,
-        "selector",
-        serde_json::json!({"method": "sdf", "models": objects, "refine": true}),
-    )?)?;
-    Ok(PosePipeline::new(ingest, &inference, sampler, selector)?)
+/// The pose stages of `graph` as the simulations estimate with them, in
+/// this process: `model`, and SDF selection with refinement against the
+/// models in `objects`.
+fn pose_stages(graph: &Graph, model: &Path, objects: &Path) -> anyhow::Result<PoseStages> {
+    let mut graph = graph.clone();
+    for (stage, overrides) in [
+        ("inference", serde_json::json!({"model": model})),
+        ("selector", serde_json::json!({"method": "sdf", "models": objects, "refine": true})),
+    ] {
+        let params = stage_params(&graph, stage, overrides)?;
+        graph.stages.get_mut(stage).expect("checked by stage_params").params = params;
+    }
+    Ok(PoseStages::start(&graph, &PoseStages::registry())?)
 }
 
 /// What a simulated camera delivers: `rendered` with the sensor's depth

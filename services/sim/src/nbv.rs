@@ -9,14 +9,15 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use nalgebra::Vector3;
+use poseflow_contracts::EstimateHeader;
 use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::{SeededRng, seeded_rng};
 use poseflow_geometry::so3::geodesic_angle;
 use poseflow_geometry::symmetry::{BOP_MAX_SYMMETRY_STEP, SymmetrySet};
-use poseflow_ingest::{IngestError, ObjectMask, RgbdFrame};
+use poseflow_ingest::{ObjectMask, RgbdFrame};
+use poseflow_nbv::PoseStages;
 use poseflow_nbv::stage::kept_hypotheses;
 use poseflow_nbv::{NbvParams, NbvPlanner, Occluders};
-use poseflow_pipeline::{Estimated, PipelineError, PosePipeline};
 use poseflow_scene::ModelLibrary;
 use poseflow_scene::scene::Scene;
 use rand::Rng;
@@ -24,7 +25,7 @@ use serde::Serialize;
 
 use super::clutter::{ClutterView, render_occluded, view_clutter};
 use super::mug::{Handle, MugView, render_mug, view_mug};
-use super::{pose_pipeline, rounded, stage_params, write_trials_csv};
+use super::{load_graph, pose_stages, rounded, stage_params, write_trials_csv};
 
 /// Where the trials start.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -36,7 +37,7 @@ pub enum StartScene {
 }
 
 #[derive(Debug, Args)]
-#[command(after_help = "Run from the repository root (reads config/*.toml as the graph does).\n\n\
+#[command(after_help = "Run from the repository root (reads --graph and its config files).\n\n\
     --scene mug (default): each trial renders the YCB-V mug alone on a table with its handle turned away from the \
     camera (hidden behind the body; camera 0.45–0.65 m away, 15–35° above the table). --scene clutter: the LM-O \
     objects of --objects among distractors (heavy occlusion), seen 0.4–0.8 m away so that the trial's target (the \
@@ -79,9 +80,10 @@ pub struct NbvSimArgs {
     /// The mug's object id (--scene mug).
     #[arg(long, default_value_t = 14)]
     pub mug: u32,
-    /// Stage parameter files (the graph's; the planner reads nbv.toml).
-    #[arg(long, default_value = "config")]
-    pub config: PathBuf,
+    /// The graph whose pose stages estimate (in-process, from `frames` to `estimates`) and whose `nbv` stage's
+    /// parameters the planner starts from.
+    #[arg(long, default_value = "deploy/next-view.toml")]
+    pub graph: PathBuf,
     /// Also write one row per trial, policy and move to <out>/trials.csv.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -248,10 +250,17 @@ struct Trial {
     moves: Vec<(Policy, [Outcome; 2])>,
 }
 
+/// One Estimate as the selector published it.
+#[derive(Debug, Clone)]
+struct Estimated {
+    header: EstimateHeader,
+    payload: Vec<f32>,
+}
+
 /// What the simulation needs besides the trial and the policy.
 struct World<'a> {
     library: &'a ModelLibrary,
-    pipeline: &'a mut PosePipeline,
+    pose: &'a mut PoseStages,
     planner: &'a mut NbvPlanner,
 }
 
@@ -259,11 +268,10 @@ impl World<'_> {
     /// The estimate from `seen` and its outcome; `None` when the view shows
     /// too little of the target (the ingest rejects it).
     fn estimate(&mut self, seen: &Seen, symmetries: &SymmetrySet) -> anyhow::Result<Option<(Estimated, Outcome)>> {
-        let estimate = match self.pipeline.estimate(&seen.frame, &seen.mask) {
-            Ok(estimate) => estimate,
-            Err(PipelineError::Ingest(IngestError::Object { .. })) => return Ok(None),
-            Err(other) => return Err(other.into()),
+        let Some((header, payload)) = self.pose.estimate(&seen.frame, &seen.mask)? else {
+            return Ok(None);
         };
+        let estimate = Estimated { header, payload };
         let best = Pose::from_f32_row_major(&estimate.header.best)?;
         let kept = kept_hypotheses(&estimate.header, &estimate.payload)?;
         let rotations: Vec<_> = kept.iter().map(|pose| pose.rotation).collect();
@@ -423,12 +431,13 @@ pub fn run(args: &NbvSimArgs) -> anyhow::Result<()> {
         StartScene::Clutter => (args.objects.clone().unwrap_or_else(|| "objects/lmo".into()), Vec::new()),
     };
     let library = ModelLibrary::load(&objects, &ids)?;
-    let mut pipeline = pose_pipeline(&args.config, &args.model, &objects)?;
-    let nbv = stage_params(&args.config, "nbv", serde_json::json!({"models": objects, "seed": args.seed}))?;
-    let mut nbv = NbvParams::from_json(&nbv)?;
-    nbv.inference.model.clone_from(&args.model);
-    let mut planner = NbvPlanner::load(nbv)?;
-    let mut world = World { library: &library, pipeline: &mut pipeline, planner: &mut planner };
+    let graph = load_graph(&args.graph)?;
+    let mut pose = pose_stages(&graph, &args.model, &objects)?;
+    let mut nbv = stage_params(&graph, "nbv", serde_json::json!({"models": objects, "seed": args.seed}))?;
+    // The planner scores views with the same network as the estimates.
+    nbv["inference"]["model"] = serde_json::json!(args.model);
+    let mut planner = NbvPlanner::load(NbvParams::from_json(&nbv)?)?;
+    let mut world = World { library: &library, pose: &mut pose, planner: &mut planner };
 
     let mut trials = Vec::with_capacity(args.trials);
     for trial in 0..args.trials {

@@ -76,11 +76,21 @@ pub fn load(file: &Path, search_path: &[PathBuf]) -> Result<Graph, GraphError> {
 pub fn parse(text: &str, file: &Path, search_path: &[PathBuf]) -> Result<Graph, GraphError> {
     let spec: GraphFile = toml::from_str(text)
         .map_err(|e| GraphError::Syntax { file: file.to_path_buf(), message: e.to_string().trim_end().to_string() })?;
-    Checker { file }.graph(spec, search_path)
+    Checker { file, resolve_exes: true }.graph(spec, search_path)
+}
+
+/// Validates file contents for an in-process launch, where stages are
+/// found by executable name in a stage registry: `exe` names are kept as
+/// written, not looked up on disk.
+pub fn parse_in_process(text: &str, file: &Path) -> Result<Graph, GraphError> {
+    let spec: GraphFile = toml::from_str(text)
+        .map_err(|e| GraphError::Syntax { file: file.to_path_buf(), message: e.to_string().trim_end().to_string() })?;
+    Checker { file, resolve_exes: false }.graph(spec, &[])
 }
 
 struct Checker<'a> {
     file: &'a Path,
+    resolve_exes: bool,
 }
 
 impl Checker<'_> {
@@ -185,7 +195,11 @@ impl Checker<'_> {
     ) -> Result<Stage, GraphError> {
         let key = format!("stages.{name}");
         self.name(&key, "stage", &name)?;
-        let exe = resolve_executable(&spec.exe, graph_dir, search_path).map_err(|searched| {
+        let resolved = match self.resolve_exes {
+            true => resolve_executable(&spec.exe, graph_dir, search_path),
+            false => Ok(PathBuf::from(&spec.exe)),
+        };
+        let exe = resolved.map_err(|searched| {
             let places: Vec<String> = searched.iter().map(|p| p.display().to_string()).collect();
             self.invalid(
                 format!("{key}.exe"),

@@ -14,7 +14,7 @@ mod spec;
 mod wiring;
 
 pub use error::GraphError;
-pub use graph::{Edge, Graph, Restart, Stage, load, parse};
+pub use graph::{Edge, Graph, Restart, Stage, load, parse, parse_in_process};
 pub use resolve::resolve_executable;
 pub use spec::{EdgePattern, OverflowPolicy, RestartPolicy};
 pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV};

@@ -38,7 +38,7 @@ impl EdgeWiring {
 }
 
 /// Everything a stage process needs to join its graph.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StageWiring {
     /// Graph instance name: the namespace of all services.

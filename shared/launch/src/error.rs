@@ -77,4 +77,14 @@ pub enum LaunchError {
         #[source]
         source: RuntimeError,
     },
+
+    #[error("{}: edge `{edge}`: expected a publish-subscribe edge of {expected} messages, found {found}", file.display())]
+    DrivenEdge { file: PathBuf, edge: String, expected: &'static str, found: String },
+
+    #[error("{}: driven in-process", file.display())]
+    Driven {
+        file: PathBuf,
+        #[source]
+        source: poseflow_runtime::DriveError,
+    },
 }

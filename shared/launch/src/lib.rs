@@ -6,7 +6,13 @@
 //! built through the stage [`Registry`]. Either way it returns a [`Report`]
 //! with each stage's outcome, restarts and counters. `poseflow run`, the
 //! demo, the evaluation and the benchmarks all launch graphs through here.
+//!
+//! [`DrivenGraph`] runs the stages between two edges of a graph in-process
+//! and hands them one message at a time: the simulations, the
+//! next-best-view planner and the in-process benchmark baseline estimate
+//! through it.
 
+mod driven;
 mod error;
 mod local;
 mod record;
@@ -16,6 +22,7 @@ mod supervisor;
 use std::path::PathBuf;
 use std::time::Duration;
 
+pub use driven::{DrivenGraph, stages_between};
 pub use error::LaunchError;
 use poseflow_graph::Graph;
 use poseflow_runtime::Registry;

@@ -80,12 +80,14 @@ fn add_taps(
     Ok(writer)
 }
 
-pub fn run(
+/// The stages of `graph` that `keep` selects, each built by its
+/// registration, in a new [`LocalGraph`] with every edge declared.
+pub(crate) fn build(
     graph: &Graph,
     instance: &str,
     registry: &Registry,
-    record: Option<&(std::path::PathBuf, Vec<String>)>,
-) -> Result<Report, LaunchError> {
+    keep: impl Fn(&poseflow_graph::Stage) -> bool,
+) -> Result<LocalGraph, LaunchError> {
     let mut local = LocalGraph::new();
     for edge in graph.edges.values() {
         let overflow = match edge.overflow {
@@ -94,7 +96,7 @@ pub fn run(
         };
         local.edge(&edge.name, edge.queue, overflow);
     }
-    for stage in graph.stages.values() {
+    for stage in graph.stages.values().filter(|stage| keep(stage)) {
         let exe = stage.exe.file_name().and_then(|n| n.to_str()).unwrap_or_default();
         let registration =
             registry.get(exe).filter(|r| r.runs_in_process()).ok_or_else(|| LaunchError::NotInProcess {
@@ -110,6 +112,16 @@ pub fn run(
             source,
         })?;
     }
+    Ok(local)
+}
+
+pub fn run(
+    graph: &Graph,
+    instance: &str,
+    registry: &Registry,
+    record: Option<&(std::path::PathBuf, Vec<String>)>,
+) -> Result<Report, LaunchError> {
+    let mut local = build(graph, instance, registry, |_| true)?;
     let writer = match record {
         Some((path, edges)) => Some(add_taps(&mut local, graph, instance, path, edges)?),
         None => None,

@@ -15,7 +15,7 @@ use poseflow_contracts::MessageHeader;
 use poseflow_graph::EdgeWiring;
 use poseflow_transport::{Node, RequestClient, TransportError, create_node};
 
-use crate::local::Doorbell;
+use crate::local::queue::Doorbell;
 
 /// Why a call got no answer.
 #[derive(Debug, thiserror::Error)]

@@ -30,6 +30,8 @@ pub(crate) struct Liveness {
     latency_us: Mutex<Histogram<u64>>,
     /// This process replaced a dead one and has not yet said so downstream.
     restart_unannounced: AtomicBool,
+    /// The stage has been built (an in-process stage builds on its thread).
+    built: AtomicBool,
 }
 
 fn micros(ns: u64) -> u32 {
@@ -51,7 +53,16 @@ impl Liveness {
             // 1 µs .. 60 s at 3 significant digits.
             latency_us: Mutex::new(Histogram::new_with_bounds(1, 60_000_000, 3).expect("valid histogram bounds")),
             restart_unannounced: AtomicBool::new(false),
+            built: AtomicBool::new(false),
         }
+    }
+
+    pub fn mark_built(&self) {
+        self.built.store(true, Relaxed);
+    }
+
+    pub fn is_built(&self) -> bool {
+        self.built.load(Relaxed)
     }
 
     /// A restarted process flags its first output so that stages downstream

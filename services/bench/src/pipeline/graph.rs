@@ -69,6 +69,20 @@ pub(super) fn measure(run: &GraphRun<'_>, log: &Path, warmup: u64) -> anyhow::Re
 /// The stamps of an Estimate's path through the estimation graph, in order.
 const PATH: [Stage; 5] = [Stage::Source, Stage::Ingest, Stage::Encode, Stage::Sampler, Stage::Selector];
 
+/// The intervals between consecutive stamps of an Estimate's path, the
+/// last ending when it was received (`received_ns`, monotonic).
+pub(super) fn path_intervals(header: &EstimateHeader, received_ns: u64) -> Vec<(String, Duration)> {
+    let stamps: Vec<(&str, u64)> = PATH
+        .iter()
+        .filter_map(|&stage| Some((stage.name(), header.header.stamps.get(stage)?)))
+        .chain([("received", received_ns)])
+        .collect();
+    stamps
+        .windows(2)
+        .map(|pair| (format!("{}→{}", pair[0].0, pair[1].0), Duration::from_nanos(pair[1].1.saturating_sub(pair[0].1))))
+        .collect()
+}
+
 /// Per frame id (from `warmup` on): estimates, latency from the source's
 /// stamp to the last one received; the time from the first counted
 /// frame's completion to the last's; the path's intervals per estimate.
@@ -95,14 +109,8 @@ fn frame_latencies(
         entry.1 = entry.1.max(message.received_ns);
         entry.2 += 1;
         if frame >= warmup {
-            let stamps: Vec<(&str, u64)> = PATH
-                .iter()
-                .filter_map(|&stage| Some((stage.name(), header.header.stamps.get(stage)?)))
-                .chain([("received", message.received_ns)])
-                .collect();
-            for pair in stamps.windows(2) {
-                let interval = Duration::from_nanos(pair[1].1.saturating_sub(pair[0].1));
-                path.entry(format!("{}→{}", pair[0].0, pair[1].0)).or_default().push(interval);
+            for (interval, duration) in path_intervals(&header, message.received_ns) {
+                path.entry(interval).or_default().push(duration);
             }
         }
     }

@@ -1,46 +1,34 @@
-//! The in-process baseline: the graph's pose stages as one
-//! [`PosePipeline`] with the graph's parameters, frame after frame on one
-//! thread (the same library code the stage processes run).
+//! The in-process baseline: the graph's stages between its frames and its
+//! estimates as threads of this process ([`DrivenGraph`], built by the
+//! same registrations as the processes), one frame at a time: no transport
+//! and no pipelining across frames.
 
+use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, bail};
+use poseflow_contracts::{EstimateHeader, FrameHeader, monotonic_ns};
 use poseflow_graph::Graph;
-use poseflow_inference::stage::InferenceParams;
-use poseflow_ingest::IngestParams;
+use poseflow_ingest::frame_message;
 use poseflow_ingest::sources::LoadedFrame;
-use poseflow_pipeline::{PosePipeline, StageTimes};
-use poseflow_sampler::SamplerParams;
-use poseflow_selector::SelectorParams;
+use poseflow_launch::DrivenGraph;
 
 use super::FrameLatencies;
+use super::graph::path_intervals;
 
-/// The parameters of the stage whose executable is `exe`.
-fn params_of<'a>(graph: &'a Graph, exe: &str) -> anyhow::Result<&'a serde_json::Value> {
-    let mut found = graph.stages.values().filter(|s| s.exe.file_name().is_some_and(|n| n == exe));
-    match (found.next(), found.next()) {
-        (Some(stage), None) => Ok(&stage.params),
-        (None, _) => bail!("{}: no stage with exe = {exe:?}; the pipeline benchmark needs one", graph.file.display()),
-        (Some(_), Some(_)) => bail!("{}: several stages with exe = {exe:?}; expected one", graph.file.display()),
-    }
-}
+pub(super) type InProcessGraph = DrivenGraph<FrameHeader, EstimateHeader>;
 
-/// The graph's ingest, inference, sampler and selector as one pipeline.
-pub(super) fn pipeline_of(graph: &Graph) -> anyhow::Result<PosePipeline> {
-    let context = |stage: &str| format!("{}: stage `{stage}`", graph.file.display());
-    let ingest = IngestParams::from_json(params_of(graph, "ingest")?).with_context(|| context("ingest"))?;
-    let inference = InferenceParams::from_json(params_of(graph, "inference")?).with_context(|| context("inference"))?;
-    let sampler = SamplerParams::from_json(params_of(graph, "sampler")?).with_context(|| context("sampler"))?;
-    let selector = SelectorParams::from_json(params_of(graph, "selector")?).with_context(|| context("selector"))?;
-    Ok(PosePipeline::new(ingest, &inference, sampler, selector)?)
+/// The graph's stages from `frames` to `estimates`, started.
+pub(super) fn start(graph: &Graph, frames: &str, estimates: &str) -> anyhow::Result<InProcessGraph> {
+    Ok(DrivenGraph::start(graph, &poseflow_stages::registry(), frames, estimates)?)
 }
 
 /// What the in-process run measured, warm-up frames left out.
 #[derive(Debug)]
 pub(super) struct InProcess {
     pub frames: FrameLatencies,
-    /// Per estimate, where its time went.
-    pub stage_times: Vec<StageTimes>,
+    /// Per estimate, the intervals between the stamps of its path (as the
+    /// graph's are measured).
+    pub path: BTreeMap<String, Vec<Duration>>,
     pub wall: Duration,
 }
 
@@ -48,12 +36,12 @@ pub(super) struct InProcess {
 /// `period`, one frame per period (as a paced frame source sends them);
 /// frames before `warmup` are run but not counted.
 pub(super) fn measure(
-    pipeline: &mut PosePipeline,
+    graph: &mut InProcessGraph,
     frames: &[LoadedFrame],
     warmup: usize,
     period: Option<Duration>,
-) -> InProcess {
-    let mut measured = InProcess { frames: FrameLatencies::default(), stage_times: Vec::new(), wall: Duration::ZERO };
+) -> anyhow::Result<InProcess> {
+    let mut measured = InProcess { frames: FrameLatencies::default(), path: BTreeMap::new(), wall: Duration::ZERO };
     let first = Instant::now();
     for (index, loaded) in frames.iter().enumerate() {
         let _span = tracing::debug_span!("frame", id = loaded.frame.frame_id).entered();
@@ -61,24 +49,19 @@ pub(super) fn measure(
             std::thread::sleep((first + period * index as u32).saturating_duration_since(Instant::now()));
         }
         let started = Instant::now();
-        let mut estimated = 0;
-        let mut times = Vec::new();
-        for object in &loaded.objects {
-            match pipeline.estimate(&loaded.frame, object) {
-                Ok(estimate) => {
-                    estimated += 1;
-                    times.push(estimate.times);
-                }
-                Err(err) => tracing::warn!(object = object.obj_id, %err, "not estimated"),
-            }
-        }
-        let latency = started.elapsed();
+        let (header, payload) = frame_message(loaded);
+        let estimates = graph.process(header, payload)?;
+        let (latency, received) = (started.elapsed(), monotonic_ns());
         if index < warmup {
             continue;
         }
         measured.wall += latency;
-        measured.frames.record(loaded.frame.frame_id, estimated, latency);
-        measured.stage_times.extend(times);
+        measured.frames.record(loaded.frame.frame_id, estimates.len(), latency);
+        for (estimate, _) in &estimates {
+            for (interval, duration) in path_intervals(estimate, received) {
+                measured.path.entry(interval).or_default().push(duration);
+            }
+        }
     }
-    measured
+    Ok(measured)
 }

@@ -4,8 +4,10 @@
 //! an orbiting camera, every frame rendered before the first is sent).
 //!
 //! Per mode (estimation, tracking):
-//! 1. **in-process**: the graph's pose stages as one pipeline, frame after
-//!    frame on one thread (the baseline: no transport, no pipelining);
+//! 1. **in-process**: the graph's stages between its frame source and its
+//!    estimates as threads of this process, built by the same
+//!    registrations, one frame at a time (the baseline: no transport, no
+//!    pipelining across frames);
 //! 2. **graph, saturated**: `poseflow run` with the frame source as fast as
 //!    the graph accepts: frames per second, stages overlapping across
 //!    frames;
@@ -239,13 +241,15 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
     let expected = (args.frames - args.warmup) as usize;
 
     let frames = render_sequence(&graph.stages[&source].params)?;
-    let mut pipeline = in_process::pipeline_of(&graph)?;
-    let local = in_process::measure(&mut pipeline, &frames, warmup, None);
+    let frames_edge = graph.stages[&source].outputs.first().cloned().unwrap_or_default();
+    let mut local_graph = in_process::start(&graph, &frames_edge, &args.estimates_edge)?;
+    let local = in_process::measure(&mut local_graph, &frames, warmup, None)?;
     let in_process_fps = local.frames.frames.len() as f64 / local.wall.as_secs_f64().max(1e-9);
     let paced_hz = args.latency_load * in_process_fps;
     let period = Duration::from_secs_f64(1.0 / paced_hz);
-    let local_paced = in_process::measure(&mut pipeline, &frames, warmup, Some(period));
-    drop((pipeline, frames));
+    let local_paced = in_process::measure(&mut local_graph, &frames, warmup, Some(period))?;
+    let in_process_errors: u64 = local_graph.finish()?.values().map(|beat| beat.errors).sum();
+    drop(frames);
     tracing::info!(mode = mode.name(), fps = in_process_fps, "in-process measured");
 
     let run = |label: &str, extra: Option<String>| -> anyhow::Result<GraphRunFigures> {
@@ -274,14 +278,14 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
     Ok(ModeFigures {
         in_process: Figures::new(in_process_fps, &local_paced.frames, expected),
         back_to_back: Figures::new(in_process_fps, &local.frames, expected),
-        in_process_stages: stage_breakdown(&local_paced.stage_times),
+        in_process_stages: path_breakdown(&local_paced.path),
         graph: graph_figures,
         saturated: Figures::new(saturated_fps, &saturated.frames, expected),
         paced_hz,
         path: path_breakdown(&paced.path),
         stages: paced.stages,
         restarts: saturated.restarts + paced.restarts,
-        errors: saturated.errors + paced.errors,
+        errors: saturated.errors + paced.errors + in_process_errors,
     })
 }
 
@@ -300,20 +304,6 @@ fn path_breakdown(path: &std::collections::BTreeMap<String, Vec<Duration>>) -> s
         })
         .collect::<serde_json::Map<_, _>>()
         .into()
-}
-
-/// Per-estimate time of each in-process stage, milliseconds.
-fn stage_breakdown(times: &[poseflow_pipeline::StageTimes]) -> serde_json::Value {
-    let of = |pick: fn(&poseflow_pipeline::StageTimes) -> Duration| {
-        let timing = Timing::of(times.iter().map(pick).collect());
-        json!({"p50_ms": timing.p50_ms, "p99_ms": timing.p99_ms, "mean_ms": timing.mean_ms})
-    };
-    json!({
-        "ingest": of(|t| t.ingest),
-        "encode": of(|t| t.encode),
-        "sample": of(|t| t.sample),
-        "select": of(|t| t.select),
-    })
 }
 
 fn cpu_model() -> Option<String> {
@@ -414,7 +404,7 @@ fn table(measured: &[(Mode, ModeFigures)]) -> String {
         out.push_str(&stages.join(", "));
         out.push('\n');
         out.push_str(&format!("  graph path (paced, p50 ms): {}\n", one_line(&f.path)));
-        out.push_str(&format!("  in-process per estimate (p50 ms): {}\n", one_line(&f.in_process_stages)));
+        out.push_str(&format!("  in-process path (paced, p50 ms): {}\n", one_line(&f.in_process_stages)));
     }
     out
 }

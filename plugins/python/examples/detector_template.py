@@ -13,7 +13,7 @@ Wire it between the frame source and ingest:
 
     [stages.detector]
     exe = "target/python-venv/bin/python"
-    args = ["plugins/python/detector_template.py"]
+    args = ["plugins/python/examples/detector_template.py"]
     inputs = ["frames"]
     outputs = ["detected"]
     params = { min_area = 150 }

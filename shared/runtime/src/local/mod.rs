@@ -1,20 +1,28 @@
 //! In-process mode: the same stage libraries as threads of one process,
-//! connected by bounded queues instead of shared memory. It is the
-//! baseline of the latency benchmarks and a convenient harness for tests.
+//! connected by bounded queues instead of shared memory. A graph runs to
+//! its end ([`LocalGraph::run`]), or is driven from outside
+//! ([`LocalGraph::start`] with a [`Feed`] and a [`Collector`]): a
+//! simulation or a planner hands it one message at a time and takes what
+//! came out once the graph has settled.
+
+mod driven;
+pub(crate) mod queue;
+
+pub use driven::{Collector, DriveError, Feed, RunningGraph};
 
 use std::any::Any;
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Condvar, Mutex};
-use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use poseflow_contracts::{Heartbeat, MessageHeader, Stage, StageState};
+use poseflow_contracts::{Heartbeat, MessageHeader, Stage};
 
-use crate::call::{Endpoint, PendingRequest, close_endpoint, open_endpoint};
+use crate::call::{Endpoint, PendingRequest, open_endpoint};
 use crate::error::{BuildError, RuntimeError};
 use crate::liveness::Liveness;
 use crate::stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};
+use queue::{Doorbell, InFlight, Queue, push_all};
 
 /// How often a blocked stage looks at the stop flag.
 const STOP_POLL: Duration = Duration::from_millis(50);
@@ -33,157 +41,6 @@ pub enum LocalGraphError {
 pub enum LocalOverflow {
     DropOldest,
     Block,
-}
-
-/// Wakes a stage that waits on more than one thing (its input and side
-/// inputs, or its input and its requests): every push rings it.
-#[derive(Debug, Default)]
-pub(crate) struct Doorbell {
-    rung: Mutex<u64>,
-    changed: Condvar,
-}
-
-impl Doorbell {
-    pub fn ring(&self) {
-        *self.rung.lock().unwrap_or_else(|e| e.into_inner()) += 1;
-        self.changed.notify_all();
-    }
-
-    pub fn count(&self) -> u64 {
-        *self.rung.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
-    /// Sleeps until it rings after `seen` was read, or `timeout` passes.
-    pub fn wait_past(&self, seen: u64, timeout: Duration) {
-        let rung = self.rung.lock().unwrap_or_else(|e| e.into_inner());
-        if *rung == seen {
-            let _ = self.changed.wait_timeout(rung, timeout);
-        }
-    }
-}
-
-/// Queues `message` for every reader at once (all their locks held), so a
-/// stage reading two of them (an input and a side input) never sees the
-/// message on one before the other. A full blocking queue is waited for
-/// before (see [`Queue::wait_for_room`]); a full drop-oldest one loses its
-/// oldest message; a closed one drops it.
-fn push_all<H: Clone>(readers: &[Arc<Queue<H>>], message: (H, Vec<f32>)) {
-    let mut states: Vec<_> = readers.iter().map(|q| q.state.lock().unwrap_or_else(|e| e.into_inner())).collect();
-    let mut open: Vec<(&Arc<Queue<H>>, &mut QueueState<H>)> =
-        readers.iter().zip(states.iter_mut().map(|state| &mut **state)).filter(|(_, state)| !state.closed).collect();
-    if let Some((last, others)) = open.split_last_mut() {
-        for (queue, state) in others.iter_mut() {
-            enqueue(queue, state, message.clone());
-        }
-        // The last reader takes the message itself: a Frame is megabytes.
-        enqueue(last.0, last.1, message);
-    }
-    drop(states);
-    for queue in readers {
-        queue.ring();
-    }
-}
-
-/// Appends to a locked, open queue; a full one loses its oldest message
-/// (a blocking one was waited for before it was locked).
-fn enqueue<H>(queue: &Queue<H>, state: &mut QueueState<H>, message: (H, Vec<f32>)) {
-    if state.messages.len() >= queue.capacity {
-        state.messages.pop_front();
-    }
-    state.messages.push_back(message);
-}
-
-/// One reader's bounded queue.
-#[derive(Debug)]
-struct Queue<H> {
-    state: Mutex<QueueState<H>>,
-    changed: Condvar,
-    capacity: usize,
-    overflow: LocalOverflow,
-    doorbell: Option<Arc<Doorbell>>,
-}
-
-#[derive(Debug)]
-struct QueueState<H> {
-    messages: VecDeque<(H, Vec<f32>)>,
-    /// Publishers still attached; the stream ends when it reaches 0.
-    publishers: usize,
-    /// The reader has ended: later messages are dropped, not queued, so no
-    /// publisher waits for room that never comes.
-    closed: bool,
-}
-
-impl<H> Queue<H> {
-    fn ring(&self) {
-        self.changed.notify_all();
-        if let Some(doorbell) = &self.doorbell {
-            doorbell.ring();
-        }
-    }
-
-    /// Whether a message can be queued now without waiting.
-    fn has_room(&self) -> bool {
-        let state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        state.closed || self.overflow == LocalOverflow::DropOldest || state.messages.len() < self.capacity
-    }
-
-    /// Waits until [`Self::has_room`] or `stop`. Only the edge's one
-    /// publisher queues here, so the room is still there when it pushes.
-    fn wait_for_room(&self, stop: &AtomicBool) {
-        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        while self.overflow == LocalOverflow::Block
-            && state.messages.len() >= self.capacity
-            && !state.closed
-            && !stop.load(Ordering::Relaxed)
-        {
-            state = self.changed.wait_timeout(state, STOP_POLL).unwrap_or_else(|e| e.into_inner()).0;
-        }
-    }
-
-    fn try_pop(&self) -> Option<(H, Vec<f32>)> {
-        let message = self.state.lock().unwrap_or_else(|e| e.into_inner()).messages.pop_front();
-        if message.is_some() {
-            self.changed.notify_all();
-        }
-        message
-    }
-
-    /// Every publisher is gone and the queue is drained.
-    fn ended(&self) -> bool {
-        let state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        state.publishers == 0 && state.messages.is_empty()
-    }
-
-    fn close(&self) {
-        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        state.closed = true;
-        state.messages.clear();
-        drop(state);
-        self.changed.notify_all();
-    }
-
-    /// The next message; `None` once every publisher is gone and the queue
-    /// is drained, or when `stop` is set.
-    fn pop(&self, stop: &AtomicBool) -> Option<(H, Vec<f32>)> {
-        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        loop {
-            if let Some(message) = state.messages.pop_front() {
-                self.changed.notify_all();
-                return Some(message);
-            }
-            if state.publishers == 0 || stop.load(Ordering::Relaxed) {
-                return None;
-            }
-            state = self.changed.wait_timeout(state, STOP_POLL).unwrap_or_else(|e| e.into_inner()).0;
-        }
-    }
-
-    fn detach_publisher(&self) {
-        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        state.publishers -= 1;
-        drop(state);
-        self.ring();
-    }
 }
 
 /// The queues of one edge: one per reader.
@@ -238,6 +95,8 @@ type StageEnd = Result<(), BuildError>;
 type Edges = HashMap<String, Box<dyn Any + Send>>;
 /// Builds a stage's thread once every reader of every edge is known.
 type Deferred = Box<dyn FnOnce(&Edges) -> StageThread>;
+/// Attaches a [`Feed`] to its edge's readers when the graph starts.
+type AttachFeed = Box<dyn FnOnce(&Edges, &Arc<AtomicBool>)>;
 
 /// A graph of stages as threads. Declare edges, add stages, then [`run`].
 ///
@@ -248,6 +107,9 @@ pub struct LocalGraph {
     pending: Vec<(String, Arc<Liveness>, Deferred)>,
     /// Request-response services served in-process, closed when the graph ends.
     services: Vec<String>,
+    /// Publishers from outside the graph, attached when it starts.
+    feeds: Vec<AttachFeed>,
+    in_flight: Arc<InFlight>,
 }
 
 impl std::fmt::Debug for LocalGraph {
@@ -267,7 +129,14 @@ impl Default for LocalGraph {
 
 impl LocalGraph {
     pub fn new() -> Self {
-        Self { edges: HashMap::new(), specs: HashMap::new(), pending: Vec::new(), services: Vec::new() }
+        Self {
+            edges: HashMap::new(),
+            specs: HashMap::new(),
+            pending: Vec::new(),
+            services: Vec::new(),
+            feeds: Vec::new(),
+            in_flight: Arc::new(InFlight::default()),
+        }
     }
 
     /// Declares an edge's queue size and overflow policy.
@@ -298,13 +167,7 @@ impl LocalGraph {
     ) -> Result<Arc<Queue<H>>, LocalGraphError> {
         let (capacity, overflow) =
             *self.specs.get(name).ok_or_else(|| LocalGraphError::Undeclared { edge: name.to_string() })?;
-        let queue = Arc::new(Queue {
-            state: Mutex::new(QueueState { messages: VecDeque::new(), publishers: 0, closed: false }),
-            changed: Condvar::new(),
-            capacity,
-            overflow,
-            doorbell,
-        });
+        let queue = Arc::new(Queue::new(capacity, overflow, doorbell, Some(self.in_flight.clone())));
         self.typed::<H>(name)?.readers.push(queue.clone());
         Ok(queue)
     }
@@ -325,7 +188,7 @@ impl LocalGraph {
             .map(|e| e.readers.clone())
             .unwrap_or_default();
         for queue in &readers {
-            queue.state.lock().unwrap_or_else(|e| e.into_inner()).publishers += 1;
+            queue.attach_publisher();
         }
         readers
     }
@@ -346,7 +209,7 @@ impl LocalGraph {
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<S::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
-                let mut source = build_or_stop(make, &stop)?;
+                let mut source = build_or_stop(make, &stop, &live)?;
                 let mut emitter = LocalEmitter { readers, slot: S::SLOT, liveness: &live, stop: &stop };
                 let period = rate_hz.filter(|hz| *hz > 0.0).map(|hz| Duration::from_secs_f64(1.0 / hz));
                 let mut next = Instant::now();
@@ -395,10 +258,11 @@ impl LocalGraph {
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<T::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
-                let mut stage = build_or_stop(make, &stop)?;
+                let mut stage = build_or_stop(make, &stop, &live)?;
                 let mut emitter = LocalEmitter { readers, slot: T::SLOT, liveness: &live, stop: &stop };
                 while let Some((header, payload)) = queue.pop(&stop) {
                     transform_one(&mut stage, &header, &payload, &mut emitter, &live);
+                    queue.handled();
                 }
                 queue.close();
                 Ok(())
@@ -434,7 +298,7 @@ impl LocalGraph {
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<J::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
-                let mut stage = build_or_stop(make, &stop)?;
+                let mut stage = build_or_stop(make, &stop, &live)?;
                 let mut emitter = LocalEmitter { readers, slot: J::SLOT, liveness: &live, stop: &stop };
                 while !stop.load(Ordering::Relaxed) {
                     let seen = doorbell.count();
@@ -443,9 +307,11 @@ impl LocalGraph {
                             live.count_error();
                             tracing::warn!(%err, "side input failed; message skipped");
                         }
+                        side_queue.handled();
                     }
                     if let Some((header, payload)) = queue.try_pop() {
                         transform_one(&mut stage, &header, &payload, &mut emitter, &live);
+                        queue.handled();
                         continue;
                     }
                     if queue.ended() {
@@ -492,7 +358,7 @@ impl LocalGraph {
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<S::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
-                let mut stage = build_or_stop(make, &stop)?;
+                let mut stage = build_or_stop(make, &stop, &live)?;
                 let answer_all = |stage: &mut S| {
                     while let Some(request) = endpoint.take() {
                         answer(stage, request, &live);
@@ -513,6 +379,7 @@ impl LocalGraph {
                     for message in held.messages.drain(..) {
                         deliver(message, &readers, &live, &stop, &mut || answer_all(&mut stage));
                     }
+                    queue.handled();
                 }
                 queue.close();
                 // The end of the output stream reaches the callers, which may
@@ -548,7 +415,7 @@ impl LocalGraph {
         let live = liveness.clone();
         let run: Deferred = Box::new(move |_| {
             Box::new(move |stop: Arc<AtomicBool>| {
-                let mut sink = build_or_stop(make, &stop)?;
+                let mut sink = build_or_stop(make, &stop, &live)?;
                 while let Some((header, payload)) = queue.pop(&stop) {
                     live.count_received(header.header().frame_id);
                     let started = Instant::now();
@@ -558,6 +425,7 @@ impl LocalGraph {
                         tracing::warn!(%err, "consume failed; frame skipped");
                     }
                     live.work_finished(started.elapsed());
+                    queue.handled();
                 }
                 queue.close();
                 if let Err(err) = sink.finish() {
@@ -570,18 +438,52 @@ impl LocalGraph {
         Ok(())
     }
 
+    /// A publisher of `edge` from outside the graph: what it sends reaches
+    /// the edge's readers as a stage's output would. Dropping it ends the
+    /// edge's stream (when it is the edge's only publisher).
+    pub fn feed<H: MessageHeader + Send + 'static>(&mut self, edge: &str) -> Result<Feed<H>, LocalGraphError> {
+        let pending = self.publish::<H>(edge)?;
+        let feed = Feed::new(edge);
+        let attach = feed.attachment();
+        self.feeds.push(Box::new(move |edges, stop| {
+            attach(Self::readers_of::<H>(edges, &pending.edge), stop.clone());
+        }));
+        Ok(feed)
+    }
+
+    /// A reader of `edge` outside the graph: it keeps every message (it is
+    /// unbounded, so it never holds the graph back) until drained.
+    pub fn collect<H: MessageHeader + Send + 'static>(&mut self, edge: &str) -> Result<Collector<H>, LocalGraphError> {
+        if !self.specs.contains_key(edge) {
+            return Err(LocalGraphError::Undeclared { edge: edge.to_string() });
+        }
+        let queue = Arc::new(Queue::new(usize::MAX, LocalOverflow::Block, None, None));
+        self.typed::<H>(edge)?.readers.push(queue.clone());
+        Ok(Collector::new(queue))
+    }
+
     fn defer(&mut self, name: &str, liveness: Arc<Liveness>, run: Deferred) {
         self.pending.push((name.to_string(), liveness, run));
     }
 
     /// Runs every stage in its own thread until all have finished (the
-    /// sources ended and everything drained) or `stop` is set.
+    /// sources ended and everything drained) or `stop` is set. Every
+    /// [`Feed`] must have been dropped, or the graph never ends.
     pub fn run(self, stop: Arc<AtomicBool>) -> Result<LocalReport, RuntimeError> {
+        self.start(stop).finish()
+    }
+
+    /// Starts every stage in its own thread and returns at once: the graph
+    /// is then driven through its feeds and collectors.
+    pub fn start(self, stop: Arc<AtomicBool>) -> RunningGraph {
         // Every publisher attaches to its readers before any thread starts,
         // so no reader mistakes "not started yet" for "finished".
+        for feed in self.feeds {
+            feed(&self.edges, &stop);
+        }
         let threads: Vec<(String, Arc<Liveness>, StageThread)> =
             self.pending.into_iter().map(|(name, live, deferred)| (name, live, deferred(&self.edges))).collect();
-        let handles: Vec<(String, Arc<Liveness>, JoinHandle<StageEnd>)> = threads
+        let stages = threads
             .into_iter()
             .map(|(name, live, thread)| {
                 let stop = stop.clone();
@@ -593,30 +495,7 @@ impl LocalGraph {
                 (name, live, handle)
             })
             .collect();
-        let mut failure = None;
-        let mut report = LocalReport::new();
-        for (name, live, handle) in handles {
-            match handle.join() {
-                Ok(Ok(())) => {}
-                Ok(Err(source)) => {
-                    live.count_error();
-                    failure.get_or_insert(RuntimeError::Build { stage: name.clone(), source });
-                }
-                Err(_) => {
-                    live.count_error();
-                    tracing::error!(stage = %name, "stage thread panicked");
-                }
-            }
-            live.set_state(StageState::Finished);
-            report.insert(name, live.heartbeat());
-        }
-        for service in &self.services {
-            close_endpoint(service);
-        }
-        match failure {
-            Some(err) => Err(err),
-            None => Ok(report),
-        }
+        RunningGraph::new(stages, self.services, stop, self.in_flight)
     }
 }
 
@@ -703,8 +582,14 @@ fn answer<S: Server>(stage: &mut S, request: PendingRequest<S::Request, S::Respo
 }
 
 /// Builds a stage on its thread; a failure stops the whole graph.
-fn build_or_stop<T>(make: impl FnOnce() -> Result<T, BuildError>, stop: &AtomicBool) -> Result<T, BuildError> {
-    make().inspect_err(|_| stop.store(true, Ordering::Relaxed))
+fn build_or_stop<T>(
+    make: impl FnOnce() -> Result<T, BuildError>,
+    stop: &AtomicBool,
+    live: &Liveness,
+) -> Result<T, BuildError> {
+    let stage = make().inspect_err(|_| stop.store(true, Ordering::Relaxed))?;
+    live.mark_built();
+    Ok(stage)
 }
 
 /// Hands one input to a transform, timing and counting it as a process does.
@@ -727,215 +612,4 @@ fn transform_one<T: Transform>(
 }
 
 #[cfg(test)]
-mod tests {
-    use std::sync::{Arc, Mutex};
-
-    use poseflow_contracts::{
-        Header, HypothesesHeader, POSE_LEN, VELOCITY_LEN, VelocityRequest, VelocityResponse, status,
-    };
-    use poseflow_graph::{EdgeWiring, OverflowPolicy};
-
-    use super::*;
-    use crate::call::{Call, connect};
-
-    #[derive(Debug, thiserror::Error)]
-    #[error("{0}")]
-    struct TestError(String);
-
-    impl From<EmitError> for TestError {
-        fn from(err: EmitError) -> Self {
-            TestError(err.to_string())
-        }
-    }
-
-    fn hypotheses(frame: u64) -> HypothesesHeader {
-        HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 }
-    }
-
-    /// Frames 0..n, one pose each, every value the frame number.
-    struct Counter(u64, u64);
-
-    impl Source for Counter {
-        type Out = HypothesesHeader;
-        type Error = TestError;
-        const SLOT: Option<Stage> = None;
-
-        fn next(&mut self, output: &mut dyn Emitter<HypothesesHeader>) -> Result<SourceStep, TestError> {
-            if self.0 == self.1 {
-                return Ok(SourceStep::Finished);
-            }
-            let frame = self.0;
-            self.0 += 1;
-            output.emit(hypotheses(frame), POSE_LEN, &mut |out| out.fill(frame as f32))?;
-            Ok(SourceStep::Continue)
-        }
-    }
-
-    /// Passes its input on and answers each velocity request with twice the
-    /// request's first value.
-    struct Doubler;
-
-    impl Transform for Doubler {
-        type In = HypothesesHeader;
-        type Out = HypothesesHeader;
-        type Error = TestError;
-        const SLOT: Option<Stage> = None;
-
-        fn process(
-            &mut self,
-            input: Input<'_, HypothesesHeader>,
-            output: &mut dyn Emitter<HypothesesHeader>,
-        ) -> Result<(), TestError> {
-            Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
-        }
-    }
-
-    impl Server for Doubler {
-        type Request = VelocityRequest;
-        type Response = VelocityResponse;
-
-        fn answer(
-            &mut self,
-            request: Input<'_, VelocityRequest>,
-            reply: &mut dyn Emitter<VelocityResponse>,
-        ) -> Result<(), TestError> {
-            let header = VelocityResponse {
-                header: request.header.header,
-                request_id: request.header.request_id,
-                sample_count: 1,
-                status: status::OK,
-            };
-            let doubled = 2.0 * request.payload[0];
-            Ok(reply.emit(header, VELOCITY_LEN, &mut |out| out.fill(doubled))?)
-        }
-
-        fn answer_invalid(
-            &mut self,
-            _request: &VelocityRequest,
-            _reply: &mut dyn Emitter<VelocityResponse>,
-        ) -> Result<(), TestError> {
-            Err(TestError("invalid request".into()))
-        }
-    }
-
-    /// Asks the server about each input; outputs the answer. Also a joined
-    /// stage: it notes whether each input's frame came by the side input
-    /// first.
-    struct Asker {
-        client: Box<dyn Call<VelocityRequest, VelocityResponse>>,
-        seen_on_side: Vec<u64>,
-        side_first: Arc<Mutex<Vec<bool>>>,
-    }
-
-    impl Transform for Asker {
-        type In = HypothesesHeader;
-        type Out = HypothesesHeader;
-        type Error = TestError;
-        const SLOT: Option<Stage> = None;
-
-        fn process(
-            &mut self,
-            input: Input<'_, HypothesesHeader>,
-            output: &mut dyn Emitter<HypothesesHeader>,
-        ) -> Result<(), TestError> {
-            let frame = input.header.header.frame_id;
-            self.side_first.lock().unwrap().push(self.seen_on_side.contains(&frame));
-            let request = VelocityRequest {
-                header: input.header.header,
-                condition_id: 0,
-                request_id: frame,
-                sample_count: 1,
-                t: 0.5,
-                step_index: 0,
-                step_count: 1,
-            };
-            let mut answer = None;
-            self.client
-                .call(request, input.payload, Duration::from_secs(5), &mut |_, payload| answer = Some(payload[0]))
-                .map_err(|e| TestError(e.to_string()))?;
-            let answer = answer.ok_or_else(|| TestError("no answer".into()))?;
-            Ok(output.emit(*input.header, POSE_LEN, &mut |out| out.fill(answer))?)
-        }
-    }
-
-    impl Joined for Asker {
-        type Side = HypothesesHeader;
-
-        fn side(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestError> {
-            self.seen_on_side.push(input.header.header.frame_id);
-            Ok(())
-        }
-    }
-
-    struct Collect(Arc<Mutex<Vec<f32>>>);
-
-    impl Sink for Collect {
-        type In = HypothesesHeader;
-        type Error = TestError;
-
-        fn consume(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestError> {
-            self.0.lock().unwrap().push(input.payload[0]);
-            Ok(())
-        }
-
-        fn finish(&mut self) -> Result<(), TestError> {
-            Ok(())
-        }
-    }
-
-    fn velocities_edge(service: &str) -> EdgeWiring {
-        EdgeWiring {
-            edge: "velocities".into(),
-            service: service.into(),
-            message: "Velocity".into(),
-            queue: 1,
-            overflow: OverflowPolicy::Block,
-            max_payload_len: 64,
-            readers: 1,
-        }
-    }
-
-    /// counter → doubler (serving velocities) → asker (calling it; the
-    /// counter's output as its side input) → collect, with one-slot
-    /// blocking queues: every frame arrives doubled and in order, each
-    /// input's side message was handed over before it, and the server
-    /// answers while its own output is full.
-    #[test]
-    fn a_server_answers_its_in_process_caller_and_side_inputs_come_first() {
-        const FRAMES: u64 = 200;
-        let service = "poseflow/local-test/velocities";
-        let mut local = LocalGraph::new();
-        for edge in ["raw", "passed", "asked"] {
-            local.edge(edge, 1, LocalOverflow::Block);
-        }
-        let collected = Arc::new(Mutex::new(Vec::new()));
-        let side_first = Arc::new(Mutex::new(Vec::new()));
-        local.add_source("counter", || Ok(Counter(0, FRAMES)), "raw", None).unwrap();
-        local.add_server("doubler", || Ok(Doubler), "raw", service, "passed").unwrap();
-        let side = side_first.clone();
-        let make_asker = move || -> Result<Asker, BuildError> {
-            let client = connect("asker", &velocities_edge(service))?;
-            Ok(Asker { client, seen_on_side: Vec::new(), side_first: side })
-        };
-        local.add_joined("asker", make_asker, "passed", "raw", "asked").unwrap();
-        let sink = collected.clone();
-        local.add_sink("collect", move || Ok(Collect(sink)), "asked").unwrap();
-
-        let report = local.run(Arc::new(AtomicBool::new(false))).unwrap();
-        let expected: Vec<f32> = (0..FRAMES).map(|f| 2.0 * f as f32).collect();
-        assert_eq!(*collected.lock().unwrap(), expected);
-        assert!(side_first.lock().unwrap().iter().all(|&first| first));
-        assert_eq!(report["asker"].errors, 0);
-        assert_eq!(report["doubler"].frames_out, FRAMES);
-    }
-
-    #[test]
-    fn a_stage_that_cannot_be_built_stops_the_graph_and_is_named() {
-        let mut local = LocalGraph::new();
-        local.edge("raw", 1, LocalOverflow::Block);
-        local.add_source("counter", || Ok(Counter(0, u64::MAX)), "raw", None).unwrap();
-        local.add_sink("broken", || Err::<Collect, _>("no such model".into()), "raw").unwrap();
-        let err = local.run(Arc::new(AtomicBool::new(false))).unwrap_err();
-        assert_eq!(crate::error_chain(&err), "stage `broken`: cannot build from its parameters: no such model");
-    }
-}
+mod tests;

@@ -1,0 +1,262 @@
+use std::sync::{Arc, Mutex};
+
+use poseflow_contracts::{Header, HypothesesHeader, POSE_LEN, VELOCITY_LEN, VelocityRequest, VelocityResponse, status};
+use poseflow_graph::{EdgeWiring, OverflowPolicy};
+
+use super::*;
+use crate::call::{Call, connect};
+use crate::local::DriveError;
+
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct TestError(String);
+
+impl From<EmitError> for TestError {
+    fn from(err: EmitError) -> Self {
+        TestError(err.to_string())
+    }
+}
+
+fn hypotheses(frame: u64) -> HypothesesHeader {
+    HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 }
+}
+
+/// Frames 0..n, one pose each, every value the frame number.
+struct Counter(u64, u64);
+
+impl Source for Counter {
+    type Out = HypothesesHeader;
+    type Error = TestError;
+    const SLOT: Option<Stage> = None;
+
+    fn next(&mut self, output: &mut dyn Emitter<HypothesesHeader>) -> Result<SourceStep, TestError> {
+        if self.0 == self.1 {
+            return Ok(SourceStep::Finished);
+        }
+        let frame = self.0;
+        self.0 += 1;
+        output.emit(hypotheses(frame), POSE_LEN, &mut |out| out.fill(frame as f32))?;
+        Ok(SourceStep::Continue)
+    }
+}
+
+/// Passes its input on and answers each velocity request with twice the
+/// request's first value.
+struct Doubler;
+
+impl Transform for Doubler {
+    type In = HypothesesHeader;
+    type Out = HypothesesHeader;
+    type Error = TestError;
+    const SLOT: Option<Stage> = None;
+
+    fn process(
+        &mut self,
+        input: Input<'_, HypothesesHeader>,
+        output: &mut dyn Emitter<HypothesesHeader>,
+    ) -> Result<(), TestError> {
+        Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
+    }
+}
+
+impl Server for Doubler {
+    type Request = VelocityRequest;
+    type Response = VelocityResponse;
+
+    fn answer(
+        &mut self,
+        request: Input<'_, VelocityRequest>,
+        reply: &mut dyn Emitter<VelocityResponse>,
+    ) -> Result<(), TestError> {
+        let header = VelocityResponse {
+            header: request.header.header,
+            request_id: request.header.request_id,
+            sample_count: 1,
+            status: status::OK,
+        };
+        let doubled = 2.0 * request.payload[0];
+        Ok(reply.emit(header, VELOCITY_LEN, &mut |out| out.fill(doubled))?)
+    }
+
+    fn answer_invalid(
+        &mut self,
+        _request: &VelocityRequest,
+        _reply: &mut dyn Emitter<VelocityResponse>,
+    ) -> Result<(), TestError> {
+        Err(TestError("invalid request".into()))
+    }
+}
+
+/// Asks the server about each input; outputs the answer. Also a joined
+/// stage: it notes whether each input's frame came by the side input
+/// first.
+struct Asker {
+    client: Box<dyn Call<VelocityRequest, VelocityResponse>>,
+    seen_on_side: Vec<u64>,
+    side_first: Arc<Mutex<Vec<bool>>>,
+}
+
+impl Transform for Asker {
+    type In = HypothesesHeader;
+    type Out = HypothesesHeader;
+    type Error = TestError;
+    const SLOT: Option<Stage> = None;
+
+    fn process(
+        &mut self,
+        input: Input<'_, HypothesesHeader>,
+        output: &mut dyn Emitter<HypothesesHeader>,
+    ) -> Result<(), TestError> {
+        let frame = input.header.header.frame_id;
+        self.side_first.lock().unwrap().push(self.seen_on_side.contains(&frame));
+        let request = VelocityRequest {
+            header: input.header.header,
+            condition_id: 0,
+            request_id: frame,
+            sample_count: 1,
+            t: 0.5,
+            step_index: 0,
+            step_count: 1,
+        };
+        let mut answer = None;
+        self.client
+            .call(request, input.payload, Duration::from_secs(5), &mut |_, payload| answer = Some(payload[0]))
+            .map_err(|e| TestError(e.to_string()))?;
+        let answer = answer.ok_or_else(|| TestError("no answer".into()))?;
+        Ok(output.emit(*input.header, POSE_LEN, &mut |out| out.fill(answer))?)
+    }
+}
+
+impl Joined for Asker {
+    type Side = HypothesesHeader;
+
+    fn side(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestError> {
+        self.seen_on_side.push(input.header.header.frame_id);
+        Ok(())
+    }
+}
+
+struct Collect(Arc<Mutex<Vec<f32>>>);
+
+impl Sink for Collect {
+    type In = HypothesesHeader;
+    type Error = TestError;
+
+    fn consume(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestError> {
+        self.0.lock().unwrap().push(input.payload[0]);
+        Ok(())
+    }
+
+    fn finish(&mut self) -> Result<(), TestError> {
+        Ok(())
+    }
+}
+
+fn velocities_edge(service: &str) -> EdgeWiring {
+    EdgeWiring {
+        edge: "velocities".into(),
+        service: service.into(),
+        message: "Velocity".into(),
+        queue: 1,
+        overflow: OverflowPolicy::Block,
+        max_payload_len: 64,
+        readers: 1,
+    }
+}
+
+/// counter → doubler (serving velocities) → asker (calling it; the
+/// counter's output as its side input) → collect, with one-slot
+/// blocking queues: every frame arrives doubled and in order, each
+/// input's side message was handed over before it, and the server
+/// answers while its own output is full.
+#[test]
+fn a_server_answers_its_in_process_caller_and_side_inputs_come_first() {
+    const FRAMES: u64 = 200;
+    let service = "poseflow/local-test/velocities";
+    let mut local = LocalGraph::new();
+    for edge in ["raw", "passed", "asked"] {
+        local.edge(edge, 1, LocalOverflow::Block);
+    }
+    let collected = Arc::new(Mutex::new(Vec::new()));
+    let side_first = Arc::new(Mutex::new(Vec::new()));
+    local.add_source("counter", || Ok(Counter(0, FRAMES)), "raw", None).unwrap();
+    local.add_server("doubler", || Ok(Doubler), "raw", service, "passed").unwrap();
+    let side = side_first.clone();
+    let make_asker = move || -> Result<Asker, BuildError> {
+        let client = connect("asker", &velocities_edge(service))?;
+        Ok(Asker { client, seen_on_side: Vec::new(), side_first: side })
+    };
+    local.add_joined("asker", make_asker, "passed", "raw", "asked").unwrap();
+    let sink = collected.clone();
+    local.add_sink("collect", move || Ok(Collect(sink)), "asked").unwrap();
+
+    let report = local.run(Arc::new(AtomicBool::new(false))).unwrap();
+    let expected: Vec<f32> = (0..FRAMES).map(|f| 2.0 * f as f32).collect();
+    assert_eq!(*collected.lock().unwrap(), expected);
+    assert!(side_first.lock().unwrap().iter().all(|&first| first));
+    assert_eq!(report["asker"].errors, 0);
+    assert_eq!(report["doubler"].frames_out, FRAMES);
+}
+
+#[test]
+fn a_stage_that_cannot_be_built_stops_the_graph_and_is_named() {
+    let mut local = LocalGraph::new();
+    local.edge("raw", 1, LocalOverflow::Block);
+    local.add_source("counter", || Ok(Counter(0, u64::MAX)), "raw", None).unwrap();
+    local.add_sink("broken", || Err::<Collect, _>("no such model".into()), "raw").unwrap();
+    let err = local.run(Arc::new(AtomicBool::new(false))).unwrap_err();
+    assert_eq!(crate::error_chain(&err), "stage `broken`: cannot build from its parameters: no such model");
+}
+
+/// The same server and joined stage driven from outside, one frame at a
+/// time: after each settle, the collector holds exactly that frame's
+/// answer (nothing is still on its way), and dropping the feed ends the
+/// graph.
+#[test]
+fn a_driven_graph_settles_after_each_message_with_its_result_collected() {
+    const FRAMES: u64 = 50;
+    let service = "poseflow/local-test/driven-velocities";
+    let mut local = LocalGraph::new();
+    for edge in ["raw", "passed", "asked"] {
+        local.edge(edge, 1, LocalOverflow::Block);
+    }
+    let feed = local.feed::<HypothesesHeader>("raw").unwrap();
+    let collected = local.collect::<HypothesesHeader>("asked").unwrap();
+    local.add_server("doubler", || Ok(Doubler), "raw", service, "passed").unwrap();
+    let side_first = Arc::new(Mutex::new(Vec::new()));
+    let side = side_first.clone();
+    let make_asker = move || -> Result<Asker, BuildError> {
+        let client = connect("asker", &velocities_edge(service))?;
+        Ok(Asker { client, seen_on_side: Vec::new(), side_first: side })
+    };
+    local.add_joined("asker", make_asker, "passed", "raw", "asked").unwrap();
+    assert!(matches!(feed.send(hypotheses(0), vec![0.0; POSE_LEN]), Err(DriveError::NotStarted { .. })));
+
+    let mut running = local.start(Arc::new(AtomicBool::new(false)));
+    for frame in 0..FRAMES {
+        feed.send(hypotheses(frame), vec![frame as f32; POSE_LEN]).unwrap();
+        running.settle(Duration::from_secs(10)).unwrap();
+        let out = collected.drain();
+        assert_eq!(out.len(), 1, "frame {frame}");
+        assert_eq!(out[0].0.header.frame_id, frame);
+        assert_eq!(out[0].1[0], 2.0 * frame as f32);
+    }
+    let err = feed.send(hypotheses(0), vec![0.0; 3]).unwrap_err();
+    assert!(matches!(err, DriveError::Message { .. }), "{err}");
+    drop(feed);
+    let report = running.finish().unwrap();
+    assert_eq!(report["doubler"].frames_out, FRAMES);
+    assert!(side_first.lock().unwrap().iter().all(|&first| first));
+}
+
+#[test]
+fn settling_a_graph_whose_stage_cannot_be_built_names_the_stage() {
+    let mut local = LocalGraph::new();
+    local.edge("raw", 1, LocalOverflow::Block);
+    let feed = local.feed::<HypothesesHeader>("raw").unwrap();
+    local.add_sink("broken", || Err::<Collect, _>("no such model".into()), "raw").unwrap();
+    let mut running = local.start(Arc::new(AtomicBool::new(false)));
+    let _ = feed.send(hypotheses(0), vec![0.0; POSE_LEN]);
+    let err = running.settle(Duration::from_secs(10)).unwrap_err();
+    assert_eq!(crate::error_chain(&err), "stage `broken`: cannot build from its parameters: no such model");
+}
