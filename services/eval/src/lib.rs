@@ -356,12 +356,12 @@ fn run_graph_on(
     };
     let name = args.graph.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
     let graph = args.out.join(name);
-    std::fs::write(&graph, graph_with_overrides(&args.graph, &overrides)?)
-        .with_context(|| format!("{}", graph.display()))?;
+    let run = graph_with_overrides(&args.graph, &overrides)?;
+    std::fs::write(&graph, run.to_toml()?).with_context(|| format!("{}", graph.display()))?;
     let recording = graph.with_extension("rec");
     let detections: usize = images.iter().map(|image| image.instances.len()).sum();
     let mut progress = Progress::new("eval", detections as u64);
-    run_graph(&graph, &recording, "estimates", || progress.update(count_estimates(&recording), "estimates"))?;
+    run_graph(&run, &recording, "estimates", || progress.update(count_estimates(&recording), "estimates"))?;
     progress.update(detections as u64, "estimates");
     let estimates = read_recording(&recording, images)?;
     let dataset_name = args.dataset.file_name().map_or("dataset".into(), |n| n.to_string_lossy().into_owned());

@@ -12,6 +12,7 @@ mod overrides;
 mod resolve;
 mod spec;
 mod wiring;
+mod write;
 
 pub use error::GraphError;
 pub use graph::{Edge, Graph, Restart, Stage, load, parse, parse_in_process};

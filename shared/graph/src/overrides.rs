@@ -25,11 +25,28 @@ impl Graph {
             return Err(invalid("STAGE.KEY=VALUE", format!("key path `{path}`")));
         }
         let value = parse_value(text.trim());
+        self.set(stage_name, &keys, value).map_err(|err| match err {
+            GraphError::Invalid { file, key, expected, found } if key == "stages" => {
+                GraphError::Invalid { file, key: format!("--set {assignment}"), expected, found }
+            }
+            other => other,
+        })
+    }
+
+    /// Sets `params.keys[0].keys[1]… = value` of stage `stage_name`: what a
+    /// program does where a user would write `--set`. Nested keys create
+    /// tables on the way; a key that runs through a non-table is an error.
+    pub fn set(&mut self, stage_name: &str, keys: &[&str], value: serde_json::Value) -> Result<(), GraphError> {
         let Some(stage) = self.stages.get_mut(stage_name) else {
             let known = self.stages.keys().cloned().collect::<Vec<_>>().join(", ");
-            return Err(invalid(&format!("one of the graph's stages ({known})"), format!("`{stage_name}`")));
+            return Err(GraphError::Invalid {
+                file: self.file.clone(),
+                key: "stages".into(),
+                expected: format!("one of the graph's stages ({known})"),
+                found: format!("`{stage_name}`"),
+            });
         };
-        set_nested(&mut stage.params, &keys, value).map_err(|(depth, found)| GraphError::Invalid {
+        set_nested(&mut stage.params, keys, value).map_err(|(depth, found)| GraphError::Invalid {
             file: self.file.clone(),
             key: format!("stages.{stage_name}.params.{}", keys[..depth].join(".")),
             expected: format!("a table to set `{}` in", keys[depth]),

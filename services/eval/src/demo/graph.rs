@@ -1,10 +1,13 @@
 //! The demo's and the evaluation's graph: `deploy/estimation.toml` (or
-//! `deploy/tracking.toml`) itself, with the frame source pointed at the dataset and the
-//! paths made absolute (the copy lives in the output folder).
+//! `deploy/tracking.toml`) itself, with the frame source pointed at the
+//! dataset and the paths made absolute (its copy lives in the output
+//! folder).
 
 use std::path::Path;
 
-use anyhow::{Context, bail};
+use anyhow::Context;
+use poseflow_graph::Graph;
+use serde_json::json;
 
 /// Per-stage inline parameters the demo sets on top of the graph file's.
 pub struct Overrides<'a> {
@@ -32,77 +35,62 @@ fn absolute(path: &Path) -> anyhow::Result<String> {
     Ok(path.display().to_string())
 }
 
-/// The graph of `graph_file` with `overrides`, as TOML text.
-pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> anyhow::Result<String> {
-    let text = std::fs::read_to_string(graph_file)
-        .with_context(|| format!("{}: cannot read the graph (run from the repository root)", graph_file.display()))?;
-    let mut graph: toml::Table = text.parse().with_context(|| format!("{}: not TOML", graph_file.display()))?;
-    let graph_dir = graph_file.parent().unwrap_or(Path::new("."));
-    let Some(stages) = graph.get_mut("stages").and_then(|s| s.as_table_mut()) else {
-        bail!("{}: no [stages] table", graph_file.display());
-    };
-    for (name, stage) in stages.iter_mut() {
-        let Some(stage) = stage.as_table_mut() else { bail!("{}: stages.{name} is not a table", graph_file.display()) };
-        if name == "frames" {
-            stage.remove("config");
-        }
-        if let Some(config) = stage.get("config").and_then(|c| c.as_str()) {
-            let resolved = absolute(&graph_dir.join(config))?;
-            stage.insert("config".into(), resolved.into());
-        }
-        let truth_prior = stage.get("exe").and_then(|e| e.as_str()) == Some("truth-prior");
-        let params = stage.entry("params").or_insert_with(|| toml::Table::new().into());
-        let Some(params) = params.as_table_mut() else {
-            bail!("{}: stages.{name}.params is not a table", graph_file.display())
-        };
+/// The graph of `graph_file` with `overrides` set on its stages (as `--set`
+/// would), paths made absolute: the run's copy of it, written beside the
+/// results (`Graph::to_toml`), runs again from anywhere.
+pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> anyhow::Result<Graph> {
+    let mut graph = poseflow_graph::load(graph_file, &poseflow_launch::search_path(&[]))
+        .with_context(|| format!("{}: cannot load the graph (run from the repository root)", graph_file.display()))?;
+    let stages: Vec<(String, bool)> = graph
+        .stages
+        .iter()
+        .map(|(name, stage)| (name.clone(), stage.exe.file_name().is_some_and(|exe| exe == "truth-prior")))
+        .collect();
+    for (name, truth_prior) in stages {
+        let stage = name.as_str();
         if truth_prior {
             // The priors name the frame source's images.
-            params.insert("dataset".into(), absolute(overrides.dataset)?.into());
-            params.insert("split".into(), overrides.split.into());
+            graph.set(stage, &["dataset"], absolute(overrides.dataset)?.into())?;
+            graph.set(stage, &["split"], overrides.split.into())?;
             match overrides.targets {
-                Some(targets) => params.insert("targets".into(), absolute(targets)?.into()),
-                None => params.remove("targets"),
-            };
+                Some(targets) => graph.set(stage, &["targets"], absolute(targets)?.into())?,
+                None => {
+                    if let Some(params) = graph.stages.get_mut(stage).and_then(|s| s.params.as_object_mut()) {
+                        params.remove("targets");
+                    }
+                }
+            }
             continue;
         }
-        match name.as_str() {
+        match stage {
             "frames" => {
-                // The rendered scene, not the graph's own source settings.
-                params.clear();
-                params.insert("source".into(), "bop".into());
-                params.insert("dataset".into(), absolute(overrides.dataset)?.into());
-                params.insert("split".into(), overrides.split.into());
+                // The dataset, not the graph's own source settings.
+                let mut params =
+                    json!({"source": "bop", "dataset": absolute(overrides.dataset)?, "split": overrides.split});
                 if let Some(targets) = overrides.targets {
-                    params.insert("targets".into(), absolute(targets)?.into());
+                    params["targets"] = absolute(targets)?.into();
                 }
                 if let Some(rate_hz) = overrides.rate_hz {
-                    params.insert("rate_hz".into(), rate_hz.into());
+                    params["rate_hz"] = rate_hz.into();
                 }
+                graph.set(stage, &[], params)?;
             }
-            "ingest" if !overrides.rgb => {
-                params.insert("rgb".into(), false.into());
-            }
-            "inference" => {
-                params.insert("model".into(), absolute(overrides.model)?.into());
-            }
+            "ingest" if !overrides.rgb => graph.set(stage, &["rgb"], false.into())?,
+            "inference" => graph.set(stage, &["model"], absolute(overrides.model)?.into())?,
             "sampler" => {
-                params.insert("samples".into(), (overrides.samples as i64).into());
-                params.insert("steps".into(), (overrides.steps as i64).into());
+                graph.set(stage, &["samples"], overrides.samples.into())?;
+                graph.set(stage, &["steps"], overrides.steps.into())?;
                 if let Some(steps) = overrides.tracking_steps {
-                    let tracking = params.entry("tracking").or_insert_with(|| toml::Table::new().into());
-                    let Some(tracking) = tracking.as_table_mut() else {
-                        bail!("{}: stages.{name}.params.tracking is not a table", graph_file.display())
-                    };
-                    tracking.insert("steps".into(), (steps as i64).into());
+                    graph.set(stage, &["tracking", "steps"], steps.into())?;
                 }
             }
             "selector" => {
-                params.insert("method".into(), overrides.selection.into());
-                params.insert("models".into(), absolute(overrides.object_models)?.into());
-                params.insert("refine".into(), overrides.refine.into());
+                graph.set(stage, &["method"], overrides.selection.into())?;
+                graph.set(stage, &["models"], absolute(overrides.object_models)?.into())?;
+                graph.set(stage, &["refine"], overrides.refine.into())?;
             }
             _ => {}
         }
     }
-    Ok(toml::to_string(&graph)?)
+    Ok(graph)
 }

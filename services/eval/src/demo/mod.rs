@@ -13,6 +13,7 @@ use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use poseflow_contracts::{EstimateHeader, HypothesesHeader, POSE_LEN};
 use poseflow_geometry::{Pose, SymmetrySet};
+use poseflow_graph::Graph;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 use poseflow_scene::bop::{CameraEntry, GtEntry, SceneDir, read_json, read_rgb_png};
 use poseflow_scene::camera_path::CameraPath;
@@ -218,7 +219,7 @@ pub(crate) fn render_scene(
 /// --json`: per stage messages in and out, drops, errors) to `run.json`
 /// beside the recording, and `waiting` is called every few hundred
 /// milliseconds while the graph runs.
-pub(crate) fn run_graph(graph_file: &Path, recording: &Path, edges: &str, waiting: impl FnMut()) -> anyhow::Result<()> {
+pub(crate) fn run_graph(graph: &Graph, recording: &Path, edges: &str, waiting: impl FnMut()) -> anyhow::Result<()> {
     let log_path = recording.with_file_name("graph.log");
     let report_path = recording.with_file_name("run.json");
     // A recording left by an earlier run in the same folder would show as
@@ -229,14 +230,13 @@ pub(crate) fn run_graph(graph_file: &Path, recording: &Path, edges: &str, waitin
         }
         _ => {}
     }
-    let graph = poseflow_graph::load(graph_file, &poseflow_launch::search_path(&[]))?;
     let edges: Vec<String> = edges.split(',').map(str::to_string).collect();
     let options = poseflow_launch::LaunchOptions {
-        instance: poseflow_launch::default_instance(&graph),
-        record: Some((recording.to_path_buf(), poseflow_launch::chosen_edges(&graph, &edges)?)),
+        instance: poseflow_launch::default_instance(graph),
+        record: Some((recording.to_path_buf(), poseflow_launch::chosen_edges(graph, &edges)?)),
         ..Default::default()
     };
-    let launched = poseflow_launch::launch_quietly(&graph, &options, &poseflow_stages::registry(), &log_path, waiting);
+    let launched = poseflow_launch::launch_quietly(graph, &options, &poseflow_stages::registry(), &log_path, waiting);
     let failure = match &launched {
         Ok(report) => {
             let json = serde_json::to_string_pretty(&report.to_json())?;
@@ -252,7 +252,7 @@ pub(crate) fn run_graph(graph_file: &Path, recording: &Path, edges: &str, waitin
         let tail = lines[lines.len().saturating_sub(TAIL_LINES)..].join("\n");
         bail!(
             "the graph {} failed ({failure}); the end of its log ({}):\n{tail}\n(build every stage first: cargo build --release --workspace)",
-            graph_file.display(),
+            graph.file.display(),
             log_path.display(),
         );
     }
@@ -310,10 +310,10 @@ fn render_and_run(
     };
     let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
     let graph = args.out.join(name);
-    std::fs::write(&graph, graph_with_overrides(graph_file, &overrides)?)
-        .with_context(|| format!("{}", graph.display()))?;
+    let run = graph_with_overrides(graph_file, &overrides)?;
+    std::fs::write(&graph, run.to_toml()?).with_context(|| format!("{}", graph.display()))?;
     let recording = graph.with_extension("rec");
-    run_graph(&graph, &recording, edges, || {})?;
+    run_graph(&run, &recording, edges, || {})?;
     Ok(recording)
 }
 
