@@ -33,7 +33,7 @@ pub enum RuntimeError {
 
 /// `err` and each of its sources, joined by ": " (a log line that keeps the
 /// whole chain).
-pub fn error_chain(err: &(dyn std::error::Error + 'static)) -> String {
+pub fn error_chain(err: &dyn std::error::Error) -> String {
     let mut text = err.to_string();
     let mut source = err.source();
     while let Some(cause) = source {

@@ -172,7 +172,7 @@ fn drain<H: MessageHeader>(
         let frame = header.header().frame_id;
         if let Err(err) = header.check_payload(message.payload()) {
             liveness.count_error();
-            tracing::warn!(edge = input.name(), frame, %err, "message rejected");
+            tracing::warn!(edge = input.name(), frame, err = %error_chain(&err), "message rejected");
             continue;
         }
         liveness.count_received(frame);
@@ -224,7 +224,7 @@ fn finish_output<H: MessageHeader>(output: &Publisher<H>, meanwhile: impl FnMut(
             acknowledged = end.acknowledged,
             "end of stream"
         ),
-        Err(err) => tracing::warn!(edge = output.name(), %err, "end of stream not delivered"),
+        Err(err) => tracing::warn!(edge = output.name(), err = %error_chain(&err), "end of stream not delivered"),
     }
 }
 
@@ -238,8 +238,7 @@ fn exit(result: Result<(), RuntimeError>) -> ExitCode {
 /// Logs why the stage process failed, with the whole cause chain.
 pub(crate) fn fail(err: RuntimeError) -> ExitCode {
     init_logging();
-    let err = error_chain(&err);
-    tracing::error!(%err, "stage failed");
+    tracing::error!(err = %error_chain(&err), "stage failed");
     ExitCode::FAILURE
 }
 
@@ -278,7 +277,7 @@ fn transform_one<T: Transform>(
 ) {
     if let Err(err) = stage.process(message, emitter) {
         liveness.count_error();
-        tracing::warn!(%err, "process failed; frame skipped");
+        tracing::warn!(err = %error_chain(&err), "process failed; frame skipped");
     }
     liveness.count_errors(stage.take_rejected());
 }
@@ -336,7 +335,7 @@ impl<H: MessageHeader> HeldOutputs<H> {
                         liveness.restarted();
                     }
                     liveness.count_error();
-                    tracing::warn!(%err, "output not sent; frame skipped");
+                    tracing::warn!(err = %error_chain(&err), "output not sent; frame skipped");
                 }
             }
         }
@@ -393,15 +392,15 @@ pub fn run_server<S: Server, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
                     Ok(()) => Some(Input { header, payload }),
                     Err(err) => {
                         liveness.count_error();
-                        tracing::warn!(%err, "request breaks its contract; answered as invalid");
+                        tracing::warn!(err = %error_chain(&err), "request breaks its contract; answered as invalid");
                         None
                     }
                 };
                 let mut reply = ReplyEmitter { responder, slot: S::SLOT };
                 let mut stage = stage.borrow_mut();
                 let answered = match request {
-                    Some(request) => stage.answer(request, &mut reply).map_err(|e| e.to_string()),
-                    None => stage.answer_invalid(header, &mut reply).map_err(|e| e.to_string()),
+                    Some(request) => stage.answer(request, &mut reply).map_err(|e| error_chain(&e)),
+                    None => stage.answer_invalid(header, &mut reply).map_err(|e| error_chain(&e)),
                 };
                 liveness.work_finished(started.elapsed());
                 liveness.count_errors(stage.take_rejected());
@@ -419,7 +418,7 @@ pub fn run_server<S: Server, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         // "unknown condition" instead of a timeout per request.
         let output = process.output_serving::<S::Out>(&mut || {
             if let Err(err) = on_requests() {
-                tracing::warn!(%err, "requests not served while waiting for the output's readers");
+                tracing::warn!(err = %error_chain(&err), "requests not served while waiting for the output's readers");
             }
         })?;
         tracing::info!(input = input.name(), output = output.name(), serves = %served.edge, "running");
@@ -435,7 +434,7 @@ pub fn run_server<S: Server, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
                 transform_one(&mut **stage.borrow_mut(), message, &mut held, liveness);
                 held.publish(&output, liveness, &mut || {
                     if let Err(err) = on_requests() {
-                        tracing::warn!(%err, "requests not served while the output was full");
+                        tracing::warn!(err = %error_chain(&err), "requests not served while the output was full");
                     }
                 });
             },
@@ -495,7 +494,7 @@ pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
             |message| {
                 let mut stage = stage.borrow_mut();
                 if let Err(err) = drain_side(&side, &mut **stage, liveness) {
-                    tracing::warn!(%err, "side input not read");
+                    tracing::warn!(err = %error_chain(&err), "side input not read");
                 }
                 // The reader of a full output may be the side input's writer,
                 // restarted and waiting for this stage's READY before it
@@ -510,7 +509,7 @@ pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         // A side input that has already ended (one that closes no loop) is
         // acknowledged even when the output has no reader to wait for.
         if let Err(err) = on_side() {
-            tracing::warn!(%err, "side input not read");
+            tracing::warn!(err = %error_chain(&err), "side input not read");
         }
         finish_transform(process, &input, &output, end, on_side)
     })())
@@ -531,7 +530,7 @@ pub fn run_transform_or_joined<T: Transform + Joined, E: Into<BuildError>>(
 fn answer_handshake<H: MessageHeader>(side: &EdgeSubscriber<H>, ended: &std::cell::Cell<bool>) {
     match side.take_events() {
         Ok(end) => ended.set(ended.get() | end),
-        Err(err) => tracing::warn!(%err, "side input's handshake not answered"),
+        Err(err) => tracing::warn!(err = %error_chain(&err), "side input's handshake not answered"),
     }
 }
 
@@ -548,8 +547,8 @@ fn drain_side<J: Joined>(
         let frame = header.header().frame_id;
         let kept = header
             .check_payload(message.payload())
-            .map_err(|e| e.to_string())
-            .and_then(|()| stage.side(Input { header, payload: message.payload() }).map_err(|e| e.to_string()));
+            .map_err(|e| error_chain(&e))
+            .and_then(|()| stage.side(Input { header, payload: message.payload() }).map_err(|e| error_chain(&e)));
         if let Err(err) = kept {
             liveness.count_error();
             tracing::warn!(edge = side.name(), frame, %err, "side message rejected");
@@ -570,11 +569,11 @@ pub fn run_sink<K: Sink, E: Into<BuildError>>(make: impl FnOnce(&StageWiring) ->
         let end = process.event_loop(&input, |message| {
             if let Err(err) = sink.consume(message) {
                 liveness.count_error();
-                tracing::warn!(%err, "consume failed; frame skipped");
+                tracing::warn!(err = %error_chain(&err), "consume failed; frame skipped");
             }
         })?;
         if let Err(err) = sink.finish() {
-            tracing::error!(%err, "sink could not finish");
+            tracing::error!(err = %error_chain(&err), "sink could not finish");
         }
         if let LoopEnd::EndOfStream = end {
             input.acknowledge_end()?;
@@ -604,7 +603,7 @@ pub fn run_source<S: Source, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
             liveness.count_errors(source.take_rejected());
             result.unwrap_or_else(|err| {
                 liveness.count_error();
-                tracing::warn!(%err, "source failed; frame skipped");
+                tracing::warn!(err = %error_chain(&err), "source failed; frame skipped");
                 SourceStep::Continue
             })
         };

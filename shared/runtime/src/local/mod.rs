@@ -229,7 +229,7 @@ impl LocalGraph {
                         Ok(SourceStep::Finished) => break,
                         Err(err) => {
                             live.count_error();
-                            tracing::warn!(%err, "source failed; frame skipped");
+                            tracing::warn!(err = %crate::error_chain(&err), "source failed; frame skipped");
                         }
                     }
                 }
@@ -305,7 +305,7 @@ impl LocalGraph {
                     while let Some((header, payload)) = side_queue.try_pop() {
                         if let Err(err) = stage.side(Input { header: &header, payload: &payload }) {
                             live.count_error();
-                            tracing::warn!(%err, "side input failed; message skipped");
+                            tracing::warn!(err = %crate::error_chain(&err), "side input failed; message skipped");
                         }
                         side_queue.handled();
                     }
@@ -422,14 +422,14 @@ impl LocalGraph {
                     live.work_started();
                     if let Err(err) = sink.consume(Input { header: &header, payload: &payload }) {
                         live.count_error();
-                        tracing::warn!(%err, "consume failed; frame skipped");
+                        tracing::warn!(err = %crate::error_chain(&err), "consume failed; frame skipped");
                     }
                     live.work_finished(started.elapsed());
                     queue.handled();
                 }
                 queue.close();
                 if let Err(err) = sink.finish() {
-                    tracing::error!(%err, "sink could not finish");
+                    tracing::error!(err = %crate::error_chain(&err), "sink could not finish");
                 }
                 Ok(())
             })
@@ -565,7 +565,7 @@ fn answer<S: Server>(stage: &mut S, request: PendingRequest<S::Request, S::Respo
         Ok(()) => stage.answer(Input { header: &request.header, payload: &request.payload }, &mut reply),
         Err(err) => {
             liveness.count_error();
-            tracing::warn!(%err, "request breaks its contract; answered as invalid");
+            tracing::warn!(err = %crate::error_chain(&err), "request breaks its contract; answered as invalid");
             stage.answer_invalid(&request.header, &mut reply)
         }
     };
@@ -573,7 +573,7 @@ fn answer<S: Server>(stage: &mut S, request: PendingRequest<S::Request, S::Respo
     liveness.count_errors(stage.take_rejected());
     if let Err(err) = answered {
         liveness.count_error();
-        tracing::warn!(%err, "request not answered");
+        tracing::warn!(err = %crate::error_chain(&err), "request not answered");
     }
     if let Some(response) = reply.messages.pop() {
         // The caller may have timed out and gone: nothing to do then.
@@ -605,7 +605,7 @@ fn transform_one<T: Transform>(
     live.work_started();
     if let Err(err) = stage.process(Input { header, payload }, output) {
         live.count_error();
-        tracing::warn!(%err, "process failed; frame skipped");
+        tracing::warn!(err = %crate::error_chain(&err), "process failed; frame skipped");
     }
     live.count_errors(stage.take_rejected());
     live.work_finished(started.elapsed());
