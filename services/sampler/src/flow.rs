@@ -13,18 +13,18 @@ use poseflow_geometry::{Pose, Velocity, so3};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 
-use crate::{SamplerError, SamplerParams};
+use crate::{FieldError, SamplerError, SamplerParams};
 
 /// Where the velocities come from: the inference stage's library
 /// in-process, or a request-response client ([`crate::stage::RemoteField`]).
 pub trait VelocityField {
     /// Writes the velocities (`v` then body-frame `ω`, 6 per pose) of
     /// `poses` (12 per pose, request frame) into `out`.
-    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String>;
+    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), FieldError>;
 }
 
-impl<F: FnMut(&VelocityRequest, &[f32], &mut [f32]) -> Result<(), String>> VelocityField for F {
-    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
+impl<F: FnMut(&VelocityRequest, &[f32], &mut [f32]) -> Result<(), FieldError>> VelocityField for F {
+    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), FieldError> {
         self(request, poses, out)
     }
 }
@@ -113,10 +113,15 @@ impl FlowSampler {
                 step_index: k as u32,
                 step_count: steps as u32,
             };
-            let failed = |detail: String| SamplerError::Velocity { frame, object, step: k, detail };
-            field.velocities(&request, &self.request, &mut self.response).map_err(failed)?;
+            field.velocities(&request, &self.request, &mut self.response).map_err(|source| SamplerError::Velocity {
+                frame,
+                object,
+                step: k,
+                source,
+            })?;
             if let Some(bad) = self.response.iter().position(|v| !v.is_finite()) {
-                return Err(failed(format!("velocity {} of sample {} is not finite", bad % 6, bad / 6)));
+                let (component, sample) = (bad % VELOCITY_LEN, bad / VELOCITY_LEN);
+                return Err(SamplerError::NonFinite { frame, object, step: k, component, sample });
             }
             self.velocities.clear();
             self.velocities.extend(

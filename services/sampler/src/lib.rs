@@ -13,7 +13,7 @@ mod flow;
 mod params;
 pub mod stage;
 
-pub use error::SamplerError;
+pub use error::{FieldError, SamplerError};
 pub use flow::{FlowSampler, Start, VelocityField};
 pub use params::{SamplerParams, TrackingParams};
 

@@ -12,7 +12,7 @@ use poseflow_geometry::Pose;
 use poseflow_runtime::{Call, Emitter, Input, Joined, Transform};
 
 use crate::flow::write_poses;
-use crate::{FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
+use crate::{FieldError, FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
 
 /// The inference stage over its request-response edge (iceoryx2 between
 /// processes, its thread in-process).
@@ -29,13 +29,13 @@ impl RemoteField {
 }
 
 impl VelocityField for RemoteField {
-    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), String> {
-        let mut answer = Err(String::from("no response"));
+    fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), FieldError> {
+        let mut answer = Err(FieldError::NoResponse);
         self.client
             .call(*request, poses, self.timeout, &mut |response, payload| {
                 answer = check_response(request, response, payload, out);
             })
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| FieldError::Call(Box::new(e)))?;
         answer
     }
 }
@@ -46,24 +46,17 @@ fn check_response(
     response: &VelocityResponse,
     payload: &[f32],
     out: &mut [f32],
-) -> Result<(), String> {
+) -> Result<(), FieldError> {
     if response.status != velocity_status::OK {
-        let meaning = match response.status {
-            velocity_status::UNKNOWN_CONDITION => "unknown condition (the inference stage restarted or evicted it)",
-            velocity_status::INVALID_REQUEST => "invalid request",
-            velocity_status::INFERENCE_FAILED => "the network failed",
-            _ => "unknown status",
-        };
-        return Err(format!("inference answered status {}: {meaning}", response.status));
+        return Err(FieldError::status(response.status));
     }
     if response.request_id != request.request_id || payload.len() != out.len() {
-        return Err(format!(
-            "answer to request {} with {} values, expected request {} with {}",
-            response.request_id,
-            payload.len(),
-            request.request_id,
-            out.len()
-        ));
+        return Err(FieldError::Mismatch {
+            answered: response.request_id,
+            values: payload.len(),
+            expected: request.request_id,
+            expected_values: out.len(),
+        });
     }
     out.copy_from_slice(payload);
     Ok(())

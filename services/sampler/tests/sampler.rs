@@ -6,7 +6,7 @@ use poseflow_geometry::flow::target_velocity;
 use poseflow_geometry::{Pose, so3};
 use poseflow_runtime::{EmitError, Emitter, Input, Transform};
 use poseflow_sampler::stage::SamplerStage;
-use poseflow_sampler::{FlowSampler, SamplerParams, Start, TrackingParams};
+use poseflow_sampler::{FieldError, FlowSampler, SamplerParams, Start, TrackingParams};
 
 fn handle(frame: u64) -> ConditionHandle {
     ConditionHandle {
@@ -28,15 +28,15 @@ fn target() -> Pose {
 fn toward_target<'a>(
     handle: &ConditionHandle,
     times: &'a mut Vec<f32>,
-) -> impl FnMut(&VelocityRequest, &[f32], &mut [f32]) -> Result<(), String> + 'a {
+) -> impl FnMut(&VelocityRequest, &[f32], &mut [f32]) -> Result<(), FieldError> + 'a {
     let scale = f64::from(handle.point_scale);
     let centroid = Vector3::from(handle.centroid.map(f64::from));
     let goal = Pose::new(target().rotation, (target().translation - centroid) / scale);
     move |request, poses, out| {
         times.push(request.t);
         for (pose, velocity) in poses.chunks_exact(12).zip(out.chunks_exact_mut(6)) {
-            let current = Pose::from_f32_row_major(pose.try_into().unwrap()).map_err(|e| e.to_string())?;
-            let v = target_velocity(&current, &goal, f64::from(request.t)).map_err(|e| e.to_string())?;
+            let current = Pose::from_f32_row_major(pose.try_into().unwrap()).map_err(|e| FieldError::Call(e.into()))?;
+            let v = target_velocity(&current, &goal, f64::from(request.t)).map_err(|e| FieldError::Call(e.into()))?;
             velocity.copy_from_slice(&v.to_f32());
         }
         Ok(())
@@ -65,7 +65,7 @@ fn the_exact_flow_carries_every_sample_to_the_target_in_the_camera_frame() {
 
 #[test]
 fn draws_depend_on_seed_frame_and_object_only() {
-    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), String> {
+    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), FieldError> {
         out.fill(0.0);
         Ok(())
     };
@@ -131,7 +131,7 @@ fn an_upstream_restart_drops_the_tracks() {
         tracking: TrackingParams { enabled: true, ..Default::default() },
         ..Default::default()
     };
-    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), String> {
+    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), FieldError> {
         out.fill(0.0);
         Ok(())
     };
@@ -175,15 +175,18 @@ impl Emitter<poseflow_contracts::HypothesesHeader> for Collect {
 
 #[test]
 fn failed_or_non_finite_velocities_fail_the_frame_with_its_ids() {
-    let failing = |_: &VelocityRequest, _: &[f32], _: &mut [f32]| -> Result<(), String> { Err("timed out".into()) };
+    let failing = |_: &VelocityRequest, _: &[f32], _: &mut [f32]| -> Result<(), FieldError> {
+        Err(FieldError::Call("timed out".into()))
+    };
     let mut stage = SamplerStage::new(SamplerParams::default(), failing);
     let h = handle(9);
     let mut out = Collect(Vec::new());
-    let err = stage.process(Input { header: &h, payload: &[] }, &mut out).unwrap_err().to_string();
+    // The cause travels as the error's source, as the runtime logs it.
+    let err = poseflow_runtime::error_chain(&stage.process(Input { header: &h, payload: &[] }, &mut out).unwrap_err());
     assert!(err.contains("frame 9 object 5") && err.contains("step 0") && err.contains("timed out"), "{err}");
     assert!(out.0.is_empty());
 
-    let nan = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), String> {
+    let nan = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), FieldError> {
         out.fill(f32::NAN);
         Ok(())
     };
@@ -191,7 +194,7 @@ fn failed_or_non_finite_velocities_fail_the_frame_with_its_ids() {
     assert!(err.contains("not finite"), "{err}");
 
     let bad_scale = ConditionHandle { point_scale: 0.0, ..h };
-    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), String> {
+    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), FieldError> {
         out.fill(0.0);
         Ok(())
     };
