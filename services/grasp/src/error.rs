@@ -16,6 +16,14 @@ pub enum GraspError {
     #[error("frame {frame} object {object}: {detail}")]
     Frame { frame: u64, object: u32, detail: String },
 
+    #[error("frame {frame} object {object}: no grasps planned")]
+    Plan {
+        frame: u64,
+        object: u32,
+        #[source]
+        source: crate::MeanFieldError,
+    },
+
     #[error(transparent)]
     Emit(#[from] poseflow_runtime::EmitError),
 }

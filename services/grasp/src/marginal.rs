@@ -17,11 +17,14 @@ use poseflow_geometry::{GeometryError, Pose};
 /// Where the grasp velocities come from: the grasp flow model (the stage),
 /// or a closed-form field (tests).
 pub trait GraspField {
+    /// Why the field could not answer.
+    type Error: std::error::Error + Send + Sync + 'static;
+
     /// Points per cloud the field takes.
     fn point_count(&self) -> usize;
 
     /// Encodes B zero-mean clouds (B·P·3 values, metres) into a condition.
-    fn encode(&mut self, clouds: &[f32]) -> Result<Vec<f32>, String>;
+    fn encode(&mut self, clouds: &[f32]) -> Result<Vec<f32>, Self::Error>;
 
     /// Velocities of B·G grasps (rotations B·G·9 row-major, translations
     /// B·G·3 relative to each cloud's mean, `t` B·G; the G grasps of each
@@ -32,7 +35,7 @@ pub trait GraspField {
         rotations: &[f32],
         translations: &[f32],
         t: &[f32],
-    ) -> Result<(Vec<f32>, Vec<f32>), String>;
+    ) -> Result<(Vec<f32>, Vec<f32>), Self::Error>;
 }
 
 /// How many grasps, how many Euler steps, and the initial positions'
@@ -51,8 +54,12 @@ pub enum MeanFieldError {
     NoHypotheses,
     #[error("the object cloud has {found} points, the grasp flow takes {expected}")]
     CloudSize { found: usize, expected: usize },
-    #[error("grasp flow: {0}")]
-    Field(String),
+    #[error("the grasp flow failed")]
+    Field(#[source] Box<dyn std::error::Error + Send + Sync>),
+    #[error("the grasp flow answered {rotation} and {translation} velocity values for {grasps} grasps")]
+    VelocityCount { rotation: usize, translation: usize, grasps: usize },
+    #[error("the grasp flow's velocity value {index} is not finite (t = {t})")]
+    NonFinite { index: usize, t: f64 },
     #[error(transparent)]
     Geometry(#[from] GeometryError),
 }
@@ -75,7 +82,8 @@ pub fn marginal_grasps<F: GraspField + ?Sized>(
         return Err(MeanFieldError::CloudSize { found: cloud.len(), expected: field.point_count() });
     }
     let (clouds, centroids) = centred_clouds(cloud, hypotheses);
-    let condition = field.encode(&clouds).map_err(MeanFieldError::Field)?;
+    let failed = |e: F::Error| MeanFieldError::Field(Box::new(e));
+    let condition = field.encode(&clouds).map_err(failed)?;
     let mean_centroid = centroids.iter().sum::<Vector3<f64>>() / centroids.len() as f64;
     let mut grasps: Vec<Pose> = (0..params.grasps)
         .map(|_| {
@@ -95,18 +103,12 @@ pub fn marginal_grasps<F: GraspField + ?Sized>(
             }
         }
         let times = vec![t as f32; k * g];
-        let (omega, v) =
-            field.velocity(&condition, &rotations, &translations, &times).map_err(MeanFieldError::Field)?;
+        let (omega, v) = field.velocity(&condition, &rotations, &translations, &times).map_err(failed)?;
         if omega.len() != k * g * 3 || v.len() != k * g * 3 {
-            return Err(MeanFieldError::Field(format!(
-                "{} and {} velocity values for {} grasps",
-                omega.len(),
-                v.len(),
-                k * g
-            )));
+            return Err(MeanFieldError::VelocityCount { rotation: omega.len(), translation: v.len(), grasps: k * g });
         }
-        if let Some(i) = omega.iter().chain(&v).position(|x| !x.is_finite()) {
-            return Err(MeanFieldError::Field(format!("non-finite velocity value at index {i} (t = {t})")));
+        if let Some(index) = omega.iter().chain(&v).position(|x| !x.is_finite()) {
+            return Err(MeanFieldError::NonFinite { index, t });
         }
         let mean = |values: &[f32], i: usize| {
             (0..k).map(|h| Vector3::from_fn(|a, _| f64::from(values[(h * g + i) * 3 + a]))).sum::<Vector3<f64>>()
@@ -152,11 +154,13 @@ mod tests {
     }
 
     impl GraspField for PointAtTarget {
+        type Error = std::convert::Infallible;
+
         fn point_count(&self) -> usize {
             self.points
         }
 
-        fn encode(&mut self, clouds: &[f32]) -> Result<Vec<f32>, String> {
+        fn encode(&mut self, clouds: &[f32]) -> Result<Vec<f32>, Self::Error> {
             self.encoded.push(clouds.len() / (3 * self.points));
             Ok(clouds.to_vec())
         }
@@ -167,7 +171,7 @@ mod tests {
             rotations: &[f32],
             translations: &[f32],
             t: &[f32],
-        ) -> Result<(Vec<f32>, Vec<f32>), String> {
+        ) -> Result<(Vec<f32>, Vec<f32>), Self::Error> {
             let per_cloud = 3 * self.points;
             let clouds = condition.len() / per_cloud;
             let g = t.len() / clouds;
@@ -205,6 +209,39 @@ mod tests {
 
     fn params() -> MeanFieldParams {
         MeanFieldParams { grasps: 8, steps: 10, noise: TranslationNoise::Gaussian { std_dev: 0.05 } }
+    }
+
+    /// A field that cannot answer.
+    struct Broken;
+
+    impl GraspField for Broken {
+        type Error = std::io::Error;
+
+        fn point_count(&self) -> usize {
+            6
+        }
+
+        fn encode(&mut self, _: &[f32]) -> Result<Vec<f32>, Self::Error> {
+            Err(std::io::Error::other("the network failed"))
+        }
+
+        fn velocity(
+            &mut self,
+            _: &[f32],
+            _: &[f32],
+            _: &[f32],
+            _: &[f32],
+        ) -> Result<(Vec<f32>, Vec<f32>), Self::Error> {
+            Err(std::io::Error::other("not reached"))
+        }
+    }
+
+    #[test]
+    fn a_failing_field_keeps_its_cause_as_the_source() {
+        let object = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, 0.6));
+        let err = marginal_grasps(&mut Broken, &axis_cloud(), &[object], &params(), &mut seeded_rng(1)).unwrap_err();
+        assert!(matches!(err, MeanFieldError::Field(_)), "{err:?}");
+        assert_eq!(poseflow_runtime::error_chain(&err), "the grasp flow failed: the network failed");
     }
 
     #[test]

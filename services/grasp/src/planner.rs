@@ -118,12 +118,14 @@ pub fn isometry(pose: &Pose) -> Isometry3<f32> {
 pub struct OnnxGraspField(pub GraspFlowModel);
 
 impl GraspField for OnnxGraspField {
+    type Error = poseflow_inference::InferenceError;
+
     fn point_count(&self) -> usize {
         self.0.info.point_count
     }
 
-    fn encode(&mut self, clouds: &[f32]) -> Result<Vec<f32>, String> {
-        self.0.encode(clouds).map_err(|e| e.to_string())
+    fn encode(&mut self, clouds: &[f32]) -> Result<Vec<f32>, Self::Error> {
+        self.0.encode(clouds)
     }
 
     fn velocity(
@@ -132,8 +134,8 @@ impl GraspField for OnnxGraspField {
         rotations: &[f32],
         translations: &[f32],
         t: &[f32],
-    ) -> Result<(Vec<f32>, Vec<f32>), String> {
-        let v = self.0.velocity(condition, rotations, translations, t).map_err(|e| e.to_string())?;
+    ) -> Result<(Vec<f32>, Vec<f32>), Self::Error> {
+        let v = self.0.velocity(condition, rotations, translations, t)?;
         Ok((v.rotation, v.translation))
     }
 }
@@ -188,7 +190,7 @@ impl<F: GraspField> GraspPlanner<F> {
         let mean_field = MeanFieldParams { grasps: self.params.grasps, steps: self.params.steps, noise: self.noise };
         let mut rng = seeded_rng(sample_seed(self.params.seed, frame, object));
         let grasps = marginal_grasps(&mut self.field, &target.cloud, used, &mean_field, &mut rng)
-            .map_err(|e| in_frame(e.to_string()))?;
+            .map_err(|source| GraspError::Plan { frame, object, source })?;
         let mut planned: Vec<PlannedGrasp> =
             grasps.iter().map(|g| judge(&target.mesh, &self.params.gripper, used, g)).collect();
         let gripper = &self.params.gripper;
