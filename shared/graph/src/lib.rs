@@ -18,7 +18,7 @@ pub use error::GraphError;
 pub use graph::{Edge, Graph, Restart, Stage, load, parse, parse_in_process};
 pub use resolve::resolve_executable;
 pub use spec::{EdgePattern, OverflowPolicy, RestartPolicy};
-pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV};
+pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV, WiringError};
 
 /// Message types an edge may carry, as named in graph files (defined with
 /// the contracts).

@@ -70,9 +70,18 @@ impl StageWiring {
     }
 
     /// Reads the wiring the launcher put in [`WIRING_ENV`].
-    pub fn from_env() -> Result<Self, String> {
-        let text = std::env::var(WIRING_ENV)
-            .map_err(|_| format!("{WIRING_ENV} is not set: stages are started by `poseflow run --graph FILE`"))?;
-        serde_json::from_str(&text).map_err(|e| format!("{WIRING_ENV}: invalid stage wiring: {e}"))
+    pub fn from_env() -> Result<Self, WiringError> {
+        let text = std::env::var(WIRING_ENV).map_err(|_| WiringError::NotSet)?;
+        serde_json::from_str(&text).map_err(WiringError::Invalid)
     }
+}
+
+/// Why a stage process has no wiring.
+#[derive(Debug, thiserror::Error)]
+pub enum WiringError {
+    #[error("{WIRING_ENV} is not set: stages are started by `poseflow run --graph FILE`")]
+    NotSet,
+
+    #[error("{WIRING_ENV}: invalid stage wiring")]
+    Invalid(#[source] serde_json::Error),
 }

@@ -5,8 +5,8 @@ pub type BuildError = Box<dyn std::error::Error + Send + Sync + 'static>;
 /// Why a stage process could not start or had to stop.
 #[derive(Debug, thiserror::Error)]
 pub enum RuntimeError {
-    #[error("{0}")]
-    Wiring(String),
+    #[error(transparent)]
+    Wiring(#[from] poseflow_graph::WiringError),
 
     #[error("stage `{stage}`: expected {expected}, the graph gives {found}")]
     Shape { stage: String, expected: &'static str, found: String },

@@ -51,7 +51,7 @@ enum LoopEnd {
 impl StageProcess {
     fn start(inputs: usize, outputs: usize) -> Result<Self, RuntimeError> {
         init_logging();
-        let wiring = StageWiring::from_env().map_err(RuntimeError::Wiring)?;
+        let wiring = StageWiring::from_env()?;
         let expected = match (inputs, outputs) {
             (0, 1) => "no input and one output edge (a source)",
             (1, 0) => "one input and no output edge (a sink)",
