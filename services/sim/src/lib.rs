@@ -64,13 +64,10 @@ fn stage_params(graph: &Graph, stage: &str, overrides: serde_json::Value) -> any
 /// models in `objects`.
 fn pose_stages(graph: &Graph, model: &Path, objects: &Path) -> anyhow::Result<PoseStages> {
     let mut graph = graph.clone();
-    for (stage, overrides) in [
-        ("inference", serde_json::json!({"model": model})),
-        ("selector", serde_json::json!({"method": "sdf", "models": objects, "refine": true})),
-    ] {
-        let params = stage_params(&graph, stage, overrides)?;
-        graph.stages.get_mut(stage).expect("checked by stage_params").params = params;
-    }
+    graph.set("inference", &["model"], serde_json::json!(model))?;
+    graph.set("selector", &["method"], "sdf".into())?;
+    graph.set("selector", &["models"], serde_json::json!(objects))?;
+    graph.set("selector", &["refine"], true.into())?;
     Ok(PoseStages::start(&graph, &PoseStages::registry())?)
 }
 
