@@ -30,8 +30,10 @@ import time
 import iceoryx2 as iox2
 
 STAGE_SLOTS = 8
-# Timestamp slots (shared/contracts/src/header.rs, `Stage`).
+# Timestamp slots (shared/contracts/src/header.rs, `StampSlot`), by their
+# names in graph files (`stamp = "..."`).
 SLOT_SOURCE, SLOT_INGEST, SLOT_ENCODE, SLOT_SAMPLER, SLOT_SELECTOR, SLOT_GRASP, SLOT_NEXT_VIEW, SLOT_SINK = range(8)
+SLOT_NAMES = ("source", "ingest", "encode", "sampler", "selector", "grasp", "next_view", "sink")
 SELECTION_METHODS = {0: "none", 1: "model-free", 2: "chamfer", 3: "sdf"}
 
 # Event ids on `<edge>` and on `<edge>/ack` (shared/transport/src/pubsub.rs).
@@ -549,6 +551,14 @@ class _Stage:
         self.heartbeat.end_of_stream(1.0)
 
 
+def _stamp_slot(stage, default):
+    """The slot the stage writes: its graph entry's `stamp`, else `default`."""
+    stamp = stage.wire.get("stamp")
+    if stamp is None:
+        return default
+    return None if stamp == "none" else SLOT_NAMES.index(stamp)
+
+
 def _stamped(header, slot):
     if slot is not None:
         header.header.stamps.ns[slot] = monotonic_ns()
@@ -559,8 +569,10 @@ def run_transform(process, header_type=HypothesesHeader, slot=SLOT_SAMPLER, outp
     """Runs `process(header, floats) -> (header, values) or None` as a one-input,
     one-output stage until end-of-stream or SIGINT/SIGTERM. Inputs are
     `header_type` messages, outputs `output_type` ones (default: the same).
-    `slot` is the timestamp slot the stage writes on its outputs (None: none)."""
+    `slot` is the timestamp slot the stage writes on its outputs (None: none)
+    unless its graph entry names a `stamp`."""
     stage = _Stage("transform", 1, 1)
+    slot = _stamp_slot(stage, slot)
     sink = stage.output(output_type or header_type)
 
     def handle(header, floats):
@@ -589,8 +601,11 @@ def run_sink(consume, header_type):
 def run_source(produce, header_type, slot=SLOT_SOURCE):
     """Publishes `produce() -> (header, values)` until it returns None (the
     end of the stream) or SIGINT/SIGTERM. The stage's `rate_hz` parameter,
-    when set, paces it; otherwise it sends as fast as its readers take."""
+    when set, paces it; otherwise it sends as fast as its readers take.
+    `slot` is the timestamp slot it writes unless its graph entry names a
+    `stamp`."""
     stage = _Stage("source", 0, 1)
+    slot = _stamp_slot(stage, slot)
     out = stage.output(header_type)
     stop = []
     for signum in (signal.SIGINT, signal.SIGTERM):

@@ -85,10 +85,10 @@ fn the_pipeline_benchmark_measures_both_graphs_through_processes_and_in_process(
     for mode in ["estimation", "tracking"] {
         assert_eq!((&report[format!("{mode}_restarts")], &report[format!("{mode}_errors")]), (&0.into(), &0.into()));
         let path = &report[format!("{mode}_path")];
-        assert!(path["source→ingest"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{path}");
+        assert!(path["frames→ingest"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{path}");
         assert!(path["selector→received"]["p50_ms"].as_f64().is_some(), "{path}");
         let in_process = &report[format!("{mode}_in_process_stages")];
-        assert!(in_process["ingest→encode"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{in_process}");
+        assert!(in_process["ingest→inference"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{in_process}");
     }
     for stage in ["frames", "ingest", "inference", "sampler", "selector"] {
         let latency = &report["stages"][stage];

@@ -12,7 +12,8 @@ use std::process::Command;
 use iceoryx2::prelude::ZeroCopySend;
 use poseflow_contracts::{
     CameraIntrinsics, ConditionHandle, EstimateHeader, FrameHeader, GraspsHeader, Header, Heartbeat, HypothesesHeader,
-    NextViewHeader, ObservationHeader, StageStamps, TensorHeader, VelocityRequest, VelocityResponse,
+    NextViewHeader, ObservationHeader, STAGE_SLOTS, StageStamps, StampSlot, TensorHeader, VelocityRequest,
+    VelocityResponse,
 };
 use poseflow_e2e::harness::*;
 use poseflow_e2e::plugin_python;
@@ -146,6 +147,21 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
             assert_eq!(mirror["type_name"], expected["type_name"], "{name}: iceoryx2 type name");
         }
     }
+}
+
+/// The Python module's timestamp slots are the Rust `StampSlot`s: same
+/// numbers, same names as graph files' `stamp` key.
+#[test]
+fn the_python_timestamp_slots_are_the_rust_ones() {
+    let plugins = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python");
+    let dump = "import json, sys; sys.path.insert(0, sys.argv[1]); import poseflow_stage as p; \
+                print(json.dumps([p.STAGE_SLOTS, list(p.SLOT_NAMES), [p.SLOT_SOURCE, p.SLOT_SAMPLER, p.SLOT_SINK]]))";
+    let output = Command::new(plugin_python()).args(["-c", dump, plugins]).output().unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let python: Value = serde_json::from_slice(&output.stdout).unwrap();
+    let names: Vec<&str> = StampSlot::ALL.iter().map(|slot| slot.name()).collect();
+    let numbers = [StampSlot::Source, StampSlot::Sampler, StampSlot::Sink].map(|slot| slot as usize);
+    assert_eq!(python, json!([STAGE_SLOTS, names, numbers]));
 }
 
 /// The installed module (`pip install plugins/python`, as `deploy/setup`

@@ -37,3 +37,58 @@ fn a_recorded_edge_replays_into_a_sink() {
         assert_eq!((seen.received, seen.intact, seen.relayed, seen.gaps), (300, 300, 300, 0), "{speed}: {seen:?}");
     }
 }
+
+/// A graph entry's `stamp` moves a stage to another timestamp slot, in
+/// processes and in-process alike; a slot written twice on one path is
+/// refused before anything starts.
+#[test]
+fn a_graph_stamp_key_chooses_the_slot_a_stage_writes() {
+    use poseflow_contracts::{HypothesesHeader, MessageHeader, StampSlot};
+    use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
+
+    let _serial = serial();
+    let scratch = Scratch::new("stamp");
+    let relay_stamped = |stamp: &str| {
+        let path = scratch.graph(100, 0.0, "block");
+        let text = std::fs::read_to_string(&path)
+            .unwrap()
+            .replace("exe = \"smoke-relay\"", &format!("exe = \"smoke-relay\"\nstamp = \"{stamp}\""));
+        std::fs::write(&path, text).unwrap();
+        path
+    };
+    for mode in [&[][..], &["--in-process"][..]] {
+        let recording = scratch.dir.join("negated.rec");
+        let graph = relay_stamped("grasp");
+        let mut args = vec!["--json", "--status-ms", "0", "--record", recording.to_str().unwrap()];
+        args.extend(["--record-edges", "negated"]);
+        args.extend(mode);
+        let output = run_graph(&args, &graph).output().unwrap();
+        assert!(output.status.success(), "{mode:?}: {}", summary(&output));
+        let mut reader = RecordingReader::open(&recording).unwrap();
+        let mut seen = 0;
+        while let Some(message) = reader.next_message().unwrap() {
+            let header: HypothesesHeader = header_from_bytes(&message.header).unwrap();
+            let stamps = &header.header().stamps;
+            assert!(stamps.get(StampSlot::Source).is_some(), "{mode:?}: {stamps:?}");
+            assert!(stamps.get(StampSlot::Grasp).is_some(), "{mode:?}: the relay's chosen slot: {stamps:?}");
+            assert_eq!(stamps.get(StampSlot::Sampler), None, "{mode:?}: the relay's own default slot");
+            seen += 1;
+        }
+        assert_eq!(seen, 100, "{mode:?}");
+    }
+
+    let clash = relay_stamped("source");
+    for check in [&["--check"][..], &["--json"][..]] {
+        let output = run_graph(check, &clash).output().unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{check:?}");
+        assert!(
+            stderr.contains("stages `relay` and `source` both write timestamp slot `source` on one path"),
+            "{check:?}: {stderr}"
+        );
+    }
+    let unknown = relay_stamped("detector");
+    let output = run_graph(&["--check"], &unknown).output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("stages.relay.stamp") && stderr.contains("\"detector\""), "{stderr}");
+}

@@ -63,7 +63,7 @@ impl Transform for FaultRelay {
     type In = HypothesesHeader;
     type Out = HypothesesHeader;
     type Error = SmokeError;
-    const SLOT: Option<poseflow_contracts::Stage> = NegatingRelay::SLOT;
+    const SLOT: Option<poseflow_contracts::StampSlot> = NegatingRelay::SLOT;
 
     fn process(
         &mut self,

@@ -12,6 +12,7 @@ use clap::Args;
 use poseflow_contracts::{EstimateHeader, MessageHeader, flags, monotonic_ns};
 use poseflow_geometry::Pose;
 use poseflow_graph::WIRING_ENV;
+use poseflow_runtime::progress::Progress;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
 use super::graph_run::{GraphRun, GraphRunOptions, Scratch, run_summary};
@@ -137,6 +138,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     let mut next_sample = sample_every;
     let mut next_kill = (args.kill_every_s > 0).then_some(kill_every);
     let mut ended_early = None;
+    let mut progress = Progress::new("soak", args.duration_s);
     loop {
         std::thread::sleep(TICK);
         if let Some(status) = child.try_wait()? {
@@ -144,6 +146,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
             break;
         }
         let now = started.elapsed();
+        progress.update(now.as_secs().min(args.duration_s), &format!("s, {} kills", kills.len()));
         if now >= duration {
             break;
         }

@@ -6,7 +6,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use anyhow::Context;
-use poseflow_contracts::{EstimateHeader, Stage, WEIGHTED_POSE_LEN, flags};
+use poseflow_contracts::{EstimateHeader, StampSlot, WEIGHTED_POSE_LEN, flags};
 use poseflow_geometry::Pose;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
@@ -65,7 +65,7 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
             format!("{}: an estimate of frame {frame}, but the dataset has {} images", path.display(), images.len())
         })?;
         estimates.push((
-            header.header.stamps.get(Stage::Selector),
+            header.header.stamps.get(StampSlot::Selector),
             Estimated {
                 scene_id: image.scene_id,
                 im_id: image.im_id,
@@ -76,7 +76,11 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
                 kept: header.kept_count as usize,
                 rotation_trace: Some(f64::from(header.rotation_trace)),
                 service_time: None,
-                latency: header.header.stamps.elapsed_ns(Stage::Source, Stage::Selector).map(Duration::from_nanos),
+                latency: header
+                    .header
+                    .stamps
+                    .elapsed_ns(StampSlot::Source, StampSlot::Selector)
+                    .map(Duration::from_nanos),
                 tracked: header.header.has_flag(flags::TRACKING),
             },
         ));

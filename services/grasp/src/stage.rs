@@ -1,6 +1,6 @@
 //! The grasp stage: Estimate in, Grasps out.
 
-use poseflow_contracts::{EstimateHeader, GRASP_LEN, GraspsHeader, POSE_LEN, Stage};
+use poseflow_contracts::{EstimateHeader, GRASP_LEN, GraspsHeader, POSE_LEN, StampSlot};
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Transform};
 
@@ -42,7 +42,7 @@ impl<F: GraspField> Transform for GraspStage<F> {
     type In = EstimateHeader;
     type Out = GraspsHeader;
     type Error = GraspError;
-    const SLOT: Option<Stage> = Some(Stage::Grasp);
+    const SLOT: Option<StampSlot> = Some(StampSlot::Grasp);
 
     fn process(
         &mut self,

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use poseflow_contracts::status as velocity_status;
 use poseflow_contracts::{
-    ConditionHandle, Header, ObservationHeader, POSE_LEN, Stage, VELOCITY_LEN, VelocityRequest, VelocityResponse,
+    ConditionHandle, Header, ObservationHeader, POSE_LEN, StampSlot, VELOCITY_LEN, VelocityRequest, VelocityResponse,
 };
 use poseflow_runtime::{Emitter, Input, Server, Transform};
 use serde::Deserialize;
@@ -238,7 +238,7 @@ impl Transform for InferenceStage {
     type In = ObservationHeader;
     type Out = ConditionHandle;
     type Error = InferenceError;
-    const SLOT: Option<Stage> = Some(Stage::Encode);
+    const SLOT: Option<StampSlot> = Some(StampSlot::Encode);
 
     fn process(
         &mut self,

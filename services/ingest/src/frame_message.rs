@@ -27,7 +27,7 @@ impl FrameLayout {
             .map(|o| mask_box(&o.mask).0.map_or([0, 0, 1, 1], |(u0, v0, u1, v1)| [u0, v0, u1 - u0 + 1, v1 - v0 + 1]))
             .collect();
         let mut header = Header::new(loaded.frame.frame_id, 0);
-        header.stamps.stamp(poseflow_contracts::Stage::Source);
+        header.stamps.stamp(poseflow_contracts::StampSlot::Source);
         let header = FrameHeader {
             header,
             intrinsics: intrinsics(camera),

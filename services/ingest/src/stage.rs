@@ -17,7 +17,7 @@
 
 use std::path::PathBuf;
 
-use poseflow_contracts::{FrameHeader, MessageHeader, ObservationHeader, Stage};
+use poseflow_contracts::{FrameHeader, MessageHeader, ObservationHeader, StampSlot};
 use poseflow_geometry::sampling::{SeededRng, seeded_rng};
 use poseflow_runtime::{Emitter, Input, Source, SourceStep, Transform};
 use poseflow_scene::camera_path::CameraPath;
@@ -170,7 +170,7 @@ impl FrameSourceStage {
 impl Source for FrameSourceStage {
     type Out = FrameHeader;
     type Error = IngestError;
-    const SLOT: Option<Stage> = Some(Stage::Source);
+    const SLOT: Option<StampSlot> = Some(StampSlot::Source);
 
     fn next(&mut self, output: &mut dyn Emitter<FrameHeader>) -> Result<SourceStep, IngestError> {
         let Some(loaded) = self.frames.next_frame() else {
@@ -217,7 +217,7 @@ impl Transform for IngestStage {
     type In = FrameHeader;
     type Out = ObservationHeader;
     type Error = IngestError;
-    const SLOT: Option<Stage> = Some(Stage::Ingest);
+    const SLOT: Option<StampSlot> = Some(StampSlot::Ingest);
 
     fn process(
         &mut self,

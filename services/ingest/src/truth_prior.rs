@@ -18,7 +18,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use nalgebra::{Rotation3, Unit, Vector3};
-use poseflow_contracts::{EstimateHeader, ObservationHeader, POSE_LEN, SelectionMethod, Stage, WEIGHTED_POSE_LEN};
+use poseflow_contracts::{EstimateHeader, ObservationHeader, POSE_LEN, SelectionMethod, StampSlot, WEIGHTED_POSE_LEN};
 use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::seeded_rng;
 use poseflow_runtime::{Emitter, Input, Transform};
@@ -157,7 +157,7 @@ impl Transform for TruthPriorStage {
     type In = ObservationHeader;
     type Out = EstimateHeader;
     type Error = IngestError;
-    const SLOT: Option<Stage> = None;
+    const SLOT: Option<StampSlot> = None;
 
     fn process(
         &mut self,

@@ -3,7 +3,7 @@
 
 use std::collections::VecDeque;
 
-use poseflow_contracts::{CANDIDATE_LEN, EstimateHeader, FrameHeader, NextViewHeader, Stage};
+use poseflow_contracts::{CANDIDATE_LEN, EstimateHeader, FrameHeader, NextViewHeader, StampSlot};
 use poseflow_geometry::Pose;
 use poseflow_ingest::{ObjectMask, RgbdFrame, read_frame};
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
@@ -118,7 +118,7 @@ impl Transform for NbvStage {
     type In = EstimateHeader;
     type Out = NextViewHeader;
     type Error = NbvError;
-    const SLOT: Option<Stage> = Some(Stage::NextView);
+    const SLOT: Option<StampSlot> = Some(StampSlot::NextView);
 
     fn process(
         &mut self,

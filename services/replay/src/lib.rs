@@ -12,7 +12,7 @@ use std::marker::PhantomData;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use poseflow_contracts::{MessageHeader, Stage};
+use poseflow_contracts::{MessageHeader, StampSlot};
 use poseflow_graph::StageWiring;
 use poseflow_runtime::recording::{RecordingError, RecordingReader, header_from_bytes};
 use poseflow_runtime::{Emitter, Source, SourceStep};
@@ -103,7 +103,7 @@ impl<H: MessageHeader> Source for ReplaySource<H> {
     type Out = H;
     type Error = ReplayError;
     /// Recorded stamps are kept as they were.
-    const SLOT: Option<Stage> = None;
+    const SLOT: Option<StampSlot> = None;
 
     fn next(&mut self, output: &mut dyn Emitter<H>) -> Result<SourceStep, ReplayError> {
         let message = loop {

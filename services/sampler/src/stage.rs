@@ -5,7 +5,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::time::Duration;
 
 use poseflow_contracts::{
-    ConditionHandle, EstimateHeader, HypothesesHeader, POSE_LEN, Stage, VelocityRequest, VelocityResponse, flags,
+    ConditionHandle, EstimateHeader, HypothesesHeader, POSE_LEN, StampSlot, VelocityRequest, VelocityResponse, flags,
     status as velocity_status,
 };
 use poseflow_geometry::Pose;
@@ -128,7 +128,7 @@ impl<F: VelocityField> Transform for SamplerStage<F> {
     type In = ConditionHandle;
     type Out = HypothesesHeader;
     type Error = SamplerError;
-    const SLOT: Option<Stage> = Some(Stage::Sampler);
+    const SLOT: Option<StampSlot> = Some(StampSlot::Sampler);
 
     fn process(
         &mut self,

@@ -5,7 +5,8 @@ use std::collections::VecDeque;
 
 use nalgebra::{Point3, Vector3};
 use poseflow_contracts::{
-    EstimateHeader, Header, HypothesesHeader, ObservationHeader, POSE_LEN, SelectionMethod, Stage, WEIGHTED_POSE_LEN,
+    EstimateHeader, Header, HypothesesHeader, ObservationHeader, POSE_LEN, SelectionMethod, StampSlot,
+    WEIGHTED_POSE_LEN,
 };
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
@@ -153,7 +154,7 @@ impl Transform for SelectorStage {
     type In = HypothesesHeader;
     type Out = EstimateHeader;
     type Error = SelectorError;
-    const SLOT: Option<Stage> = Some(Stage::Selector);
+    const SLOT: Option<StampSlot> = Some(StampSlot::Selector);
 
     fn process(
         &mut self,

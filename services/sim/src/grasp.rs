@@ -15,6 +15,7 @@ use poseflow_geometry::sampling::seeded_rng;
 use poseflow_geometry::so3::geodesic_angle;
 use poseflow_grasp::stage::kept_hypotheses;
 use poseflow_grasp::{GraspParams, GraspPlanner, Gripper, OnnxGraspField, PlannedGrasp, judge};
+use poseflow_runtime::progress::Progress;
 use poseflow_scene::ModelLibrary;
 use poseflow_scene::part::ObjectPart;
 use serde::Serialize;
@@ -290,6 +291,7 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
     let mut rows: Vec<Trial> = Vec::new();
     // Wall time of each plan (grasp flow and checks), single then marginalised.
     let mut plan_ms: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+    let mut progress = Progress::new("sim grasp", 3 * args.trials as u64);
     for (c, handle) in [Handle::Visible, Handle::Occluded, Handle::HiddenAside].into_iter().enumerate() {
         let (mut single_ok, mut marginal_ok, mut single_handle, mut marginal_handle) = (0, 0, 0, 0);
         for trial in 0..args.trials {
@@ -339,6 +341,7 @@ pub fn run(args: &GraspSimArgs) -> anyhow::Result<()> {
                 single: one,
                 marginalised: many,
             });
+            progress.update(rows.len() as u64, &format!("{handle:?} trial {trial}"));
         }
         let percent = |count: usize| 100.0 * count as f64 / args.trials as f64;
         let rates = Rates {

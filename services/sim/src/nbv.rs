@@ -18,6 +18,7 @@ use poseflow_ingest::{ObjectMask, RgbdFrame};
 use poseflow_nbv::PoseStages;
 use poseflow_nbv::stage::kept_hypotheses;
 use poseflow_nbv::{NbvParams, NbvPlanner, Occluders};
+use poseflow_runtime::progress::Progress;
 use poseflow_scene::ModelLibrary;
 use poseflow_scene::scene::Scene;
 use rand::Rng;
@@ -440,6 +441,7 @@ pub fn run(args: &NbvSimArgs) -> anyhow::Result<()> {
     let mut world = World { library: &library, pose: &mut pose, planner: &mut planner };
 
     let mut trials = Vec::with_capacity(args.trials);
+    let mut progress = Progress::new("sim nbv", args.trials as u64);
     for trial in 0..args.trials {
         // Frame ids: 100 per trial, the start at its first.
         let frame_id = 100 * trial as u64;
@@ -459,6 +461,7 @@ pub fn run(args: &NbvSimArgs) -> anyhow::Result<()> {
             moves.push((policy, outcomes));
         }
         trials.push(Trial { obj_id: object.obj_id, start, moves });
+        progress.update(trials.len() as u64, &format!("trial {trial}"));
     }
     if let Some(out) = &args.out {
         write_trials(out, &trials)?;

@@ -7,7 +7,7 @@
 
 use std::path::PathBuf;
 
-use poseflow_contracts::{Header, HypothesesHeader, MessageHeader, POSE_LEN, Stage, flags};
+use poseflow_contracts::{Header, HypothesesHeader, MessageHeader, POSE_LEN, StampSlot, flags};
 use poseflow_graph::StageWiring;
 use poseflow_runtime::{Emitter, Input, Registration, Sink, Source, SourceStep, Transform};
 
@@ -69,7 +69,7 @@ impl CountingSource {
 impl Source for CountingSource {
     type Out = HypothesesHeader;
     type Error = SmokeError;
-    const SLOT: Option<Stage> = Some(Stage::Source);
+    const SLOT: Option<StampSlot> = Some(StampSlot::Source);
 
     fn next(&mut self, output: &mut dyn Emitter<HypothesesHeader>) -> Result<SourceStep, SmokeError> {
         if self.next_frame >= self.frames {
@@ -96,7 +96,7 @@ impl Transform for NegatingRelay {
     type In = HypothesesHeader;
     type Out = HypothesesHeader;
     type Error = SmokeError;
-    const SLOT: Option<Stage> = Some(Stage::Sampler);
+    const SLOT: Option<StampSlot> = Some(StampSlot::Sampler);
 
     fn process(
         &mut self,
@@ -123,7 +123,7 @@ pub struct SinkReport {
     pub last_frame: Option<u64>,
     /// Frames missing between received ones (dropped upstream).
     pub gaps: u64,
-    /// Received frames that passed through the relay stamp.
+    /// Received frames stamped by a stage after the source (the relay).
     pub relayed: u64,
     /// Frames flagged `UPSTREAM_RESTARTED`: one per restart of a stage
     /// upstream whose first output got through.
@@ -181,7 +181,8 @@ impl Sink for CheckingSink {
         }
         report.first_frame.get_or_insert(frame);
         report.last_frame = Some(frame);
-        if input.header.header().stamps.get(Stage::Sampler).is_some() {
+        let stamps = &input.header.header().stamps;
+        if StampSlot::ALL.into_iter().any(|slot| slot != StampSlot::Source && stamps.get(slot).is_some()) {
             report.relayed += 1;
         }
         if input.header.header().has_flag(flags::UPSTREAM_RESTARTED) {

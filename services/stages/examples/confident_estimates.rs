@@ -5,7 +5,7 @@
 //! Build: `cargo build --release -p poseflow-stages --example confident-estimates`;
 //! name `target/release/examples/confident-estimates` as a stage's `exe`.
 
-use poseflow_contracts::{EstimateHeader, Stage};
+use poseflow_contracts::{EstimateHeader, StampSlot};
 use poseflow_graph::StageWiring;
 use poseflow_runtime::{EmitError, Emitter, Input, Registration, Transform, run_registered};
 
@@ -47,7 +47,7 @@ impl Transform for ConfidentEstimates {
     type Out = EstimateHeader;
     type Error = GateError;
     /// It stamps no timestamp slot: the Estimate keeps the selector's.
-    const SLOT: Option<Stage> = None;
+    const SLOT: Option<StampSlot> = None;
 
     fn process(
         &mut self,

@@ -7,12 +7,16 @@ use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 /// Number of timestamp slots in [`StageStamps`].
 pub const STAGE_SLOTS: usize = 8;
 
-/// The slot each stage writes in [`StageStamps`]. The numbering is part of
-/// the wire contract; new stages take the reserved slot or a new layout
-/// version.
+/// A slot of [`StageStamps`]. The numbering is part of the wire contract.
+///
+/// Which stage of a graph writes which slot is the graph's choice: a stage
+/// entry's `stamp` key names the slot (or `none`), and a stage without one
+/// writes its registration's default (the slot its name suggests). So a new
+/// stage owns a slot by naming one that no stage on its path writes, and
+/// latency breakdowns name each interval by the graph stage that stamped it.
 #[repr(u8)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Stage {
+pub enum StampSlot {
     /// The frame was captured or read from disk.
     Source = 0,
     Ingest = 1,
@@ -25,29 +29,34 @@ pub enum Stage {
     Sink = 7,
 }
 
-impl Stage {
-    pub const ALL: [Stage; STAGE_SLOTS] = [
-        Stage::Source,
-        Stage::Ingest,
-        Stage::Encode,
-        Stage::Sampler,
-        Stage::Selector,
-        Stage::Grasp,
-        Stage::NextView,
-        Stage::Sink,
+impl StampSlot {
+    pub const ALL: [StampSlot; STAGE_SLOTS] = [
+        StampSlot::Source,
+        StampSlot::Ingest,
+        StampSlot::Encode,
+        StampSlot::Sampler,
+        StampSlot::Selector,
+        StampSlot::Grasp,
+        StampSlot::NextView,
+        StampSlot::Sink,
     ];
 
+    /// The slot's name in graph files (`stamp = "..."`).
     pub fn name(self) -> &'static str {
         match self {
-            Stage::Source => "source",
-            Stage::Ingest => "ingest",
-            Stage::Encode => "encode",
-            Stage::Sampler => "sampler",
-            Stage::Selector => "selector",
-            Stage::Grasp => "grasp",
-            Stage::NextView => "next_view",
-            Stage::Sink => "sink",
+            StampSlot::Source => "source",
+            StampSlot::Ingest => "ingest",
+            StampSlot::Encode => "encode",
+            StampSlot::Sampler => "sampler",
+            StampSlot::Selector => "selector",
+            StampSlot::Grasp => "grasp",
+            StampSlot::NextView => "next_view",
+            StampSlot::Sink => "sink",
         }
+    }
+
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|slot| slot.name() == name)
     }
 }
 
@@ -63,17 +72,17 @@ pub struct StageStamps {
 }
 
 impl StageStamps {
-    /// Writes the current time into `stage`'s slot.
-    pub fn stamp(&mut self, stage: Stage) {
-        self.ns[stage as usize] = monotonic_ns();
+    /// Writes the current time into `slot`.
+    pub fn stamp(&mut self, slot: StampSlot) {
+        self.ns[slot as usize] = monotonic_ns();
     }
 
-    pub fn get(&self, stage: Stage) -> Option<u64> {
-        Some(self.ns[stage as usize]).filter(|&ns| ns != 0)
+    pub fn get(&self, slot: StampSlot) -> Option<u64> {
+        Some(self.ns[slot as usize]).filter(|&ns| ns != 0)
     }
 
-    /// Nanoseconds from `from` to `to`, when both stages stamped the frame.
-    pub fn elapsed_ns(&self, from: Stage, to: Stage) -> Option<u64> {
+    /// Nanoseconds from `from` to `to`, when both slots were stamped.
+    pub fn elapsed_ns(&self, from: StampSlot, to: StampSlot) -> Option<u64> {
         Some(self.get(to)?.saturating_sub(self.get(from)?))
     }
 }
@@ -97,7 +106,7 @@ pub mod flags {
 /// | 0      | 8    | frame_id  | u64       |
 /// | 8      | 4    | object_id | u32       |
 /// | 12     | 4    | flags     | u32 ([`flags`]) |
-/// | 16     | 64   | stamps    | [u64; 8] ([`StageStamps`], slots by [`Stage`]) |
+/// | 16     | 64   | stamps    | [u64; 8] ([`StageStamps`], slots by [`StampSlot`]) |
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
 #[type_name("poseflow/Header/v1")]
@@ -136,21 +145,23 @@ mod tests {
     #[test]
     fn stamps_measure_elapsed_time() {
         let mut stamps = StageStamps::default();
-        assert_eq!(stamps.elapsed_ns(Stage::Source, Stage::Ingest), None);
-        stamps.stamp(Stage::Source);
+        assert_eq!(stamps.elapsed_ns(StampSlot::Source, StampSlot::Ingest), None);
+        stamps.stamp(StampSlot::Source);
         std::thread::sleep(std::time::Duration::from_millis(2));
-        stamps.stamp(Stage::Ingest);
-        let elapsed = stamps.elapsed_ns(Stage::Source, Stage::Ingest).unwrap();
+        stamps.stamp(StampSlot::Ingest);
+        let elapsed = stamps.elapsed_ns(StampSlot::Source, StampSlot::Ingest).unwrap();
         assert!(elapsed >= 2_000_000, "{elapsed}");
-        assert_eq!(stamps.get(Stage::Grasp), None);
+        assert_eq!(stamps.get(StampSlot::Grasp), None);
     }
 
     #[test]
-    fn stage_slots_are_distinct_and_named() {
-        let names: std::collections::BTreeSet<_> = Stage::ALL.iter().map(|s| s.name()).collect();
+    fn stamp_slots_are_distinct_and_named() {
+        let names: std::collections::BTreeSet<_> = StampSlot::ALL.iter().map(|s| s.name()).collect();
         assert_eq!(names.len(), STAGE_SLOTS);
-        for (i, s) in Stage::ALL.iter().enumerate() {
+        for (i, s) in StampSlot::ALL.iter().enumerate() {
             assert_eq!(*s as usize, i);
+            assert_eq!(StampSlot::from_name(s.name()), Some(*s));
         }
+        assert_eq!(StampSlot::from_name("detector"), None);
     }
 }

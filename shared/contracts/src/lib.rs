@@ -67,7 +67,7 @@ pub use error::ContractError;
 pub use estimate::{EstimateHeader, EstimateView, HypothesesHeader, SelectionMethod, WEIGHTED_POSE_LEN};
 pub use frame::{DETECTION_LEN, Detection, FrameHeader, FrameView};
 pub use grasps::{GRASP_LEN, GraspsHeader};
-pub use header::{Header, STAGE_SLOTS, Stage, StageStamps, flags, monotonic_ns};
+pub use header::{Header, STAGE_SLOTS, StageStamps, StampSlot, flags, monotonic_ns};
 pub use heartbeat::{Heartbeat, StageState};
 pub use message::{MessageHeader, POSE_LEN, VELOCITY_LEN, limits};
 pub use next_view::{CANDIDATE_LEN, NextViewHeader};

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use crate::spec::{EdgePattern, EdgeSpec, GraphFile, OverflowPolicy, RestartPolicy, StageSpec};
+use crate::stamp::Stamp;
 use crate::wiring::{EdgeWiring, StageWiring};
 use crate::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, resolve_executable};
 
@@ -54,6 +55,8 @@ pub struct Stage {
     pub serves: Vec<String>,
     pub calls: Vec<String>,
     pub params: serde_json::Value,
+    /// The timestamp slot it writes; `None`: its registration's default.
+    pub stamp: Option<Stamp>,
     pub restart: Restart,
 }
 
@@ -246,6 +249,13 @@ impl Checker<'_> {
                 format!("{edge:?}"),
             ));
         }
+        let stamp = match spec.stamp.as_deref() {
+            None => None,
+            Some(text) => Some(
+                Stamp::parse(text)
+                    .ok_or_else(|| self.invalid(format!("{key}.stamp"), Stamp::expected(), format!("{text:?}")))?,
+            ),
+        };
         let params = self.params(&key, spec.config.as_deref(), spec.params, graph_dir)?;
         if spec.backoff_ms == 0 || spec.max_backoff_ms < spec.backoff_ms {
             return Err(self.invalid(
@@ -264,6 +274,7 @@ impl Checker<'_> {
             serves: spec.serves,
             calls: spec.calls,
             params,
+            stamp,
             restart: Restart {
                 policy: spec.restart,
                 backoff: Duration::from_millis(spec.backoff_ms),
@@ -462,6 +473,7 @@ impl Graph {
                 .map_err(invalid_instance)?,
             heartbeat_ms: self.heartbeat.as_millis() as u64,
             params: stage.params.clone(),
+            stamp: stage.stamp,
             incarnation: 0,
         })
     }

@@ -11,6 +11,7 @@ mod graph;
 mod overrides;
 mod resolve;
 mod spec;
+mod stamp;
 mod wiring;
 mod write;
 
@@ -18,6 +19,7 @@ pub use error::GraphError;
 pub use graph::{Edge, Graph, Restart, Stage, load, parse, parse_in_process};
 pub use resolve::resolve_executable;
 pub use spec::{EdgePattern, OverflowPolicy, RestartPolicy};
+pub use stamp::Stamp;
 pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV, WiringError};
 
 /// Message types an edge may carry, as named in graph files (defined with

@@ -118,6 +118,9 @@ pub(crate) struct StageSpec {
     /// Request-response edges this stage calls.
     #[serde(default)]
     pub calls: Vec<String>,
+    /// The timestamp slot the stage writes (`Stamp::parse`); absent: its
+    /// registration's default.
+    pub stamp: Option<String>,
     /// A TOML file of parameters, relative to the graph file.
     pub config: Option<String>,
     /// Inline parameters; they override the config file's.

@@ -2,6 +2,9 @@
 
 use serde::{Deserialize, Serialize};
 
+use poseflow_contracts::StampSlot;
+
+use crate::Stamp;
 use crate::spec::OverflowPolicy;
 
 /// The environment variable holding a stage's wiring as JSON. Plug-in
@@ -62,9 +65,19 @@ pub struct StageWiring {
     /// first output `UPSTREAM_RESTARTED` so downstream caches are dropped.
     #[serde(default)]
     pub incarnation: u32,
+    /// The graph's `stamp` for this stage; see [`Self::stamp_slot`]. Left
+    /// out when absent, so stages built before the key read the wiring.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stamp: Option<Stamp>,
 }
 
 impl StageWiring {
+    /// The timestamp slot the stage writes: the graph's `stamp`, else
+    /// `default` (the stage type's own).
+    pub fn stamp_slot(&self, default: Option<StampSlot>) -> Option<StampSlot> {
+        Stamp::resolve(self.stamp, default)
+    }
+
     pub fn to_json(&self) -> String {
         serde_json::to_string(self).expect("wiring is plain data")
     }

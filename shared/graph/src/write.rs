@@ -57,6 +57,9 @@ impl Graph {
                 params => toml::Table::try_from(params).map_err(|e| invalid(key(), e.to_string()))?,
             };
             table.insert("params".into(), params.into());
+            if let Some(stamp) = stage.stamp {
+                table.insert("stamp".into(), stamp.name().into());
+            }
             let restart = toml::Value::try_from(stage.restart.policy)
                 .map_err(|e| invalid(format!("stages.{name}.restart"), e.to_string()))?;
             table.insert("restart".into(), restart);
@@ -74,7 +77,9 @@ impl Graph {
 mod tests {
     use std::path::Path;
 
-    use crate::parse_in_process;
+    use poseflow_contracts::StampSlot;
+
+    use crate::{Stamp, parse_in_process};
 
     /// Every graph in `deploy/`, with a parameter set the way a program
     /// sets it, written and read back: the same graph.
@@ -91,6 +96,8 @@ mod tests {
             let mut graph = parse_in_process(&text, &path).unwrap();
             let first = graph.stages.keys().next().unwrap().clone();
             graph.set(&first, &["nested", "value"], serde_json::json!([1.5, 2.5])).unwrap();
+            // One stage with a timestamp slot of the graph's choice.
+            graph.stages.get_mut(&first).unwrap().stamp = Some(Stamp::Slot(StampSlot::Grasp));
             let written = graph.to_toml().unwrap();
             let read = parse_in_process(&written, &path).unwrap();
             assert_eq!(read.edges, graph.edges, "{}", path.display());

@@ -51,6 +51,13 @@ pub enum LaunchError {
     #[error("edge `{edge}`: message type `{message}` is not a contract message")]
     UnknownMessage { edge: String, message: String },
 
+    #[error(
+        "{}: stages `{first}` and `{second}` both write timestamp slot `{slot}` on one path, so one overwrites \
+         the other's stamp; give one of them another `stamp` (or \"none\")",
+        file.display()
+    )]
+    StampClash { file: PathBuf, slot: &'static str, first: String, second: String },
+
     #[error("the launcher thread panicked")]
     LauncherPanicked,
 

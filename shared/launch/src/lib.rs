@@ -16,6 +16,7 @@ mod driven;
 mod error;
 mod local;
 mod record;
+mod stamps;
 mod status;
 mod supervisor;
 
@@ -27,6 +28,7 @@ pub use error::LaunchError;
 use poseflow_graph::Graph;
 use poseflow_runtime::Registry;
 pub use record::chosen_edges;
+pub use stamps::stamp_owners;
 pub use status::{Counters, EdgeFlow, Outcome, Report, StageReport};
 
 /// How stage processes write their logs.
@@ -82,6 +84,7 @@ pub fn search_path(stage_path: &[PathBuf]) -> Vec<PathBuf> {
 /// of an in-process run; processes are started from their executables.
 pub fn launch(graph: &Graph, options: &LaunchOptions, registry: &Registry) -> Result<Report, LaunchError> {
     poseflow_transport::validate_name("graph instance", &options.instance)?;
+    stamp_owners(graph, registry)?;
     if options.in_process {
         local::run(graph, &options.instance, registry, options.record.as_ref())
     } else {

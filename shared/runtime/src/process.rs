@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::{CallbackProgression, SynchronousMultiplexing, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
-use poseflow_contracts::{MessageHeader, Stage, StageState, flags};
+use poseflow_contracts::{MessageHeader, StageState, StampSlot, flags};
 use poseflow_graph::StageWiring;
 use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, RequestServer, Responder, TransportError, create_node};
 
@@ -191,7 +191,7 @@ fn drain<H: MessageHeader>(
 /// Writes outputs straight into loaned shared memory.
 struct IpcEmitter<'a, H: MessageHeader> {
     publisher: &'a Publisher<H>,
-    slot: Option<Stage>,
+    slot: Option<StampSlot>,
     liveness: &'a Liveness,
     /// Called while a full queue holds a send back.
     while_blocked: &'a mut dyn FnMut(),
@@ -261,7 +261,12 @@ pub fn run_transform<T: Transform, E: Into<BuildError>>(make: impl FnOnce(&Stage
         tracing::info!(input = input.name(), output = output.name(), "running");
         let liveness = &process.liveness;
         let end = process.event_loop(&input, |message| {
-            let mut emitter = IpcEmitter { publisher: &output, slot: T::SLOT, liveness, while_blocked: &mut || {} };
+            let mut emitter = IpcEmitter {
+                publisher: &output,
+                slot: process.wiring.stamp_slot(T::SLOT),
+                liveness,
+                while_blocked: &mut || {},
+            };
             transform_one(&mut stage, message, &mut emitter, liveness)
         })?;
         finish_transform(process, &input, &output, end, || Ok(()))
@@ -304,7 +309,7 @@ fn finish_transform<I: MessageHeader, O: MessageHeader>(
 /// once it has returned (they are small: handles to what requests fetch).
 struct HeldOutputs<H> {
     outputs: Vec<(H, Vec<f32>)>,
-    slot: Option<Stage>,
+    slot: Option<StampSlot>,
 }
 
 impl<H: MessageHeader> Emitter<H> for HeldOutputs<H> {
@@ -345,7 +350,7 @@ impl<H: MessageHeader> HeldOutputs<H> {
 /// Sends a [`Server`]'s reply into the response's loaned shared memory.
 struct ReplyEmitter<'a, 'r, Req: MessageHeader, Resp: MessageHeader> {
     responder: &'a mut Responder<'r, Req, Resp>,
-    slot: Option<Stage>,
+    slot: Option<StampSlot>,
 }
 
 impl<Req: MessageHeader, Resp: MessageHeader> Emitter<Resp> for ReplyEmitter<'_, '_, Req, Resp> {
@@ -371,6 +376,7 @@ pub fn run_server<S: Server, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
             });
         };
         let mut stage = build(wiring, make)?;
+        let slot = wiring.stamp_slot(S::SLOT);
         let _span = tracing::info_span!("stage", name = %wiring.stage).entered();
         let input = process.input::<S::In>()?;
         let server =
@@ -396,7 +402,7 @@ pub fn run_server<S: Server, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
                         None
                     }
                 };
-                let mut reply = ReplyEmitter { responder, slot: S::SLOT };
+                let mut reply = ReplyEmitter { responder, slot };
                 let mut stage = stage.borrow_mut();
                 let answered = match request {
                     Some(request) => stage.answer(request, &mut reply).map_err(|e| error_chain(&e)),
@@ -427,7 +433,7 @@ pub fn run_server<S: Server, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         // Outputs are held until the stage has returned, then published while
         // requests keep being answered: the reader of a full output queue may
         // be waiting for an answer before it reads again.
-        let mut held = HeldOutputs { outputs: Vec::new(), slot: S::SLOT };
+        let mut held = HeldOutputs { outputs: Vec::new(), slot };
         let end = process.event_loop_also(
             &input,
             |message| {
@@ -500,8 +506,12 @@ pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
                 // restarted and waiting for this stage's READY before it
                 // reads again: answer it while blocked.
                 let mut answer_side = || answer_handshake(&side, &side_ended_early);
-                let mut emitter =
-                    IpcEmitter { publisher: &output, slot: J::SLOT, liveness, while_blocked: &mut answer_side };
+                let mut emitter = IpcEmitter {
+                    publisher: &output,
+                    slot: process.wiring.stamp_slot(J::SLOT),
+                    liveness,
+                    while_blocked: &mut answer_side,
+                };
                 transform_one(&mut **stage, message, &mut emitter, liveness)
             },
             Some(attachment),
@@ -595,7 +605,12 @@ pub fn run_source<S: Source, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         tracing::info!(output = output.name(), ?rate_hz, "running");
         let liveness = &process.liveness;
         let mut step = || -> SourceStep {
-            let mut emitter = IpcEmitter { publisher: &output, slot: S::SLOT, liveness, while_blocked: &mut || {} };
+            let mut emitter = IpcEmitter {
+                publisher: &output,
+                slot: process.wiring.stamp_slot(S::SLOT),
+                liveness,
+                while_blocked: &mut || {},
+            };
             let started = Instant::now();
             liveness.work_started();
             let result = source.next(&mut emitter);

@@ -7,6 +7,7 @@
 use std::collections::BTreeMap;
 use std::process::ExitCode;
 
+use poseflow_contracts::StampSlot;
 use poseflow_graph::{EdgeWiring, StageWiring};
 
 use crate::error::{BuildError, RuntimeError};
@@ -52,6 +53,8 @@ type RunProcess = Box<dyn Fn() -> ExitCode + Send + Sync>;
 pub struct Registration {
     exe: &'static str,
     kind: StageKind,
+    /// The timestamp slot of the stage type, unless the graph chooses one.
+    stamp: Option<StampSlot>,
     run_process: RunProcess,
     /// `None` for kinds the in-process graph cannot run yet.
     add_local: Option<AddLocal>,
@@ -136,6 +139,7 @@ impl Registration {
         Self {
             exe,
             kind: StageKind::Source,
+            stamp: S::SLOT,
             run_process: Box::new(move || run_source(make)),
             add_local: Some(Box::new(move |local, wiring| {
                 let output = single(wiring, "outputs", &wiring.outputs)?;
@@ -155,6 +159,7 @@ impl Registration {
         Self {
             exe,
             kind: StageKind::Transform,
+            stamp: T::SLOT,
             run_process: Box::new(move || run_transform(make)),
             add_local: Some(Box::new(move |local, wiring| {
                 let input = single(wiring, "inputs", &wiring.inputs)?;
@@ -173,6 +178,7 @@ impl Registration {
         Self {
             exe,
             kind: StageKind::Sink,
+            stamp: None,
             run_process: Box::new(move || run_sink(make)),
             add_local: Some(Box::new(move |local, wiring| {
                 let input = single(wiring, "inputs", &wiring.inputs)?;
@@ -193,6 +199,7 @@ impl Registration {
         Self {
             exe,
             kind: StageKind::Server,
+            stamp: S::SLOT,
             run_process: Box::new(move || run_server(make)),
             add_local: Some(Box::new(move |local, wiring| {
                 let input = single(wiring, "inputs", &wiring.inputs)?;
@@ -236,6 +243,7 @@ impl Registration {
         Self {
             exe,
             kind: if required { StageKind::Joined } else { StageKind::TransformOrJoined },
+            stamp: J::SLOT,
             run_process: if required {
                 Box::new(move || run_joined(make))
             } else {
@@ -259,6 +267,8 @@ impl Registration {
         Self {
             exe,
             kind: StageKind::Source,
+            // A replay keeps the recorded stamps: no slot of its own.
+            stamp: None,
             run_process: Box::new(move || match StageWiring::from_env() {
                 Ok(wiring) => match typed(&wiring) {
                     Ok(registration) => registration.run_process(),
@@ -279,6 +289,11 @@ impl Registration {
         self.kind
     }
 
+    /// The slot the stage writes where its graph entry has no `stamp`.
+    pub fn default_stamp(&self) -> Option<StampSlot> {
+        self.stamp
+    }
+
     /// Whether [`Self::add_to`] can run this stage in-process.
     pub fn runs_in_process(&self) -> bool {
         self.add_local.is_some()
@@ -291,6 +306,9 @@ impl Registration {
 
     /// Builds the stage from `wiring` and adds it to `local` as a thread.
     pub fn add_to(&self, local: &mut LocalGraph, wiring: &StageWiring) -> Result<(), RuntimeError> {
+        if wiring.stamp.is_some() {
+            local.stamp_as(&wiring.stage, wiring.stamp_slot(None));
+        }
         match &self.add_local {
             Some(add) => add(local, wiring),
             None => Err(RuntimeError::NotInProcess { stage: wiring.stage.clone(), kind: self.kind.label() }),

@@ -1,7 +1,7 @@
 //! What a stage author implements: plain functions from inputs to outputs,
 //! with no transport in sight.
 
-use poseflow_contracts::{Header, MessageHeader, Stage};
+use poseflow_contracts::{Header, MessageHeader, StampSlot};
 
 /// One received message, already checked against its contract.
 #[derive(Debug, Clone, Copy)]
@@ -38,7 +38,7 @@ pub trait Transform {
     type Error: std::error::Error;
 
     /// The timestamp slot this stage writes on its outputs, if any.
-    const SLOT: Option<Stage>;
+    const SLOT: Option<StampSlot>;
 
     /// Handles one input; may emit zero or more outputs.
     fn process(&mut self, input: Input<'_, Self::In>, output: &mut dyn Emitter<Self::Out>) -> Result<(), Self::Error>;
@@ -102,7 +102,7 @@ pub trait Source {
     type Out: MessageHeader;
     type Error: std::error::Error;
 
-    const SLOT: Option<Stage>;
+    const SLOT: Option<StampSlot>;
 
     /// Emits the next message(s).
     fn next(&mut self, output: &mut dyn Emitter<Self::Out>) -> Result<SourceStep, Self::Error>;

@@ -7,7 +7,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use anyhow::{Context, bail};
-use poseflow_contracts::{EstimateHeader, Stage};
+use poseflow_contracts::{EstimateHeader, StampSlot};
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
 use super::FrameLatencies;
@@ -30,13 +30,18 @@ pub(super) struct GraphRunFigures {
     pub restarts: u64,
     pub errors: u64,
     /// Per counted estimate, the time between consecutive stamps of its
-    /// path (`source→ingest`, …, `selector→received`): process time plus
+    /// path named by their stages (`frames→ingest`, …, `selector→received`): process time plus
     /// queueing and transport, where the time goes in the graph.
     pub path: BTreeMap<String, Vec<Duration>>,
 }
 
 /// Runs the graph to its end and reads what it recorded.
-pub(super) fn measure(run: &GraphRun<'_>, log: &Path, warmup: u64) -> anyhow::Result<GraphRunFigures> {
+pub(super) fn measure(
+    run: &GraphRun<'_>,
+    log: &Path,
+    warmup: u64,
+    owners: &StampOwners,
+) -> anyhow::Result<GraphRunFigures> {
     let summary = run.launch(log)?;
     let stages = summary["stages"].as_object().context("the run's summary has no `stages`")?;
     for (name, stage) in stages {
@@ -55,7 +60,7 @@ pub(super) fn measure(run: &GraphRun<'_>, log: &Path, warmup: u64) -> anyhow::Re
         p99_us: stage["p99_us"].as_u64().unwrap_or(0),
     };
     let total = |key: &str| stages.values().filter_map(|s| s[key].as_u64()).sum::<u64>();
-    let (frames, span, path) = frame_latencies(run.record.0, run.record.1, warmup)?;
+    let (frames, span, path) = frame_latencies(run.record.0, run.record.1, warmup, owners)?;
     Ok(GraphRunFigures {
         frames,
         span,
@@ -66,20 +71,29 @@ pub(super) fn measure(run: &GraphRun<'_>, log: &Path, warmup: u64) -> anyhow::Re
     })
 }
 
-/// The stamps of an Estimate's path through the estimation graph, in order.
-const PATH: [Stage; 5] = [Stage::Source, Stage::Ingest, Stage::Encode, Stage::Sampler, Stage::Selector];
+/// Which graph stage writes each timestamp slot ([`poseflow_launch::stamp_owners`]).
+pub(super) type StampOwners = BTreeMap<StampSlot, String>;
 
-/// The intervals between consecutive stamps of an Estimate's path, the
+/// The intervals between consecutive stamps of an Estimate's path, in time
+/// order, named by the stages that wrote them (`frames→ingest`, …), the
 /// last ending when it was received (`received_ns`, monotonic).
-pub(super) fn path_intervals(header: &EstimateHeader, received_ns: u64) -> Vec<(String, Duration)> {
-    let stamps: Vec<(&str, u64)> = PATH
+pub(super) fn path_intervals(
+    header: &EstimateHeader,
+    received_ns: u64,
+    owners: &StampOwners,
+) -> Vec<(String, Duration)> {
+    let mut stamps: Vec<(u64, &str)> = StampSlot::ALL
         .iter()
-        .filter_map(|&stage| Some((stage.name(), header.header.stamps.get(stage)?)))
-        .chain([("received", received_ns)])
+        .filter_map(|slot| {
+            let at = header.header.stamps.get(*slot)?;
+            Some((at, owners.get(slot).map_or(slot.name(), String::as_str)))
+        })
         .collect();
+    stamps.sort_by_key(|&(at, _)| at);
+    stamps.push((received_ns, "received"));
     stamps
         .windows(2)
-        .map(|pair| (format!("{}→{}", pair[0].0, pair[1].0), Duration::from_nanos(pair[1].1.saturating_sub(pair[0].1))))
+        .map(|pair| (format!("{}→{}", pair[0].1, pair[1].1), Duration::from_nanos(pair[1].0.saturating_sub(pair[0].0))))
         .collect()
 }
 
@@ -90,6 +104,7 @@ fn frame_latencies(
     recording: &Path,
     edge: &str,
     warmup: u64,
+    owners: &StampOwners,
 ) -> anyhow::Result<(FrameLatencies, Duration, BTreeMap<String, Vec<Duration>>)> {
     let mut reader = RecordingReader::open(recording).with_context(|| format!("{}", recording.display()))?;
     // frame id → (source stamp, last received, estimates)
@@ -102,14 +117,14 @@ fn frame_latencies(
         let header: EstimateHeader = header_from_bytes(&message.header)
             .with_context(|| format!("{}: a message on `{edge}` is not an Estimate", recording.display()))?;
         let frame = header.header.frame_id;
-        let source = header.header.stamps.get(Stage::Source).with_context(|| {
+        let source = header.header.stamps.get(StampSlot::Source).with_context(|| {
             format!("{}: frame {frame}: the Estimate carries no frame-source stamp", recording.display())
         })?;
         let entry = frames.entry(frame).or_insert((source, 0, 0));
         entry.1 = entry.1.max(message.received_ns);
         entry.2 += 1;
         if frame >= warmup {
-            for (interval, duration) in path_intervals(&header, message.received_ns) {
+            for (interval, duration) in path_intervals(&header, message.received_ns, owners) {
                 path.entry(interval).or_default().push(duration);
             }
         }

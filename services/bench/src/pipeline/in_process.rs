@@ -13,7 +13,7 @@ use poseflow_ingest::sources::LoadedFrame;
 use poseflow_launch::DrivenGraph;
 
 use super::FrameLatencies;
-use super::graph::path_intervals;
+use super::graph::{StampOwners, path_intervals};
 
 pub(super) type InProcessGraph = DrivenGraph<FrameHeader, EstimateHeader>;
 
@@ -40,6 +40,7 @@ pub(super) fn measure(
     frames: &[LoadedFrame],
     warmup: usize,
     period: Option<Duration>,
+    owners: &StampOwners,
 ) -> anyhow::Result<InProcess> {
     let mut measured = InProcess { frames: FrameLatencies::default(), path: BTreeMap::new(), wall: Duration::ZERO };
     let first = Instant::now();
@@ -58,7 +59,7 @@ pub(super) fn measure(
         measured.wall += latency;
         measured.frames.record(loaded.frame.frame_id, estimates.len(), latency);
         for (estimate, _) in &estimates {
-            for (interval, duration) in path_intervals(estimate, received) {
+            for (interval, duration) in path_intervals(estimate, received, owners) {
                 measured.path.entry(interval).or_default().push(duration);
             }
         }

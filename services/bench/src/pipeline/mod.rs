@@ -242,12 +242,13 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
 
     let frames = render_sequence(&graph.stages[&source].params)?;
     let frames_edge = graph.stages[&source].outputs.first().cloned().unwrap_or_default();
+    let owners = poseflow_launch::stamp_owners(&graph, &poseflow_stages::registry())?;
     let mut local_graph = in_process::start(&graph, &frames_edge, &args.estimates_edge)?;
-    let local = in_process::measure(&mut local_graph, &frames, warmup, None)?;
+    let local = in_process::measure(&mut local_graph, &frames, warmup, None, &owners)?;
     let in_process_fps = local.frames.frames.len() as f64 / local.wall.as_secs_f64().max(1e-9);
     let paced_hz = args.latency_load * in_process_fps;
     let period = Duration::from_secs_f64(1.0 / paced_hz);
-    let local_paced = in_process::measure(&mut local_graph, &frames, warmup, Some(period))?;
+    let local_paced = in_process::measure(&mut local_graph, &frames, warmup, Some(period), &owners)?;
     let in_process_errors: u64 = local_graph.finish()?.values().map(|beat| beat.errors).sum();
     drop(frames);
     tracing::info!(mode = mode.name(), fps = in_process_fps, "in-process measured");
@@ -264,7 +265,7 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
             stage_path: &args.run.stage_path,
             record: (&recording, &args.estimates_edge),
         };
-        let figures = graph::measure(&run, &log, u64::from(args.warmup))?;
+        let figures = graph::measure(&run, &log, u64::from(args.warmup), &owners)?;
         tracing::info!(mode = mode.name(), run = label, frames = figures.frames.estimated(), "graph measured");
         Ok(figures)
     };

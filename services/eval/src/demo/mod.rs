@@ -23,7 +23,7 @@ use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
 
 use self::graph::{Overrides, graph_with_overrides};
-use self::pictures::{Outlined, mollweide_panels, overlay};
+use self::pictures::{Outlined, SamplePanel, mollweide_panels, overlay};
 
 /// Rotation steps of continuous symmetries in the reported errors (BOP's
 /// discretisation).
@@ -398,11 +398,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             samples_within_10deg_5cm: within as f64 / entry.hypotheses.len().max(1) as f64,
         });
         outlined.push(Outlined {
+            obj_id,
             model: &object.model,
             selected: best,
             hypotheses: entry.hypotheses.iter().take(OUTLINED_HYPOTHESES).copied().collect(),
         });
-        panels.push((entry.hypotheses.clone(), *truth));
+        panels.push(SamplePanel { obj_id, samples: &entry.hypotheses, truth: *truth });
     }
     if objects.is_empty() {
         bail!("the graph produced no estimate for the scene's objects (see {})", recording.display());

@@ -1,21 +1,90 @@
-//! The demo's pictures: model outlines over the RGB image, and Mollweide
-//! plots of rotation samples (as in implicit-pdf).
+//! The demo's pictures, drawn with `plotters` in the DejaVu Sans font this
+//! crate ships (`fonts/`, so no system font is needed): model outlines over
+//! the RGB image, Mollweide plots of rotation samples (as in implicit-pdf)
+//! and the tracking error per image. Each carries a title, axes with their
+//! units and a legend.
 
 use std::f64::consts::{PI, SQRT_2, TAU};
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
-use anyhow::Context;
-use image::{Rgb, RgbImage};
+use image::{ExtendedColorType, Rgb, RgbImage};
 use nalgebra::{Rotation3, Vector3};
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
+use plotters::style::{FontStyle, register_font};
 use poseflow_geometry::Pose;
 use poseflow_scene::bop::Raster;
 use poseflow_scene::{Camera, Placed, RenderModel, silhouettes};
 
-const SELECTED: Rgb<u8> = Rgb([40, 230, 60]);
-const HYPOTHESIS: Rgb<u8> = Rgb([255, 170, 0]);
+/// DejaVu Sans (Bitstream Vera licence, `fonts/LICENSE`), the plots' only font.
+const FONT: &[u8] = include_bytes!("../../fonts/DejaVuSans.ttf");
+const FONT_FAMILY: &str = "sans-serif";
+
+const SELECTED: RGBColor = RGBColor(40, 230, 60);
+const HYPOTHESIS: RGBColor = RGBColor(255, 170, 0);
+
+/// Pixels above a picture's plots for its title, and around its charts.
+const TITLE_HEIGHT: u32 = 36;
+const MARGIN: u32 = 12;
+
+type DrawError = DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>;
+
+/// Why a picture could not be drawn or written.
+#[derive(Debug, thiserror::Error)]
+pub enum PictureError {
+    #[error("the shipped plot font (fonts/DejaVuSans.ttf) is not a readable TrueType font")]
+    Font,
+    #[error("cannot draw the {picture}")]
+    Draw {
+        picture: &'static str,
+        #[source]
+        source: DrawError,
+    },
+    #[error("{}: cannot write the {picture}", path.display())]
+    Write {
+        path: PathBuf,
+        picture: &'static str,
+        #[source]
+        source: image::ImageError,
+    },
+}
+
+fn text(size: u32) -> TextStyle<'static> {
+    (FONT_FAMILY, size).into_font().color(&BLACK)
+}
+
+/// Registers the shipped font with `plotters` once per process.
+fn shipped_font() -> Result<(), PictureError> {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    let registered = *REGISTERED.get_or_init(|| register_font(FONT_FAMILY, FontStyle::Normal, FONT).is_ok());
+    registered.then_some(()).ok_or(PictureError::Font)
+}
+
+/// Draws a picture of `size` pixels in memory with `draw` and writes it as PNG.
+fn render(
+    path: &Path,
+    picture: &'static str,
+    (width, height): (u32, u32),
+    draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), DrawError>,
+) -> Result<(), PictureError> {
+    shipped_font()?;
+    let mut pixels = vec![255u8; width as usize * height as usize * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut pixels, (width, height)).into_drawing_area();
+        draw(&root).and_then(|()| root.present()).map_err(|source| PictureError::Draw { picture, source })?;
+    }
+    image::save_buffer(path, &pixels, width, height, ExtendedColorType::Rgb8).map_err(|source| PictureError::Write {
+        path: path.to_path_buf(),
+        picture,
+        source,
+    })
+}
 
 /// One object drawn on the overlay.
 pub struct Outlined<'a> {
+    pub obj_id: u32,
     pub model: &'a RenderModel,
     pub selected: Pose,
     pub hypotheses: Vec<Pose>,
@@ -34,16 +103,23 @@ fn boundary(mask: &[bool], width: usize) -> impl Iterator<Item = (usize, usize)>
     })
 }
 
-/// The RGB image with each object's outline under a handful of hypotheses
-/// (orange) and under the selected pose (green, thicker).
-pub fn overlay(rgb: &Raster<[u8; 3]>, camera: &Camera, objects: &[Outlined<'_>], path: &Path) -> anyhow::Result<()> {
-    let mut image = RgbImage::from_fn(rgb.width, rgb.height, |x, y| {
-        // Dimmed, so the outlines stand out.
-        Rgb(rgb.pixels[(y * rgb.width + x) as usize].map(|c| (u16::from(c) * 3 / 4) as u8))
+/// The RGB image (dimmed) with each object's outline under a handful of
+/// hypotheses (orange) and under the selected pose (green, thicker), its id
+/// beside the selected outline, in pixel axes (origin top left, as the
+/// camera intrinsics count).
+pub fn overlay(
+    rgb: &Raster<[u8; 3]>,
+    camera: &Camera,
+    objects: &[Outlined<'_>],
+    path: &Path,
+) -> Result<(), PictureError> {
+    let (width, height) = (rgb.width, rgb.height);
+    let mut image = RgbImage::from_fn(width, height, |x, y| {
+        Rgb(rgb.pixels[(y * width + x) as usize].map(|c| (u16::from(c) * 3 / 4) as u8))
     });
-    let width = rgb.width as usize;
+    let mut labels = Vec::new();
     for object in objects {
-        let drawn: Vec<(Pose, Rgb<u8>, i64)> = object
+        let drawn: Vec<(Pose, RGBColor, i64)> = object
             .hypotheses
             .iter()
             .map(|p| (*p, HYPOTHESIS, 0))
@@ -51,19 +127,71 @@ pub fn overlay(rgb: &Raster<[u8; 3]>, camera: &Camera, objects: &[Outlined<'_>],
             .collect();
         let placed: Vec<Placed<'_>> = drawn.iter().map(|(pose, _, _)| Placed { model: object.model, pose }).collect();
         for (mask, (_, colour, thickness)) in silhouettes(camera, &placed).iter().zip(&drawn) {
-            for (x, y) in boundary(mask, width) {
+            let mut top_left: Option<(usize, usize)> = None;
+            for (x, y) in boundary(mask, width as usize) {
+                top_left = Some(top_left.map_or((x, y), |(tx, ty)| (tx.min(x), ty.min(y))));
                 for dy in -thickness..=*thickness {
                     for dx in -thickness..=*thickness {
                         let (px, py) = (x as i64 + dx, y as i64 + dy);
-                        if px >= 0 && py >= 0 && px < i64::from(rgb.width) && py < i64::from(rgb.height) {
-                            image.put_pixel(px as u32, py as u32, *colour);
+                        if px >= 0 && py >= 0 && px < i64::from(width) && py < i64::from(height) {
+                            image.put_pixel(px as u32, py as u32, Rgb([colour.0, colour.1, colour.2]));
                         }
                     }
                 }
             }
+            if *thickness == 1
+                && let Some(corner) = top_left
+            {
+                labels.push((object.obj_id, corner));
+            }
         }
     }
-    image.save(path).with_context(|| format!("{}: cannot write the overlay", path.display()))
+    let (x_labels, y_labels) = (40, 56);
+    let size = (width + y_labels + 2 * MARGIN, height + TITLE_HEIGHT + x_labels + 2 * MARGIN);
+    render(path, "overlay", size, |root| {
+        let (title, rest) = root.split_vertically(TITLE_HEIGHT);
+        title.draw_text("Pose outlines on the input image", &text(17), (MARGIN as i32, 10))?;
+        // The plotting area is exactly the image: one pixel per unit.
+        let mut chart = ChartBuilder::on(&rest)
+            .margin(MARGIN)
+            .x_label_area_size(x_labels)
+            .y_label_area_size(y_labels)
+            .build_cartesian_2d(0..width as i32, -(height as i32)..0)?;
+        // Image rows count down from the top; the chart's y counts up, so
+        // it runs over minus the row.
+        let row = |y: &i32| format!("{}", -y);
+        chart
+            .configure_mesh()
+            .disable_mesh()
+            .x_desc("x (px)")
+            .y_desc("y (px)")
+            .y_label_formatter(&row)
+            .label_style(text(12))
+            .axis_desc_style(text(13))
+            .draw()?;
+        let pixels = chart.plotting_area().strip_coord_spec();
+        if let Some(picture) = BitMapElement::with_ref((0, 0), (width, height), image.as_raw()) {
+            pixels.draw(&picture)?;
+        }
+        for (obj_id, (x, y)) in &labels {
+            let below_top = (*y as i32 - 18).max(0);
+            pixels.draw_text(&format!("object {obj_id}"), &text(14).color(&SELECTED), (*x as i32, below_top))?;
+        }
+        for (label, colour, thickness) in [("selected pose", SELECTED, 3), ("hypotheses", HYPOTHESIS, 1)] {
+            chart
+                .draw_series(std::iter::empty::<PathElement<(i32, i32)>>())?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(thickness)));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font(text(12))
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(120, 120, 120))
+            .draw()?;
+        Ok(())
+    })
 }
 
 /// Longitude and latitude of the first column of `r` (implicit-pdf's
@@ -99,7 +227,7 @@ pub fn mollweide(longitude: f64, latitude: f64) -> (f64, f64) {
     (2.0 * SQRT_2 / PI * longitude * theta.cos(), SQRT_2 * theta.sin())
 }
 
-fn hue(fraction: f64) -> Rgb<u8> {
+fn hue(fraction: f64) -> RGBColor {
     let h = fraction.rem_euclid(1.0) * 6.0;
     let x = 1.0 - (h % 2.0 - 1.0).abs();
     let (r, g, b) = match h as u32 {
@@ -110,104 +238,264 @@ fn hue(fraction: f64) -> Rgb<u8> {
         4 => (x, 0.0, 1.0),
         _ => (1.0, 0.0, x),
     };
-    Rgb([r, g, b].map(|c: f64| (c * 230.0) as u8))
+    let [r, g, b] = [r, g, b].map(|c: f64| (c * 230.0) as u8);
+    RGBColor(r, g, b)
 }
 
+/// 181 points of a curve parametrised over [0, 1].
+fn curve(point: impl Fn(f64) -> (f64, f64)) -> impl Iterator<Item = (f64, f64)> {
+    (0..=180).map(move |i| point(f64::from(i) / 180.0))
+}
+
+/// The rotation samples of one object and its ground truth.
+pub struct SamplePanel<'a> {
+    pub obj_id: u32,
+    pub samples: &'a [Pose],
+    pub truth: Pose,
+}
+
+const PANEL_SIZE: (u32, u32) = (800, 340);
+const COLOUR_BAR_WIDTH: u32 = 130;
+
 /// One panel per object, stacked: the samples' rotations as dots coloured
-/// by tilt, the ground truth as a ring of its tilt's colour.
-pub fn mollweide_panels(panels: &[(Vec<Pose>, Pose)], path: &Path) -> anyhow::Result<()> {
-    let (w, h) = (480u32, 240u32);
-    let mut image = RgbImage::from_pixel(w, h * panels.len().max(1) as u32, Rgb([255, 255, 255]));
-    let to_pixel = |(x, y): (f64, f64), top: u32| -> (i64, i64) {
-        let px = (x / (2.0 * SQRT_2) * 0.47 + 0.5) * f64::from(w);
-        let py = (0.5 - y / SQRT_2 * 0.45) * f64::from(h) + f64::from(top);
-        (px.round() as i64, py.round() as i64)
-    };
-    let put = |image: &mut RgbImage, (x, y): (i64, i64), colour: Rgb<u8>| {
-        if x >= 0 && y >= 0 && x < i64::from(image.width()) && y < i64::from(image.height()) {
-            image.put_pixel(x as u32, y as u32, colour);
+/// by tilt, the ground truth as a ring of its tilt's colour, a graticule
+/// every 30° of latitude and 60° of longitude, and the tilt's colour bar.
+pub fn mollweide_panels(panels: &[SamplePanel<'_>], path: &Path) -> Result<(), PictureError> {
+    let size = (PANEL_SIZE.0, TITLE_HEIGHT + PANEL_SIZE.1 * panels.len().max(1) as u32);
+    render(path, "Mollweide plot", size, |root| {
+        let (title, rest) = root.split_vertically(TITLE_HEIGHT);
+        title.draw_text("Rotation samples: direction of their x axis (Mollweide)", &text(16), (MARGIN as i32, 10))?;
+        // One legend for every panel, at the title's right.
+        let legend_x = PANEL_SIZE.0 as i32 - 335;
+        title.draw(&Circle::new((legend_x, 19), 3, hue(0.0).filled()))?;
+        title.draw_text("sample (colour: tilt)", &text(12), (legend_x + 8, 12))?;
+        title.draw(&Circle::new((legend_x + 150, 19), 9, BLACK.stroke_width(2)))?;
+        title.draw_text("ground truth (colour: tilt)", &text(12), (legend_x + 164, 12))?;
+        for (panel, area) in panels.iter().zip(rest.split_evenly((panels.len().max(1), 1))) {
+            sample_panel(panel, &area)?;
         }
-    };
-    for (k, (samples, truth)) in panels.iter().enumerate() {
-        let top = k as u32 * h;
-        // The map's outline and a graticule every 30 degrees.
-        for i in 0..2000 {
-            let t = i as f64 / 2000.0;
-            for (longitude, latitude) in [(PI, (t - 0.5) * PI), (-PI, (t - 0.5) * PI)] {
-                put(&mut image, to_pixel(mollweide(longitude, latitude), top), Rgb([90, 90, 90]));
-            }
-            for degrees in [-60.0f64, -30.0, 0.0, 30.0, 60.0] {
-                let p = to_pixel(mollweide((t - 0.5) * TAU, degrees.to_radians()), top);
-                put(&mut image, p, Rgb([215, 215, 215]));
-            }
-        }
-        for pose in samples {
-            let (longitude, latitude, tilt) = sphere_coordinates(&pose.rotation);
-            let (x, y) = to_pixel(mollweide(longitude, latitude), top);
-            for dy in -2..=2 {
-                for dx in -2i64..=2 {
-                    if dx * dx + dy * dy <= 5 {
-                        put(&mut image, (x + dx, y + dy), hue(tilt / TAU));
-                    }
-                }
-            }
-        }
-        let (longitude, latitude, tilt) = sphere_coordinates(&truth.rotation);
-        let (x, y) = to_pixel(mollweide(longitude, latitude), top);
-        for i in 0..120 {
-            let a = f64::from(i) / 120.0 * TAU;
-            for radius in [9.0, 10.0] {
-                let p = (x + (radius * a.cos()).round() as i64, y + (radius * a.sin()).round() as i64);
-                put(&mut image, p, hue(tilt / TAU));
-            }
-        }
+        Ok(())
+    })
+}
+
+fn sample_panel(panel: &SamplePanel<'_>, area: &DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), DrawError> {
+    let (map, bar) = area.split_horizontally(PANEL_SIZE.0 - COLOUR_BAR_WIDTH);
+    let (half_width, half_height) = (2.0 * SQRT_2, SQRT_2);
+    let mut chart = ChartBuilder::on(&map)
+        .caption(format!("object {}: {} samples", panel.obj_id, panel.samples.len()), text(15))
+        .margin(MARGIN)
+        .x_label_area_size(24)
+        .y_label_area_size(24)
+        // Room left of the map for the latitude labels.
+        .build_cartesian_2d(-half_width - 0.5..half_width + 0.05, -half_height - 0.05..half_height + 0.05)?;
+    // The projection's axes are curved: the graticule carries the degrees.
+    chart
+        .configure_mesh()
+        .disable_mesh()
+        .x_labels(0)
+        .y_labels(0)
+        .x_desc("longitude (°, labels on the equator)")
+        .y_desc("latitude (°)")
+        .axis_desc_style(text(13))
+        .draw()?;
+    let right_aligned = text(12).pos(Pos::new(HPos::Right, VPos::Center));
+    chart.draw_series([-60.0f64, -30.0, 0.0, 30.0, 60.0].map(|degrees| {
+        let (x, y) = mollweide(-PI, degrees.to_radians());
+        Text::new(format!("{degrees:.0}°"), (x - 0.06, y), right_aligned.clone())
+    }))?;
+    let below = text(12).pos(Pos::new(HPos::Center, VPos::Top));
+    chart.draw_series([-120.0f64, -60.0, 0.0, 60.0, 120.0].map(|degrees| {
+        let (x, y) = mollweide(degrees.to_radians(), 0.0);
+        Text::new(format!("{degrees:.0}°"), (x, y - 0.04), below.clone())
+    }))?;
+    let grey = RGBColor(205, 205, 205);
+    for degrees in [-60.0f64, -30.0, 0.0, 30.0, 60.0] {
+        chart.draw_series(LineSeries::new(curve(|t| mollweide((t - 0.5) * TAU, degrees.to_radians())), grey))?;
     }
-    image.save(path).with_context(|| format!("{}: cannot write the Mollweide plot", path.display()))
+    for degrees in [-120.0f64, -60.0, 0.0, 60.0, 120.0] {
+        chart.draw_series(LineSeries::new(curve(|t| mollweide(degrees.to_radians(), (t - 0.5) * PI)), grey))?;
+    }
+    for edge in [-PI, PI] {
+        chart.draw_series(LineSeries::new(curve(|t| mollweide(edge, (t - 0.5) * PI)), RGBColor(90, 90, 90)))?;
+    }
+    chart.draw_series(panel.samples.iter().map(|pose| {
+        let (longitude, latitude, tilt) = sphere_coordinates(&pose.rotation);
+        Circle::new(mollweide(longitude, latitude), 3, hue(tilt / TAU).filled())
+    }))?;
+    let (longitude, latitude, tilt) = sphere_coordinates(&panel.truth.rotation);
+    let truth = mollweide(longitude, latitude);
+    chart.draw_series([
+        Circle::new(truth, 11, BLACK.stroke_width(1)),
+        Circle::new(truth, 9, hue(tilt / TAU).stroke_width(3)),
+    ])?;
+    tilt_colour_bar(&bar)
+}
+
+/// The colours of the tilt about the rotated x axis, 0–360°.
+fn tilt_colour_bar(area: &DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), DrawError> {
+    // The bar spans x in [0, 1]; its labels stand to its right.
+    let mut chart = ChartBuilder::on(area)
+        .caption("tilt about it", text(12))
+        .margin(MARGIN)
+        .x_label_area_size(38)
+        .build_cartesian_2d(0.0..2.6, 0.0..360.0)?;
+    chart.draw_series((0..72).map(|k| {
+        let from = f64::from(k) * 5.0;
+        Rectangle::new([(0.0, from), (1.0, from + 5.0)], hue(from / 360.0).filled())
+    }))?;
+    chart.draw_series([Rectangle::new([(0.0, 0.0), (1.0, 360.0)], BLACK.stroke_width(1))])?;
+    let beside = text(12).pos(Pos::new(HPos::Left, VPos::Center));
+    chart.draw_series(
+        [0.0f64, 90.0, 180.0, 270.0, 360.0]
+            .map(|degrees| Text::new(format!("{degrees:.0}°"), (1.15, degrees), beside.clone())),
+    )?;
+    Ok(())
 }
 
 /// Top of the error plot's y axis, degrees: larger errors are drawn at the top.
 const PLOT_MAX_DEG: f64 = 20.0;
 
-/// Draws a straight segment of one-pixel dots between two points.
-fn segment(image: &mut RgbImage, from: (f64, f64), to: (f64, f64), colour: Rgb<u8>) {
-    let steps = (to.0 - from.0).abs().max((to.1 - from.1).abs()).ceil().max(1.0) as u32;
-    for i in 0..=steps {
-        let t = f64::from(i) / f64::from(steps);
-        let (x, y) = (from.0 + (to.0 - from.0) * t, from.1 + (to.1 - from.1) * t);
-        if x >= 0.0 && y >= 0.0 && x < f64::from(image.width()) && y < f64::from(image.height()) {
-            image.put_pixel(x as u32, y as u32, colour);
-        }
-    }
+/// The rotation error of one object per image, `(image, degrees)` in image order.
+pub struct ErrorSeries {
+    pub obj_id: u32,
+    pub points: Vec<(u32, f64)>,
 }
 
-/// Rotation error per image, one polyline per object (`(image, degrees)`
-/// points in image order), x from image 0 to `frames`, y from 0 to 20°
-/// (clipped), grey lines at 5° and 10°.
-pub fn error_plot(series: &[Vec<(u32, f64)>], frames: u32, path: &Path) -> anyhow::Result<()> {
-    let (w, h, margin) = (720u32, 240u32, 10.0);
-    let mut image = RgbImage::from_pixel(w, h, Rgb([255, 255, 255]));
-    let x = |im_id: u32| margin + f64::from(im_id) / f64::from(frames.max(2) - 1) * (f64::from(w) - 2.0 * margin);
-    let y = |degrees: f64| {
-        f64::from(h) - margin - degrees.clamp(0.0, PLOT_MAX_DEG) / PLOT_MAX_DEG * (f64::from(h) - 2.0 * margin)
-    };
-    for (degrees, grey) in [(0.0, 90), (5.0, 170), (10.0, 170)] {
-        segment(&mut image, (x(0), y(degrees)), (x(frames.max(2) - 1), y(degrees)), Rgb([grey; 3]));
-    }
-    for (k, points) in series.iter().enumerate() {
-        let colour = hue(k as f64 / series.len() as f64);
-        for pair in points.windows(2) {
-            segment(&mut image, (x(pair[0].0), y(pair[0].1)), (x(pair[1].0), y(pair[1].1)), colour);
+/// Rotation error per image, one line per object, x from image 0 to
+/// `frames − 1`, y from 0 to 20° (larger errors clipped to the top), lines
+/// at the 5° and 10° thresholds.
+pub fn error_plot(series: &[ErrorSeries], frames: u32, path: &Path) -> Result<(), PictureError> {
+    let last = frames.max(2) - 1;
+    render(path, "tracking error plot", (900, 380), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption("Rotation error of the selected pose per image of the video", text(17))
+            .margin(MARGIN)
+            .x_label_area_size(42)
+            .y_label_area_size(56)
+            .build_cartesian_2d(0..last, 0.0..PLOT_MAX_DEG)?;
+        chart
+            .configure_mesh()
+            .x_desc("image (video frame)")
+            .y_desc(format!("rotation error (°, clipped at {PLOT_MAX_DEG:.0}°)"))
+            .y_label_formatter(&|degrees: &f64| format!("{degrees:.0}"))
+            .light_line_style(RGBColor(240, 240, 240))
+            .label_style(text(13))
+            .axis_desc_style(text(13))
+            .draw()?;
+        for (degrees, colour) in [(5.0, RGBColor(120, 120, 120)), (10.0, RGBColor(170, 170, 170))] {
+            chart
+                .draw_series(LineSeries::new([(0, degrees), (last, degrees)], colour.stroke_width(2)))?
+                .label(format!("{degrees:.0}° threshold"))
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2)));
         }
-        if let [(im_id, degrees)] = points.as_slice() {
-            segment(&mut image, (x(*im_id), y(*degrees)), (x(*im_id) + 1.0, y(*degrees)), colour);
+        for (k, object) in series.iter().enumerate() {
+            let colour = hue(k as f64 / series.len() as f64);
+            let clipped = || object.points.iter().map(|&(im_id, degrees)| (im_id, degrees.clamp(0.0, PLOT_MAX_DEG)));
+            chart
+                .draw_series(LineSeries::new(clipped(), colour.stroke_width(2)))?
+                .label(format!("object {}", object.obj_id))
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2)));
+            chart.draw_series(clipped().map(|point| Circle::new(point, 2, colour.filled())))?;
         }
-    }
-    image.save(path).with_context(|| format!("{}: cannot write the error plot", path.display()))
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font(text(12))
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(120, 120, 120))
+            .draw()?;
+        Ok(())
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use poseflow_scene::primitives::ClutterShape;
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("poseflow-pictures-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join(name)
+    }
+
+    /// Pixels of `image` inside the rectangle that are close to `colour`.
+    fn count(image: &RgbImage, (x0, y0, x1, y1): (u32, u32, u32, u32), colour: [u8; 3]) -> usize {
+        let near = |p: &Rgb<u8>| p.0.iter().zip(colour).all(|(a, b)| a.abs_diff(b) < 40);
+        (y0..y1.min(image.height()))
+            .flat_map(|y| (x0..x1.min(image.width())).map(move |x| (x, y)))
+            .filter(|&(x, y)| near(image.get_pixel(x, y)))
+            .count()
+    }
+
+    /// Dark pixels: text and axes (anti-aliased text is mostly grey).
+    fn ink(image: &RgbImage, rect: (u32, u32, u32, u32)) -> usize {
+        count(image, rect, [40, 40, 40]) + count(image, rect, [110, 110, 110])
+    }
+
+    #[test]
+    fn the_error_plot_has_a_title_labelled_axes_and_a_legend() {
+        let path = scratch("tracking.png");
+        let low = |obj_id, degrees| ErrorSeries { obj_id, points: (0..30).map(|i| (i, degrees)).collect() };
+        error_plot(&[low(1, 1.0), low(5, 2.0)], 30, &path).unwrap();
+        let image = image::open(&path).unwrap().to_rgb8();
+        assert_eq!(image.dimensions(), (900, 380));
+        assert!(ink(&image, (0, 0, 900, 32)) > 200, "title");
+        assert!(ink(&image, (0, 40, 60, 330)) > 200, "y axis labels and description");
+        assert!(ink(&image, (60, 340, 900, 380)) > 200, "x axis labels and description");
+        // Both series run at the bottom: the first's colour near the top
+        // right is its legend entry.
+        let first = hue(0.0);
+        assert!(count(&image, (600, 30, 900, 200), [first.0, first.1, first.2]) > 10, "legend");
+    }
+
+    #[test]
+    fn the_mollweide_plot_has_a_title_graticule_labels_and_a_colour_bar() {
+        let path = scratch("mollweide.png");
+        let samples: Vec<Pose> = (0..20)
+            .map(|k| Pose::new(Rotation3::from_axis_angle(&Vector3::z_axis(), f64::from(k) * 0.3), Vector3::zeros()))
+            .collect();
+        let panel = |obj_id| SamplePanel { obj_id, samples: &samples, truth: Pose::identity() };
+        mollweide_panels(&[panel(1), panel(8)], &path).unwrap();
+        let image = image::open(&path).unwrap().to_rgb8();
+        assert_eq!(image.dimensions(), (PANEL_SIZE.0, TITLE_HEIGHT + 2 * PANEL_SIZE.1));
+        assert!(ink(&image, (0, 0, PANEL_SIZE.0, TITLE_HEIGHT)) > 200, "title");
+        for panel in 0..2 {
+            let top = TITLE_HEIGHT + panel * PANEL_SIZE.1;
+            assert!(ink(&image, (0, top, PANEL_SIZE.0, top + 30)) > 100, "panel {panel} caption");
+            // The tilt colour bar: every hue down its height.
+            let bar = (PANEL_SIZE.0 - COLOUR_BAR_WIDTH, top, PANEL_SIZE.0, top + PANEL_SIZE.1);
+            for fraction in [0.0, 1.0 / 3.0, 2.0 / 3.0] {
+                let c = hue(fraction);
+                assert!(count(&image, bar, [c.0, c.1, c.2]) > 50, "panel {panel} colour bar at {fraction}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_overlay_frames_the_image_in_pixel_axes_with_a_legend() {
+        let path = scratch("overlay.png");
+        let cube = ClutterShape::Box { half_extents: Vector3::new(0.03, 0.03, 0.03) }.mesh([200, 50, 50]);
+        let model = RenderModel::new(cube).unwrap();
+        let camera = Camera { fx: 300.0, fy: 300.0, cx: 160.0, cy: 120.0, width: 320, height: 240 };
+        let rgb = Raster { width: 320, height: 240, pixels: vec![[128, 128, 128]; 320 * 240] };
+        let at = |x| Pose::new(Rotation3::identity(), Vector3::new(x, 0.0, 0.5));
+        let object = Outlined { obj_id: 3, model: &model, selected: at(0.0), hypotheses: vec![at(0.02)] };
+        overlay(&rgb, &camera, &[object], &path).unwrap();
+        let image = image::open(&path).unwrap().to_rgb8();
+        assert_eq!(image.dimensions(), (320 + 56 + 2 * MARGIN, 240 + TITLE_HEIGHT + 40 + 2 * MARGIN));
+        assert!(ink(&image, (0, 0, image.width(), TITLE_HEIGHT)) > 200, "title");
+        let plot = (MARGIN + 56, TITLE_HEIGHT + MARGIN, MARGIN + 56 + 320, TITLE_HEIGHT + MARGIN + 240);
+        assert!(ink(&image, (0, plot.1, plot.0, plot.3)) > 100, "y axis");
+        assert!(ink(&image, (plot.0, plot.3, plot.2, image.height())) > 100, "x axis");
+        let green = [SELECTED.0, SELECTED.1, SELECTED.2];
+        let orange = [HYPOTHESIS.0, HYPOTHESIS.1, HYPOTHESIS.2];
+        // Outlines in the image's middle; legend entries in its top right.
+        let middle = (plot.0 + 100, plot.1 + 60, plot.0 + 220, plot.1 + 180);
+        assert!(count(&image, middle, green) > 50 && count(&image, middle, orange) > 20, "outlines");
+        let corner = (plot.2 - 140, plot.1, plot.2, plot.1 + 60);
+        assert!(count(&image, corner, green) > 5 && count(&image, corner, orange) > 5, "legend");
+    }
 
     #[test]
     fn mollweide_maps_the_equator_poles_and_edges_in_closed_form() {

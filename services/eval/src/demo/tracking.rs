@@ -6,12 +6,12 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::bail;
-use poseflow_contracts::{Stage, flags};
+use poseflow_contracts::{StampSlot, flags};
 use poseflow_geometry::Pose;
 use poseflow_scene::ModelLibrary;
 use serde::Serialize;
 
-use super::pictures::error_plot;
+use super::pictures::{ErrorSeries, error_plot};
 use super::{DemoArgs, ground_truth, print_report, read_recording, symmetries};
 use poseflow_runtime::timing::Timing;
 
@@ -89,7 +89,7 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         };
         let error = symmetries.pose_error(&best, &truth.1);
         by_object.entry(header.object_id).or_default().push((im_id, error.rotation.to_degrees(), error.translation));
-        if let Some(ns) = header.stamps.elapsed_ns(Stage::Source, Stage::Selector) {
+        if let Some(ns) = header.stamps.elapsed_ns(StampSlot::Source, StampSlot::Selector) {
             latencies.entry(header.object_id).or_default().push(Duration::from_nanos(ns));
         }
         if header.flags & flags::TRACKING != 0 {
@@ -124,8 +124,10 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         });
     }
     let plot = args.out.join("tracking.png");
-    let series: Vec<Vec<(u32, f64)>> =
-        by_object.values().map(|errors| errors.iter().map(|e| (e.0, e.1)).collect()).collect();
+    let series: Vec<ErrorSeries> = by_object
+        .iter()
+        .map(|(obj_id, errors)| ErrorSeries { obj_id: *obj_id, points: errors.iter().map(|e| (e.0, e.1)).collect() })
+        .collect();
     error_plot(&series, args.frames, &plot)?;
     let report = TrackingReport {
         out: args.out.clone(),

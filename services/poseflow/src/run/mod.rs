@@ -69,12 +69,15 @@ pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
     let instance = args.instance.clone().unwrap_or_else(|| poseflow_launch::default_instance(&graph));
     poseflow_transport::validate_name("graph instance", &instance).context("--instance")?;
     if args.check {
+        let owners = poseflow_launch::stamp_owners(&graph, &poseflow_stages::registry())?;
+        let stamps: Vec<String> = owners.iter().map(|(slot, stage)| format!("{}={stage}", slot.name())).collect();
         println!(
-            "{}: valid graph `{}` with {} stages and {} edges",
+            "{}: valid graph `{}` with {} stages and {} edges; timestamp slots: {}",
             args.graph.display(),
             graph.name,
             graph.stages.len(),
-            graph.edges.len()
+            graph.edges.len(),
+            stamps.join(", ")
         );
         return Ok(ExitCode::SUCCESS);
     }

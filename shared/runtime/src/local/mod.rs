@@ -16,7 +16,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use poseflow_contracts::{Heartbeat, MessageHeader, Stage};
+use poseflow_contracts::{Heartbeat, MessageHeader, StampSlot};
 
 use crate::call::{Endpoint, PendingRequest, open_endpoint};
 use crate::error::{BuildError, RuntimeError};
@@ -53,7 +53,7 @@ struct LocalEdge<H> {
 /// stream once all publishers are gone.
 struct LocalEmitter<'a, H> {
     readers: Vec<Arc<Queue<H>>>,
-    slot: Option<Stage>,
+    slot: Option<StampSlot>,
     liveness: &'a Liveness,
     stop: &'a AtomicBool,
 }
@@ -110,6 +110,8 @@ pub struct LocalGraph {
     /// Publishers from outside the graph, attached when it starts.
     feeds: Vec<AttachFeed>,
     in_flight: Arc<InFlight>,
+    /// Timestamp slots chosen by the graph, overriding the stage types'.
+    stamp_slots: HashMap<String, Option<StampSlot>>,
 }
 
 impl std::fmt::Debug for LocalGraph {
@@ -136,7 +138,18 @@ impl LocalGraph {
             services: Vec::new(),
             feeds: Vec::new(),
             in_flight: Arc::new(InFlight::default()),
+            stamp_slots: HashMap::new(),
         }
+    }
+
+    /// Makes stage `name` (added before or after) write `slot` on its
+    /// outputs instead of its type's `SLOT` (the graph's `stamp` key).
+    pub fn stamp_as(&mut self, name: &str, slot: Option<StampSlot>) {
+        self.stamp_slots.insert(name.to_owned(), slot);
+    }
+
+    fn slot_of(&self, name: &str, default: Option<StampSlot>) -> Option<StampSlot> {
+        self.stamp_slots.get(name).copied().unwrap_or(default)
     }
 
     /// Declares an edge's queue size and overflow policy.
@@ -204,13 +217,14 @@ impl LocalGraph {
         S::Out: Send + 'static,
     {
         let pending = self.publish::<S::Out>(output)?;
+        let slot = self.slot_of(name, S::SLOT);
         let liveness = Arc::new(Liveness::new());
         let live = liveness.clone();
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<S::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
                 let mut source = build_or_stop(make, &stop, &live)?;
-                let mut emitter = LocalEmitter { readers, slot: S::SLOT, liveness: &live, stop: &stop };
+                let mut emitter = LocalEmitter { readers, slot, liveness: &live, stop: &stop };
                 let period = rate_hz.filter(|hz| *hz > 0.0).map(|hz| Duration::from_secs_f64(1.0 / hz));
                 let mut next = Instant::now();
                 while !stop.load(Ordering::Relaxed) {
@@ -253,13 +267,14 @@ impl LocalGraph {
     {
         let queue = self.subscribe::<T::In>(input)?;
         let pending = self.publish::<T::Out>(output)?;
+        let slot = self.slot_of(name, T::SLOT);
         let liveness = Arc::new(Liveness::new());
         let live = liveness.clone();
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<T::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
                 let mut stage = build_or_stop(make, &stop, &live)?;
-                let mut emitter = LocalEmitter { readers, slot: T::SLOT, liveness: &live, stop: &stop };
+                let mut emitter = LocalEmitter { readers, slot, liveness: &live, stop: &stop };
                 while let Some((header, payload)) = queue.pop(&stop) {
                     transform_one(&mut stage, &header, &payload, &mut emitter, &live);
                     queue.handled();
@@ -293,13 +308,14 @@ impl LocalGraph {
         let queue = self.subscribe_ringing::<J::In>(input, Some(doorbell.clone()))?;
         let side_queue = self.subscribe_ringing::<J::Side>(side, Some(doorbell.clone()))?;
         let pending = self.publish::<J::Out>(output)?;
+        let slot = self.slot_of(name, J::SLOT);
         let liveness = Arc::new(Liveness::new());
         let live = liveness.clone();
         let run: Deferred = Box::new(move |edges| {
             let readers = Self::readers_of::<J::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
                 let mut stage = build_or_stop(make, &stop, &live)?;
-                let mut emitter = LocalEmitter { readers, slot: J::SLOT, liveness: &live, stop: &stop };
+                let mut emitter = LocalEmitter { readers, slot, liveness: &live, stop: &stop };
                 while !stop.load(Ordering::Relaxed) {
                     let seen = doorbell.count();
                     while let Some((header, payload)) = side_queue.try_pop() {
@@ -353,6 +369,7 @@ impl LocalGraph {
         self.services.push(service.to_string());
         let queue = self.subscribe_ringing::<S::In>(input, Some(doorbell.clone()))?;
         let pending = self.publish::<S::Out>(output)?;
+        let slot = self.slot_of(name, S::SLOT);
         let liveness = Arc::new(Liveness::new());
         let live = liveness.clone();
         let run: Deferred = Box::new(move |edges| {
@@ -361,10 +378,10 @@ impl LocalGraph {
                 let mut stage = build_or_stop(make, &stop, &live)?;
                 let answer_all = |stage: &mut S| {
                     while let Some(request) = endpoint.take() {
-                        answer(stage, request, &live);
+                        answer(stage, request, slot, &live);
                     }
                 };
-                let mut held = HeldOutputs { messages: Vec::new(), slot: S::SLOT };
+                let mut held = HeldOutputs { messages: Vec::new(), slot };
                 while !stop.load(Ordering::Relaxed) {
                     let seen = doorbell.count();
                     answer_all(&mut stage);
@@ -507,7 +524,7 @@ struct PendingPublisher<H> {
 /// A server's outputs of one input, held until it has returned.
 struct HeldOutputs<H> {
     messages: Vec<(H, Vec<f32>)>,
-    slot: Option<Stage>,
+    slot: Option<StampSlot>,
 }
 
 impl<H: MessageHeader> Emitter<H> for HeldOutputs<H> {
@@ -557,10 +574,15 @@ fn deliver<H: Clone>(
 }
 
 /// Answers one in-process request (an invalid one with an error status).
-fn answer<S: Server>(stage: &mut S, request: PendingRequest<S::Request, S::Response>, liveness: &Liveness) {
+fn answer<S: Server>(
+    stage: &mut S,
+    request: PendingRequest<S::Request, S::Response>,
+    slot: Option<StampSlot>,
+    liveness: &Liveness,
+) {
     let started = Instant::now();
     liveness.work_started();
-    let mut reply = HeldOutputs { messages: Vec::new(), slot: S::SLOT };
+    let mut reply = HeldOutputs { messages: Vec::new(), slot };
     let answered = match request.header.check_payload(&request.payload) {
         Ok(()) => stage.answer(Input { header: &request.header, payload: &request.payload }, &mut reply),
         Err(err) => {

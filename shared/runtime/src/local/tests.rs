@@ -27,7 +27,7 @@ struct Counter(u64, u64);
 impl Source for Counter {
     type Out = HypothesesHeader;
     type Error = TestError;
-    const SLOT: Option<Stage> = None;
+    const SLOT: Option<StampSlot> = None;
 
     fn next(&mut self, output: &mut dyn Emitter<HypothesesHeader>) -> Result<SourceStep, TestError> {
         if self.0 == self.1 {
@@ -48,7 +48,7 @@ impl Transform for Doubler {
     type In = HypothesesHeader;
     type Out = HypothesesHeader;
     type Error = TestError;
-    const SLOT: Option<Stage> = None;
+    const SLOT: Option<StampSlot> = None;
 
     fn process(
         &mut self,
@@ -100,7 +100,7 @@ impl Transform for Asker {
     type In = HypothesesHeader;
     type Out = HypothesesHeader;
     type Error = TestError;
-    const SLOT: Option<Stage> = None;
+    const SLOT: Option<StampSlot> = None;
 
     fn process(
         &mut self,
