@@ -7,8 +7,25 @@ pub enum GraspError {
     #[error("param `{key}`: {detail}")]
     Params { key: &'static str, detail: String },
 
-    #[error("{path}: {detail}")]
-    Objects { path: PathBuf, detail: String },
+    #[error("the grasp stage's params")]
+    ParamsJson(#[source] serde_json::Error),
+
+    #[error("param `gripper`")]
+    Gripper(#[source] crate::GripperError),
+
+    #[error("{path}: cannot load the object models")]
+    Objects {
+        path: PathBuf,
+        #[source]
+        source: poseflow_scene::SceneError,
+    },
+
+    #[error("{path}: cannot build a triangle mesh of the object model")]
+    TriMesh {
+        path: PathBuf,
+        #[source]
+        source: parry3d::shape::TriMeshBuilderError,
+    },
 
     #[error(transparent)]
     Model(#[from] poseflow_inference::InferenceError),

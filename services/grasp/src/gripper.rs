@@ -49,21 +49,27 @@ pub struct GripperPart {
     pub pose: Isometry3<f32>,
 }
 
+/// A gripper whose sizes cannot describe a real one.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GripperError {
+    #[error("gripper `{key}`: expected a positive size, found {value}")]
+    NotPositive { key: &'static str, value: f32 },
+    #[error("gripper `contact_depth` {depth}: expected less than the finger length {finger_length}")]
+    ContactBeyondFinger { depth: f32, finger_length: f32 },
+}
+
 impl Gripper {
     /// Checks that every size is positive and the contact line lies on the
-    /// finger pads; `what` names the source in the error.
-    pub fn validate(&self) -> Result<(), String> {
+    /// finger pads.
+    pub fn validate(&self) -> Result<(), GripperError> {
         let sizes =
             [("max_opening", self.max_opening), ("contact_depth", self.contact_depth), ("friction", self.friction)];
         let boxes = self.finger.iter().chain(&self.palm).map(|&v| ("finger/palm", v));
         if let Some((key, value)) = sizes.into_iter().chain(boxes).find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
-            return Err(format!("gripper `{key}`: expected a positive size, found {value}"));
+            return Err(GripperError::NotPositive { key, value });
         }
         if self.contact_depth >= self.finger[2] {
-            return Err(format!(
-                "gripper `contact_depth` {}: expected less than the finger length {}",
-                self.contact_depth, self.finger[2]
-            ));
+            return Err(GripperError::ContactBeyondFinger { depth: self.contact_depth, finger_length: self.finger[2] });
         }
         Ok(())
     }
@@ -109,8 +115,10 @@ mod tests {
     #[test]
     fn bad_sizes_are_named() {
         let bad = Gripper { max_opening: -0.01, ..Gripper::default() };
-        assert!(bad.validate().unwrap_err().contains("max_opening"));
+        assert_eq!(bad.validate(), Err(GripperError::NotPositive { key: "max_opening", value: -0.01 }));
         let deep = Gripper { contact_depth: 0.05, ..Gripper::default() };
-        assert!(deep.validate().unwrap_err().contains("contact_depth"));
+        let err = deep.validate().unwrap_err();
+        assert!(matches!(err, GripperError::ContactBeyondFinger { .. }), "{err}");
+        assert!(err.to_string().contains("contact_depth"), "{err}");
     }
 }

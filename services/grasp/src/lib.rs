@@ -24,7 +24,7 @@ pub mod stage;
 
 pub use check::{GraspOutcome, check_grasp};
 pub use error::GraspError;
-pub use gripper::Gripper;
+pub use gripper::{Gripper, GripperError};
 pub use marginal::{GraspField, MeanFieldError, MeanFieldParams, marginal_grasps};
 pub use params::GraspParams;
 pub use planner::{GraspObject, GraspObjects, GraspPlanner, OnnxGraspField, PlannedGrasp, isometry, judge};

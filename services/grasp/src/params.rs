@@ -65,8 +65,7 @@ impl Default for GraspParams {
 impl GraspParams {
     /// Reads the graph's `params`, naming the key that is wrong.
     pub fn from_json(value: &serde_json::Value) -> Result<Self, GraspError> {
-        let params: Self = serde_json::from_value(value.clone())
-            .map_err(|e| GraspError::Params { key: "grasp", detail: e.to_string() })?;
+        let params: Self = serde_json::from_value(value.clone()).map_err(GraspError::ParamsJson)?;
         params.validate()?;
         Ok(params)
     }
@@ -81,7 +80,7 @@ impl GraspParams {
         if let Some((key, _, detail)) = checks.into_iter().find(|(_, ok, _)| !ok) {
             return Err(GraspError::Params { key, detail });
         }
-        self.gripper.validate().map_err(|detail| GraspError::Params { key: "gripper", detail })
+        self.gripper.validate().map_err(GraspError::Gripper)
     }
 }
 
@@ -99,8 +98,10 @@ mod tests {
         assert!(err.contains("`hypotheses`") && err.contains("1 to 64"), "{err}");
         let err =
             GraspParams::from_json(&serde_json::json!({"gripper": {"finger": [0.01, -0.02, 0.045]}})).unwrap_err();
-        assert!(err.to_string().contains("gripper"), "{err}");
-        let err = GraspParams::from_json(&serde_json::json!({"grasp": 3})).unwrap_err().to_string();
-        assert!(err.contains("unknown field `grasp`"), "{err}");
+        let chain = poseflow_runtime::error_chain(&err);
+        assert!(chain.starts_with("param `gripper`: gripper `finger/palm`: expected a positive size"), "{chain}");
+        let err = GraspParams::from_json(&serde_json::json!({"grasp": 3})).unwrap_err();
+        let chain = poseflow_runtime::error_chain(&err);
+        assert!(chain.contains("params: unknown field `grasp`"), "{chain}");
     }
 }

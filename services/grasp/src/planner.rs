@@ -34,13 +34,12 @@ pub struct GraspObjects {
 impl GraspObjects {
     /// Loads every object with a model file; `cloud_points` per cloud.
     pub fn load(dir: &Path, cloud_points: usize) -> Result<Self, GraspError> {
-        let library = ModelLibrary::load(dir, &[])
-            .map_err(|e| GraspError::Objects { path: dir.to_path_buf(), detail: e.to_string() })?;
+        let library =
+            ModelLibrary::load(dir, &[]).map_err(|source| GraspError::Objects { path: dir.to_path_buf(), source })?;
         let mut objects = BTreeMap::new();
         for object in library.objects {
-            let mesh = oriented_trimesh(object.model.mesh.vertices, object.model.mesh.triangles).map_err(|e| {
-                GraspError::Objects { path: object.path.clone(), detail: format!("cannot build a triangle mesh: {e}") }
-            })?;
+            let mesh = oriented_trimesh(object.model.mesh.vertices, object.model.mesh.triangles)
+                .map_err(|source| GraspError::TriMesh { path: object.path.clone(), source })?;
             // Deterministic per object, so every run grasps the same cloud.
             let surface: Vec<Point3<f32>> =
                 surface_points(&mesh, 4 * cloud_points, &mut seeded_rng(u64::from(object.obj_id)))

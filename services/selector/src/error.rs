@@ -10,6 +10,27 @@ pub enum SelectorError {
     #[error("{path}: {detail}")]
     Model { path: PathBuf, detail: String },
 
+    #[error("{path}: cannot read the objects' information")]
+    ModelsInfo {
+        path: PathBuf,
+        #[source]
+        source: poseflow_geometry::GeometryError,
+    },
+
+    #[error("{path}: cannot read the object model")]
+    ModelFile {
+        path: PathBuf,
+        #[source]
+        source: poseflow_scene::SceneError,
+    },
+
+    #[error("{path}: cannot build a triangle mesh of the object model")]
+    TriMesh {
+        path: PathBuf,
+        #[source]
+        source: parry3d::shape::TriMeshBuilderError,
+    },
+
     #[error("{detail}")]
     Selection { detail: String },
 

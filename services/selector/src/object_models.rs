@@ -8,7 +8,7 @@ use std::sync::OnceLock;
 use std::time::Instant;
 
 use nalgebra::Point3;
-use parry3d::shape::TriMesh;
+use parry3d::shape::{TriMesh, TriMeshBuilderError};
 use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_scene::{load_mesh, model_file_name, oriented_trimesh};
 
@@ -35,8 +35,8 @@ impl ObjectGeometry {
         vertices: Vec<Point3<f32>>,
         triangles: Vec<[u32; 3]>,
         resolution: usize,
-    ) -> Result<Self, String> {
-        let mesh = oriented_trimesh(vertices, triangles).map_err(|e| format!("cannot build a triangle mesh: {e}"))?;
+    ) -> Result<Self, TriMeshBuilderError> {
+        let mesh = oriented_trimesh(vertices, triangles)?;
         Ok(Self { obj_id, mesh, resolution, grid: OnceLock::new() })
     }
 
@@ -72,7 +72,7 @@ impl ObjectLibrary {
     pub fn load(dir: &Path, sdf_resolution: usize) -> Result<Self, SelectorError> {
         let info_path = dir.join("models_info.json");
         let info = ModelsInfo::from_path(&info_path)
-            .map_err(|e| SelectorError::Model { path: info_path.clone(), detail: e.to_string() })?;
+            .map_err(|source| SelectorError::ModelsInfo { path: info_path.clone(), source })?;
         let mut objects = BTreeMap::new();
         for &obj_id in info.objects.keys() {
             let path = dir.join(model_file_name(obj_id));
@@ -80,9 +80,9 @@ impl ObjectLibrary {
                 continue;
             }
             let mesh = load_mesh(&path, BOP_MODEL_SCALE)
-                .map_err(|e| SelectorError::Model { path: path.clone(), detail: e.to_string() })?;
+                .map_err(|source| SelectorError::ModelFile { path: path.clone(), source })?;
             let object = ObjectGeometry::from_mesh(obj_id, mesh.vertices, mesh.triangles, sdf_resolution)
-                .map_err(|detail| SelectorError::Model { path: path.clone(), detail })?;
+                .map_err(|source| SelectorError::TriMesh { path: path.clone(), source })?;
             objects.insert(obj_id, object);
         }
         if objects.is_empty() {

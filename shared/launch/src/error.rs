@@ -36,8 +36,8 @@ pub enum LaunchError {
         source: std::io::Error,
     },
 
-    #[error("waitset: {0}")]
-    WaitSet(String),
+    #[error("the launcher's iceoryx2 waitset")]
+    WaitSet(#[source] Box<dyn std::error::Error + Send + Sync>),
 
     #[error(transparent)]
     Recording(#[from] RecordingError),

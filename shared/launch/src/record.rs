@@ -231,6 +231,6 @@ fn record(
     Ok(())
 }
 
-fn waitset_error(err: impl std::fmt::Debug) -> LaunchError {
-    LaunchError::WaitSet(format!("{err:?}"))
+fn waitset_error(err: impl std::error::Error + Send + Sync + 'static) -> LaunchError {
+    LaunchError::WaitSet(Box::new(err))
 }

@@ -219,8 +219,8 @@ pub fn supervise(graph: &Graph, options: &LaunchOptions) -> Result<Report, Launc
     }
     tracing::info!(graph = %graph.name, instance = %options.instance, stages = stages.len(), "graph running");
 
-    let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| LaunchError::WaitSet(format!("{e:?}")))?;
-    let tick = waitset.attach_interval(TICK).map_err(|e| LaunchError::WaitSet(format!("{e:?}")))?;
+    let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| LaunchError::WaitSet(Box::new(e)))?;
+    let tick = waitset.attach_interval(TICK).map_err(|e| LaunchError::WaitSet(Box::new(e)))?;
     let mut last_status = Instant::now();
     let mut failure: Option<LaunchError> = None;
     waitset
@@ -243,7 +243,7 @@ pub fn supervise(graph: &Graph, options: &LaunchOptions) -> Result<Report, Launc
             let any_failed = stages.iter().any(|s| matches!(s.report.outcome, Outcome::Failed(_)));
             if all_finished || any_failed { CallbackProgression::Stop } else { CallbackProgression::Continue }
         })
-        .map_err(|e| LaunchError::WaitSet(format!("{e:?}")))?;
+        .map_err(|e| LaunchError::WaitSet(Box::new(e)))?;
     stop_all(&mut stages);
     let recording = recorder.map(|r| r.finish()).transpose()?;
     if let Some(err) = failure {

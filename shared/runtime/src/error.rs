@@ -21,8 +21,14 @@ pub enum RuntimeError {
     #[error(transparent)]
     Transport(#[from] poseflow_transport::TransportError),
 
-    #[error("waitset: {0}")]
-    WaitSet(String),
+    #[error("the stage's iceoryx2 waitset")]
+    WaitSet(#[source] Box<dyn std::error::Error + Send + Sync>),
+
+    #[error("cannot start the heartbeat thread")]
+    HeartbeatThread(#[source] std::io::Error),
+
+    #[error("the heartbeat thread ended during start-up")]
+    HeartbeatThreadDied,
 
     #[error("stage `{stage}`: a {kind} stage cannot run in-process yet; run the graph as processes")]
     NotInProcess { stage: String, kind: &'static str },

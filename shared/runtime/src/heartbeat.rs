@@ -82,11 +82,11 @@ impl HeartbeatThread {
                     }
                 }
             })
-            .map_err(|e| RuntimeError::WaitSet(format!("cannot start the heartbeat thread: {e}")))?;
+            .map_err(RuntimeError::HeartbeatThread)?;
         match ready_rx.recv() {
             Ok(Ok(())) => Ok(Self { stop, handle }),
             Ok(Err(err)) => Err(err.into()),
-            Err(_) => Err(RuntimeError::WaitSet("heartbeat thread died at start-up".into())),
+            Err(_) => Err(RuntimeError::HeartbeatThreadDied),
         }
     }
 

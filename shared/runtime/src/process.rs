@@ -23,8 +23,8 @@ const END_OF_STREAM_TIMEOUT: Duration = Duration::from_secs(30);
 /// says so (it waits until they connect or it is stopped).
 const READERS_WARN_EVERY: Duration = Duration::from_secs(10);
 
-fn waitset_error(err: impl std::fmt::Debug) -> RuntimeError {
-    RuntimeError::WaitSet(format!("{err:?}"))
+fn waitset_error(err: impl std::error::Error + Send + Sync + 'static) -> RuntimeError {
+    RuntimeError::WaitSet(Box::new(err))
 }
 
 /// The parts every stage process has.
@@ -209,7 +209,7 @@ impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
         if sent.is_err() && announced {
             self.liveness.restarted();
         }
-        let receivers = sent.map_err(|e| EmitError(e.to_string()))?;
+        let receivers = sent?;
         tracing::trace!(receivers, "published");
         self.liveness.count_sent();
         Ok(())
@@ -358,7 +358,7 @@ impl<Req: MessageHeader, Resp: MessageHeader> Emitter<Resp> for ReplyEmitter<'_,
         if let Some(slot) = self.slot {
             header.header_mut().stamps.stamp(slot);
         }
-        self.responder.send(header, len, fill).map_err(|e| EmitError(e.to_string()))
+        Ok(self.responder.send(header, len, fill)?)
     }
 }
 

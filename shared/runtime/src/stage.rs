@@ -28,8 +28,18 @@ pub trait Emitter<H: MessageHeader> {
 
 /// Why a message could not be sent.
 #[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-pub struct EmitError(pub String);
+pub enum EmitError {
+    #[error("cannot send the message")]
+    Transport(#[from] poseflow_transport::TransportError),
+    #[error("{message}: the header's payload length")]
+    Header {
+        message: &'static str,
+        #[source]
+        source: poseflow_contracts::ContractError,
+    },
+    #[error("{message}: payload of {len} values, the header announces {expected}")]
+    Length { message: &'static str, len: usize, expected: usize },
+}
 
 /// A stage with one input and one output edge.
 pub trait Transform {

@@ -541,9 +541,9 @@ impl<H: MessageHeader> Emitter<H> for HeldOutputs<H> {
 }
 
 fn check_len<H: MessageHeader>(header: &H, len: usize) -> Result<(), EmitError> {
-    let expected = header.payload_len().map_err(|e| EmitError(e.to_string()))?;
+    let expected = header.payload_len().map_err(|source| EmitError::Header { message: H::NAME, source })?;
     if expected != len {
-        return Err(EmitError(format!("{}: payload of {len} values, the header announces {expected}", H::NAME)));
+        return Err(EmitError::Length { message: H::NAME, len, expected });
     }
     Ok(())
 }
