@@ -14,7 +14,7 @@ pub enum SelectorError {
     ModelsInfo {
         path: PathBuf,
         #[source]
-        source: poseflow_geometry::GeometryError,
+        source: Box<poseflow_geometry::GeometryError>,
     },
 
     #[error("{path}: cannot read the object model")]

@@ -72,7 +72,7 @@ impl ObjectLibrary {
     pub fn load(dir: &Path, sdf_resolution: usize) -> Result<Self, SelectorError> {
         let info_path = dir.join("models_info.json");
         let info = ModelsInfo::from_path(&info_path)
-            .map_err(|source| SelectorError::ModelsInfo { path: info_path.clone(), source })?;
+            .map_err(|source| SelectorError::ModelsInfo { path: info_path.clone(), source: Box::new(source) })?;
         let mut objects = BTreeMap::new();
         for &obj_id in info.objects.keys() {
             let path = dir.join(model_file_name(obj_id));

@@ -98,7 +98,7 @@ where
         let mut running = local.start(Arc::new(AtomicBool::new(false)));
         running
             .wait_built(SETTLE_TIMEOUT)
-            .map_err(|source| LaunchError::Driven { file: graph.file.clone(), source })?;
+            .map_err(|source| LaunchError::Driven { file: graph.file.clone(), source: Box::new(source) })?;
         Ok(Self { file: graph.file.clone(), feed: Some(feed), collected, running: Some(running) })
     }
 
@@ -110,7 +110,8 @@ where
     /// graph has handled it completely (none, when a stage dropped or
     /// rejected it: see [`Self::counters`]).
     pub fn process(&mut self, header: I, payload: Vec<f32>) -> Result<Vec<(O, Vec<f32>)>, LaunchError> {
-        let driven = |file: &std::path::Path, source| LaunchError::Driven { file: file.to_path_buf(), source };
+        let driven =
+            |file: &std::path::Path, source| LaunchError::Driven { file: file.to_path_buf(), source: Box::new(source) };
         let feed = self.feed.as_ref().expect("a driven graph keeps its feed until finished");
         feed.send(header, payload).map_err(|source| driven(&self.file, source))?;
         self.running().settle(SETTLE_TIMEOUT).map_err(|source: DriveError| driven(&self.file, source))?;

@@ -92,6 +92,6 @@ pub enum LaunchError {
     Driven {
         file: PathBuf,
         #[source]
-        source: poseflow_runtime::DriveError,
+        source: Box<poseflow_runtime::DriveError>,
     },
 }

@@ -30,7 +30,7 @@ pub trait Emitter<H: MessageHeader> {
 #[derive(Debug, thiserror::Error)]
 pub enum EmitError {
     #[error("cannot send the message")]
-    Transport(#[from] poseflow_transport::TransportError),
+    Transport(#[source] Box<poseflow_transport::TransportError>),
     #[error("{message}: the header's payload length")]
     Header {
         message: &'static str,
@@ -39,6 +39,13 @@ pub enum EmitError {
     },
     #[error("{message}: payload of {len} values, the header announces {expected}")]
     Length { message: &'static str, len: usize, expected: usize },
+}
+
+impl From<poseflow_transport::TransportError> for EmitError {
+    fn from(err: poseflow_transport::TransportError) -> Self {
+        // Boxed: every stage's error type carries an EmitError.
+        Self::Transport(Box::new(err))
+    }
 }
 
 /// A stage with one input and one output edge.
