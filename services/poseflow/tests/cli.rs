@@ -400,8 +400,16 @@ fn preview_puts_rgb_depth_and_masks_side_by_side() {
     let out =
         poseflow(&["preview", "--scene", scene.to_str().unwrap(), "--image", "1", "--out", sheet.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let image = image::open(&sheet).unwrap();
-    assert_eq!((image.width(), image.height()), (3 * 160, 120));
+    let image = image::open(&sheet).unwrap().to_rgb8();
+    // Three 160×120 panels, each with a title strip (36 px), margins (12)
+    // and axis labels (56 left, 40 below), and the depth scale (150 wide).
+    let (panel_width, panel_height) = (160 + 56 + 2 * 12, 120 + 36 + 40 + 2 * 12);
+    assert_eq!(image.dimensions(), (3 * panel_width + 150, panel_height));
+    // The RGB panel is the image, pixel for pixel.
+    let rgb = image::open(scene.join("rgb/000001.png")).unwrap().to_rgb8();
+    for (x, y) in [(0, 0), (80, 60), (159, 119)] {
+        assert_eq!(image.get_pixel(12 + 56 + x, 36 + 12 + y), rgb.get_pixel(x, y), "({x}, {y})");
+    }
     let missing = poseflow(&["preview", "--scene", scene.to_str().unwrap(), "--image", "5", "--out", "/tmp/x.png"]);
     assert_eq!(missing.status.code(), Some(1));
     let stderr = String::from_utf8_lossy(&missing.stderr);

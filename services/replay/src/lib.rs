@@ -23,7 +23,7 @@ pub enum ReplayError {
     Recording(#[from] RecordingError),
     #[error("{file}: message {index} of edge `{edge}`: header of {found} bytes, {message} headers have {expected}")]
     HeaderSize { file: PathBuf, index: u64, edge: String, message: &'static str, found: usize, expected: usize },
-    #[error("{0}")]
+    #[error(transparent)]
     Emit(#[from] poseflow_runtime::EmitError),
     #[error("param `{key}`: expected {expected}, got {found}")]
     Param { key: &'static str, expected: String, found: String },

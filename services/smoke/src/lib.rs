@@ -29,9 +29,9 @@ pub fn value(frame: u64, index: usize) -> f32 {
 pub enum SmokeError {
     #[error("frame {frame}: value {index} is {found}, expected {expected}")]
     Corrupted { frame: u64, index: usize, found: f32, expected: f32 },
-    #[error("{0}")]
+    #[error(transparent)]
     Emit(#[from] poseflow_runtime::EmitError),
-    #[error("cannot write report {path}: {source}")]
+    #[error("cannot write report {path}")]
     Report { path: PathBuf, source: std::io::Error },
     #[error("param `{key}`: expected {expected}, got {found}")]
     Param { key: String, expected: &'static str, found: String },

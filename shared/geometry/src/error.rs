@@ -25,21 +25,21 @@ pub enum GeometryError {
     #[error("eigen-decomposition of a {size}x{size} covariance did not converge")]
     EigenNoConvergence { size: usize },
 
-    #[error("{path}: {source}")]
+    #[error("{path}")]
     Io {
         path: PathBuf,
         #[source]
         source: std::io::Error,
     },
 
-    #[error("{path}: invalid JSON: {source}")]
+    #[error("{path}: invalid JSON")]
     Json {
         path: PathBuf,
         #[source]
         source: serde_json::Error,
     },
 
-    #[error("{path}: object {object}: {source} (expected a BOP models_info entry)")]
+    #[error("{path}: object {object}: expected a BOP models_info entry")]
     ModelInfoEntry {
         path: PathBuf,
         object: String,

@@ -211,28 +211,34 @@ mod tests {
         assert!((bowl.symmetries_continuous[0].offset.z - 0.005).abs() < 1e-15);
     }
 
+    /// The error and its sources, as a log line shows them.
+    fn chain(err: &dyn std::error::Error) -> String {
+        std::iter::successors(Some(err), |e| e.source()).map(ToString::to_string).collect::<Vec<_>>().join(": ")
+    }
+
     #[test]
     fn errors_name_object_field_and_value() {
-        let err = parse(r#"{"5": {"diameter": -3}}"#).unwrap_err().to_string();
+        let err = parse(r#"{"5": {"diameter": -3}}"#).map_err(|e| chain(&e)).unwrap_err();
         assert!(err.contains("object 5") && err.contains("diameter") && err.contains("-3"), "{err}");
 
-        let err = parse(r#"{"5": {"diameter": 3, "symmetries_discrete": [[1, 0, 0]]}}"#).unwrap_err().to_string();
+        let err =
+            parse(r#"{"5": {"diameter": 3, "symmetries_discrete": [[1, 0, 0]]}}"#).map_err(|e| chain(&e)).unwrap_err();
         assert!(err.contains("symmetries_discrete") && err.contains("16 numbers"), "{err}");
 
         let err = parse(r#"{"5": {"diameter": 3, "symmetries_discrete": [[2,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]]}}"#)
-            .unwrap_err()
-            .to_string();
+            .map_err(|e| chain(&e))
+            .unwrap_err();
         assert!(err.contains("rotation"), "{err}");
 
-        let err = parse(r#"{"abc": {"diameter": 3}}"#).unwrap_err().to_string();
+        let err = parse(r#"{"abc": {"diameter": 3}}"#).map_err(|e| chain(&e)).unwrap_err();
         assert!(err.contains("object id"), "{err}");
 
-        let err = parse(r#"{"7": {"size_x": 3}}"#).unwrap_err().to_string();
+        let err = parse(r#"{"7": {"size_x": 3}}"#).map_err(|e| chain(&e)).unwrap_err();
         assert!(err.contains("models_info.json") && err.contains("object 7") && err.contains("diameter"), "{err}");
 
         let err = parse(r#"{"7": {"diameter": 3, "symmetries_continuous": [{"axis": [0,0,0], "offset": [0,0,0]}]}}"#)
-            .unwrap_err()
-            .to_string();
+            .map_err(|e| chain(&e))
+            .unwrap_err();
         assert!(err.contains("non-zero axis"), "{err}");
 
         assert!(parse("not json").unwrap_err().to_string().contains("invalid JSON"));

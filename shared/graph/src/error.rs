@@ -4,7 +4,7 @@ use std::path::PathBuf;
 /// offending entry (e.g. `stages.relay.inputs`).
 #[derive(Debug, thiserror::Error)]
 pub enum GraphError {
-    #[error("{file}: cannot read: {source}")]
+    #[error("{file}: cannot read")]
     Read {
         file: PathBuf,
         #[source]

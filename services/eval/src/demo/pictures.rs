@@ -1,86 +1,24 @@
-//! The demo's pictures, drawn with `plotters` in the DejaVu Sans font this
-//! crate ships (`fonts/`, so no system font is needed): model outlines over
-//! the RGB image, Mollweide plots of rotation samples (as in implicit-pdf)
-//! and the tracking error per image. Each carries a title, axes with their
-//! units and a legend.
+//! The demo's pictures (see `poseflow-figures`): model outlines over the
+//! RGB image, Mollweide plots of rotation samples (as in implicit-pdf) and
+//! the tracking error per image.
 
 use std::f64::consts::{PI, SQRT_2, TAU};
-use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::path::Path;
 
-use image::{ExtendedColorType, Rgb, RgbImage};
+use image::{Rgb, RgbImage};
 use nalgebra::{Rotation3, Vector3};
-use plotters::coord::Shift;
-use plotters::prelude::*;
-use plotters::style::text_anchor::{HPos, Pos, VPos};
-use plotters::style::{FontStyle, register_font};
+use poseflow_figures::plotters::prelude::*;
+use poseflow_figures::plotters::style::text_anchor::{HPos, Pos, VPos};
+use poseflow_figures::{
+    Area, DrawError, FigureError, MARGIN, TITLE_HEIGHT, colour_bar, hue, image_panel, image_panel_size, legend,
+    legend_line, render, text, titled,
+};
 use poseflow_geometry::Pose;
 use poseflow_scene::bop::Raster;
 use poseflow_scene::{Camera, Placed, RenderModel, silhouettes};
 
-/// DejaVu Sans (Bitstream Vera licence, `fonts/LICENSE`), the plots' only font.
-const FONT: &[u8] = include_bytes!("../../fonts/DejaVuSans.ttf");
-const FONT_FAMILY: &str = "sans-serif";
-
 const SELECTED: RGBColor = RGBColor(40, 230, 60);
 const HYPOTHESIS: RGBColor = RGBColor(255, 170, 0);
-
-/// Pixels above a picture's plots for its title, and around its charts.
-const TITLE_HEIGHT: u32 = 36;
-const MARGIN: u32 = 12;
-
-type DrawError = DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>;
-
-/// Why a picture could not be drawn or written.
-#[derive(Debug, thiserror::Error)]
-pub enum PictureError {
-    #[error("the shipped plot font (fonts/DejaVuSans.ttf) is not a readable TrueType font")]
-    Font,
-    #[error("cannot draw the {picture}")]
-    Draw {
-        picture: &'static str,
-        #[source]
-        source: DrawError,
-    },
-    #[error("{}: cannot write the {picture}", path.display())]
-    Write {
-        path: PathBuf,
-        picture: &'static str,
-        #[source]
-        source: image::ImageError,
-    },
-}
-
-fn text(size: u32) -> TextStyle<'static> {
-    (FONT_FAMILY, size).into_font().color(&BLACK)
-}
-
-/// Registers the shipped font with `plotters` once per process.
-fn shipped_font() -> Result<(), PictureError> {
-    static REGISTERED: OnceLock<bool> = OnceLock::new();
-    let registered = *REGISTERED.get_or_init(|| register_font(FONT_FAMILY, FontStyle::Normal, FONT).is_ok());
-    registered.then_some(()).ok_or(PictureError::Font)
-}
-
-/// Draws a picture of `size` pixels in memory with `draw` and writes it as PNG.
-fn render(
-    path: &Path,
-    picture: &'static str,
-    (width, height): (u32, u32),
-    draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), DrawError>,
-) -> Result<(), PictureError> {
-    shipped_font()?;
-    let mut pixels = vec![255u8; width as usize * height as usize * 3];
-    {
-        let root = BitMapBackend::with_buffer(&mut pixels, (width, height)).into_drawing_area();
-        draw(&root).and_then(|()| root.present()).map_err(|source| PictureError::Draw { picture, source })?;
-    }
-    image::save_buffer(path, &pixels, width, height, ExtendedColorType::Rgb8).map_err(|source| PictureError::Write {
-        path: path.to_path_buf(),
-        picture,
-        source,
-    })
-}
 
 /// One object drawn on the overlay.
 pub struct Outlined<'a> {
@@ -112,7 +50,7 @@ pub fn overlay(
     camera: &Camera,
     objects: &[Outlined<'_>],
     path: &Path,
-) -> Result<(), PictureError> {
+) -> Result<(), FigureError> {
     let (width, height) = (rgb.width, rgb.height);
     let mut image = RgbImage::from_fn(width, height, |x, y| {
         Rgb(rgb.pixels[(y * width + x) as usize].map(|c| (u16::from(c) * 3 / 4) as u8))
@@ -146,51 +84,16 @@ pub fn overlay(
             }
         }
     }
-    let (x_labels, y_labels) = (40, 56);
-    let size = (width + y_labels + 2 * MARGIN, height + TITLE_HEIGHT + x_labels + 2 * MARGIN);
-    render(path, "overlay", size, |root| {
-        let (title, rest) = root.split_vertically(TITLE_HEIGHT);
-        title.draw_text("Pose outlines on the input image", &text(17), (MARGIN as i32, 10))?;
-        // The plotting area is exactly the image: one pixel per unit.
-        let mut chart = ChartBuilder::on(&rest)
-            .margin(MARGIN)
-            .x_label_area_size(x_labels)
-            .y_label_area_size(y_labels)
-            .build_cartesian_2d(0..width as i32, -(height as i32)..0)?;
-        // Image rows count down from the top; the chart's y counts up, so
-        // it runs over minus the row.
-        let row = |y: &i32| format!("{}", -y);
-        chart
-            .configure_mesh()
-            .disable_mesh()
-            .x_desc("x (px)")
-            .y_desc("y (px)")
-            .y_label_formatter(&row)
-            .label_style(text(12))
-            .axis_desc_style(text(13))
-            .draw()?;
+    render(path, "overlay", image_panel_size(width, height), |root| {
+        let mut chart = image_panel(root, &image, "Pose outlines on the input image")?;
         let pixels = chart.plotting_area().strip_coord_spec();
-        if let Some(picture) = BitMapElement::with_ref((0, 0), (width, height), image.as_raw()) {
-            pixels.draw(&picture)?;
-        }
         for (obj_id, (x, y)) in &labels {
-            let below_top = (*y as i32 - 18).max(0);
-            pixels.draw_text(&format!("object {obj_id}"), &text(14).color(&SELECTED), (*x as i32, below_top))?;
+            let above = (*y as i32 - 18).max(0);
+            pixels.draw_text(&format!("object {obj_id}"), &text(14).color(&SELECTED), (*x as i32, above))?;
         }
-        for (label, colour, thickness) in [("selected pose", SELECTED, 3), ("hypotheses", HYPOTHESIS, 1)] {
-            chart
-                .draw_series(std::iter::empty::<PathElement<(i32, i32)>>())?
-                .label(label)
-                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(thickness)));
-        }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .label_font(text(12))
-            .background_style(WHITE.mix(0.85))
-            .border_style(RGBColor(120, 120, 120))
-            .draw()?;
-        Ok(())
+        legend_line(&mut chart, "selected pose", SELECTED, 3)?;
+        legend_line(&mut chart, "hypotheses", HYPOTHESIS, 1)?;
+        legend(&mut chart, SeriesLabelPosition::UpperRight)
     })
 }
 
@@ -227,21 +130,6 @@ pub fn mollweide(longitude: f64, latitude: f64) -> (f64, f64) {
     (2.0 * SQRT_2 / PI * longitude * theta.cos(), SQRT_2 * theta.sin())
 }
 
-fn hue(fraction: f64) -> RGBColor {
-    let h = fraction.rem_euclid(1.0) * 6.0;
-    let x = 1.0 - (h % 2.0 - 1.0).abs();
-    let (r, g, b) = match h as u32 {
-        0 => (1.0, x, 0.0),
-        1 => (x, 1.0, 0.0),
-        2 => (0.0, 1.0, x),
-        3 => (0.0, x, 1.0),
-        4 => (x, 0.0, 1.0),
-        _ => (1.0, 0.0, x),
-    };
-    let [r, g, b] = [r, g, b].map(|c: f64| (c * 230.0) as u8);
-    RGBColor(r, g, b)
-}
-
 /// 181 points of a curve parametrised over [0, 1].
 fn curve(point: impl Fn(f64) -> (f64, f64)) -> impl Iterator<Item = (f64, f64)> {
     (0..=180).map(move |i| point(f64::from(i) / 180.0))
@@ -260,11 +148,11 @@ const COLOUR_BAR_WIDTH: u32 = 130;
 /// One panel per object, stacked: the samples' rotations as dots coloured
 /// by tilt, the ground truth as a ring of its tilt's colour, a graticule
 /// every 30° of latitude and 60° of longitude, and the tilt's colour bar.
-pub fn mollweide_panels(panels: &[SamplePanel<'_>], path: &Path) -> Result<(), PictureError> {
+pub fn mollweide_panels(panels: &[SamplePanel<'_>], path: &Path) -> Result<(), FigureError> {
     let size = (PANEL_SIZE.0, TITLE_HEIGHT + PANEL_SIZE.1 * panels.len().max(1) as u32);
     render(path, "Mollweide plot", size, |root| {
-        let (title, rest) = root.split_vertically(TITLE_HEIGHT);
-        title.draw_text("Rotation samples: direction of their x axis (Mollweide)", &text(16), (MARGIN as i32, 10))?;
+        let rest = titled(root, "Rotation samples: direction of their x axis (Mollweide)")?;
+        let title = root.split_vertically(TITLE_HEIGHT).0;
         // One legend for every panel, at the title's right.
         let legend_x = PANEL_SIZE.0 as i32 - 335;
         title.draw(&Circle::new((legend_x, 19), 3, hue(0.0).filled()))?;
@@ -278,7 +166,7 @@ pub fn mollweide_panels(panels: &[SamplePanel<'_>], path: &Path) -> Result<(), P
     })
 }
 
-fn sample_panel(panel: &SamplePanel<'_>, area: &DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), DrawError> {
+fn sample_panel(panel: &SamplePanel<'_>, area: &Area<'_>) -> Result<(), DrawError> {
     let (map, bar) = area.split_horizontally(PANEL_SIZE.0 - COLOUR_BAR_WIDTH);
     let (half_width, half_height) = (2.0 * SQRT_2, SQRT_2);
     let mut chart = ChartBuilder::on(&map)
@@ -328,28 +216,8 @@ fn sample_panel(panel: &SamplePanel<'_>, area: &DrawingArea<BitMapBackend<'_>, S
         Circle::new(truth, 11, BLACK.stroke_width(1)),
         Circle::new(truth, 9, hue(tilt / TAU).stroke_width(3)),
     ])?;
-    tilt_colour_bar(&bar)
-}
-
-/// The colours of the tilt about the rotated x axis, 0–360°.
-fn tilt_colour_bar(area: &DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), DrawError> {
-    // The bar spans x in [0, 1]; its labels stand to its right.
-    let mut chart = ChartBuilder::on(area)
-        .caption("tilt about it", text(12))
-        .margin(MARGIN)
-        .x_label_area_size(38)
-        .build_cartesian_2d(0.0..2.6, 0.0..360.0)?;
-    chart.draw_series((0..72).map(|k| {
-        let from = f64::from(k) * 5.0;
-        Rectangle::new([(0.0, from), (1.0, from + 5.0)], hue(from / 360.0).filled())
-    }))?;
-    chart.draw_series([Rectangle::new([(0.0, 0.0), (1.0, 360.0)], BLACK.stroke_width(1))])?;
-    let beside = text(12).pos(Pos::new(HPos::Left, VPos::Center));
-    chart.draw_series(
-        [0.0f64, 90.0, 180.0, 270.0, 360.0]
-            .map(|degrees| Text::new(format!("{degrees:.0}°"), (1.15, degrees), beside.clone())),
-    )?;
-    Ok(())
+    let degrees = |d: f64| format!("{d:.0}°");
+    colour_bar(&bar, "tilt about it", (0.0, 360.0), &[0.0, 90.0, 180.0, 270.0, 360.0], |d| hue(d / 360.0), degrees)
 }
 
 /// Top of the error plot's y axis, degrees: larger errors are drawn at the top.
@@ -364,7 +232,7 @@ pub struct ErrorSeries {
 /// Rotation error per image, one line per object, x from image 0 to
 /// `frames − 1`, y from 0 to 20° (larger errors clipped to the top), lines
 /// at the 5° and 10° thresholds.
-pub fn error_plot(series: &[ErrorSeries], frames: u32, path: &Path) -> Result<(), PictureError> {
+pub fn error_plot(series: &[ErrorSeries], frames: u32, path: &Path) -> Result<(), FigureError> {
     let last = frames.max(2) - 1;
     render(path, "tracking error plot", (900, 380), |root| {
         let mut chart = ChartBuilder::on(root)
@@ -397,19 +265,14 @@ pub fn error_plot(series: &[ErrorSeries], frames: u32, path: &Path) -> Result<()
                 .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2)));
             chart.draw_series(clipped().map(|point| Circle::new(point, 2, colour.filled())))?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .label_font(text(12))
-            .background_style(WHITE.mix(0.85))
-            .border_style(RGBColor(120, 120, 120))
-            .draw()?;
-        Ok(())
+        legend(&mut chart, SeriesLabelPosition::UpperRight)
     })
 }
 
 #[cfg(test)]
 mod tests {
+    use std::path::PathBuf;
+
     use super::*;
     use poseflow_scene::primitives::ClutterShape;
 
@@ -473,7 +336,7 @@ mod tests {
     }
 
     #[test]
-    fn the_overlay_frames_the_image_in_pixel_axes_with_a_legend() {
+    fn the_overlay_outlines_poses_and_names_them_in_a_legend() {
         let path = scratch("overlay.png");
         let cube = ClutterShape::Box { half_extents: Vector3::new(0.03, 0.03, 0.03) }.mesh([200, 50, 50]);
         let model = RenderModel::new(cube).unwrap();
@@ -483,11 +346,9 @@ mod tests {
         let object = Outlined { obj_id: 3, model: &model, selected: at(0.0), hypotheses: vec![at(0.02)] };
         overlay(&rgb, &camera, &[object], &path).unwrap();
         let image = image::open(&path).unwrap().to_rgb8();
-        assert_eq!(image.dimensions(), (320 + 56 + 2 * MARGIN, 240 + TITLE_HEIGHT + 40 + 2 * MARGIN));
-        assert!(ink(&image, (0, 0, image.width(), TITLE_HEIGHT)) > 200, "title");
+        // The panel's axes and title are `poseflow-figures`' (tested there).
+        assert_eq!(image.dimensions(), image_panel_size(320, 240));
         let plot = (MARGIN + 56, TITLE_HEIGHT + MARGIN, MARGIN + 56 + 320, TITLE_HEIGHT + MARGIN + 240);
-        assert!(ink(&image, (0, plot.1, plot.0, plot.3)) > 100, "y axis");
-        assert!(ink(&image, (plot.0, plot.3, plot.2, image.height())) > 100, "x axis");
         let green = [SELECTED.0, SELECTED.1, SELECTED.2];
         let orange = [HYPOTHESIS.0, HYPOTHESIS.1, HYPOTHESIS.2];
         // Outlines in the image's middle; legend entries in its top right.
