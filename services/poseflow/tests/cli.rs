@@ -88,11 +88,14 @@ fn the_demo_runs_the_estimation_graph_and_draws_its_pictures() {
         assert!(folded >= 0.0 && folded <= o["rotation_spread_deg"].as_f64().unwrap() + 0.5, "{o}");
     }
     let overlay = image::open(out_dir.join("overlay.png")).unwrap().to_rgb8();
-    assert_eq!(overlay.dimensions(), (640, 480));
+    // The 640×480 image with a title strip (36 px), margins (12) and axis
+    // labels (56 left, 40 below).
+    assert_eq!(overlay.dimensions(), (640 + 56 + 2 * 12, 480 + 36 + 40 + 2 * 12));
     // The selected poses' outlines are drawn in green.
     assert!(overlay.pixels().any(|p| p.0 == [40, 230, 60]), "no outline drawn");
     let mollweide = image::open(out_dir.join("mollweide.png")).unwrap();
-    assert_eq!((mollweide.width(), mollweide.height()), (480, 3 * 240));
+    // A title strip (36 px) over one 800×340 panel per object.
+    assert_eq!((mollweide.width(), mollweide.height()), (800, 36 + 3 * 340));
 }
 
 /// The tracking demo, small: a rendered video of the vendored objects
@@ -119,7 +122,7 @@ fn the_tracking_demo_follows_every_object_through_the_video() {
         assert!(o["latency"]["p50_ms"].as_f64().unwrap() > 0.0, "{o}");
     }
     let plot = image::open(out_dir.join("tracking.png")).unwrap();
-    assert_eq!((plot.width(), plot.height()), (720, 240));
+    assert_eq!((plot.width(), plot.height()), (900, 380));
     // The rendered video is a BOP dataset of `frames` images.
     assert!(out_dir.join(format!("scene/test/000000/rgb/{:06}.png", frames - 1)).is_file());
 }
