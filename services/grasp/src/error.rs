@@ -1,5 +1,3 @@
-use std::path::PathBuf;
-
 /// Why the grasp stage cannot start or plan a frame; each names the
 /// parameter, file, frame or object concerned.
 #[derive(Debug, thiserror::Error)]
@@ -13,19 +11,8 @@ pub enum GraspError {
     #[error("param `gripper`")]
     Gripper(#[source] crate::GripperError),
 
-    #[error("{path}: cannot load the object models")]
-    Objects {
-        path: PathBuf,
-        #[source]
-        source: poseflow_scene::SceneError,
-    },
-
-    #[error("{path}: cannot build a triangle mesh of the object model")]
-    TriMesh {
-        path: PathBuf,
-        #[source]
-        source: parry3d::shape::TriMeshBuilderError,
-    },
+    #[error(transparent)]
+    ObjectModels(#[from] poseflow_scene::SceneError),
 
     #[error(transparent)]
     Model(#[from] poseflow_inference::InferenceError),

@@ -10,7 +10,7 @@ use parry3d::shape::TriMesh;
 use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::{TranslationNoise, farthest_point_indices, sample_seed, seeded_rng};
 use poseflow_inference::GraspFlowModel;
-use poseflow_scene::{ModelLibrary, oriented_trimesh};
+use poseflow_scene::{ModelLibrary, SceneError, oriented_trimesh};
 
 use crate::{
     GraspError, GraspField, GraspParams, Gripper, MeanFieldParams, check_grasp, marginal_grasps, surface_points,
@@ -34,12 +34,11 @@ pub struct GraspObjects {
 impl GraspObjects {
     /// Loads every object with a model file; `cloud_points` per cloud.
     pub fn load(dir: &Path, cloud_points: usize) -> Result<Self, GraspError> {
-        let library =
-            ModelLibrary::load(dir, &[]).map_err(|source| GraspError::Objects { path: dir.to_path_buf(), source })?;
+        let library = ModelLibrary::load(dir, &[])?;
         let mut objects = BTreeMap::new();
         for object in library.objects {
             let mesh = oriented_trimesh(object.model.mesh.vertices, object.model.mesh.triangles)
-                .map_err(|source| GraspError::TriMesh { path: object.path.clone(), source })?;
+                .map_err(|source| SceneError::TriMesh { path: object.path.clone(), source })?;
             // Deterministic per object, so every run grasps the same cloud.
             let surface: Vec<Point3<f32>> =
                 surface_points(&mesh, 4 * cloud_points, &mut seeded_rng(u64::from(object.obj_id)))

@@ -17,19 +17,8 @@ pub enum SelectorError {
         source: Box<poseflow_geometry::GeometryError>,
     },
 
-    #[error("{path}: cannot read the object model")]
-    ModelFile {
-        path: PathBuf,
-        #[source]
-        source: poseflow_scene::SceneError,
-    },
-
-    #[error("{path}: cannot build a triangle mesh of the object model")]
-    TriMesh {
-        path: PathBuf,
-        #[source]
-        source: parry3d::shape::TriMeshBuilderError,
-    },
+    #[error(transparent)]
+    ObjectModel(#[from] poseflow_scene::SceneError),
 
     #[error("{detail}")]
     Selection { detail: String },

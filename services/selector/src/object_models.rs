@@ -10,7 +10,7 @@ use std::time::Instant;
 use nalgebra::Point3;
 use parry3d::shape::{TriMesh, TriMeshBuilderError};
 use poseflow_geometry::models_info::ModelsInfo;
-use poseflow_scene::{load_mesh, model_file_name, oriented_trimesh};
+use poseflow_scene::{SceneError, load_mesh, model_file_name, oriented_trimesh};
 
 use crate::SelectorError;
 use crate::sdf::SignedDistanceGrid;
@@ -79,10 +79,9 @@ impl ObjectLibrary {
             if !path.is_file() {
                 continue;
             }
-            let mesh = load_mesh(&path, BOP_MODEL_SCALE)
-                .map_err(|source| SelectorError::ModelFile { path: path.clone(), source })?;
+            let mesh = load_mesh(&path, BOP_MODEL_SCALE)?;
             let object = ObjectGeometry::from_mesh(obj_id, mesh.vertices, mesh.triangles, sdf_resolution)
-                .map_err(|source| SelectorError::TriMesh { path: path.clone(), source })?;
+                .map_err(|source| SceneError::TriMesh { path: path.clone(), source })?;
             objects.insert(obj_id, object);
         }
         if objects.is_empty() {

@@ -18,6 +18,13 @@ pub enum SceneError {
         source: std::io::Error,
     },
 
+    #[error("{path}: cannot build a triangle mesh of the model")]
+    TriMesh {
+        path: PathBuf,
+        #[source]
+        source: parry3d::shape::TriMeshBuilderError,
+    },
+
     #[error("{path}: {location}: {detail}")]
     Malformed { path: PathBuf, location: String, detail: String },
 

@@ -60,8 +60,7 @@ impl ModelLibrary {
             })?;
             let path = dir.join(model_file_name(obj_id));
             let mesh = load_mesh(&path, BOP_MODEL_SCALE)?;
-            let model = RenderModel::new(mesh)
-                .map_err(|err| SceneError::malformed(&path, "mesh", format!("cannot build a triangle mesh: {err}")))?;
+            let model = RenderModel::new(mesh).map_err(|source| SceneError::TriMesh { path: path.clone(), source })?;
             objects.push(LibraryObject { obj_id, path, info, model });
         }
         objects.sort_by_key(|o| o.obj_id);
