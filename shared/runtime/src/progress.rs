@@ -33,8 +33,8 @@ impl Progress {
     /// Reports `done` of the total units, with a short note on the current one.
     pub fn update(&mut self, done: u64, note: &str) {
         if let Some(bar) = &self.bar {
-            bar.set_position(done);
             bar.set_message(note.to_owned());
+            bar.set_position(done);
             if done >= self.total {
                 bar.finish();
             }
