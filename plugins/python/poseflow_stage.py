@@ -437,18 +437,22 @@ class Output:
         self.acks = _open_event(node, edge["service"] + "/ack").listener_builder().create()
         self.notifier = _open_event(node, edge["service"]).notifier_builder().create()
 
-    def _wait_for(self, event_id, count, timeout_s):
+    def _wait_for(self, event_id, count, timeout_s, meanwhile=None, every_s=0.1):
+        """Counts `event_id` acks until `count` or `timeout_s`, calling
+        `meanwhile` at least every `every_s` (a stage keeps heartbeating)."""
         seen, deadline = 0, time.monotonic() + timeout_s
         while seen < count and time.monotonic() < deadline:
-            left = max(0.001, deadline - time.monotonic())
+            left = max(0.001, min(every_s, deadline - time.monotonic()))
             for activation in self.acks.timed_wait(iox2.Duration.from_secs_f64(left)):
                 if activation.id.as_value == event_id:
                     seen += 1
+            if meanwhile is not None:
+                meanwhile()
         return seen
 
-    def wait_for_receivers(self, count, timeout_s=10.0):
+    def wait_for_receivers(self, count, timeout_s=10.0, meanwhile=None, every_s=0.1):
         self.publisher.update_connections()
-        ready = self._wait_for(READY, count, timeout_s)
+        ready = self._wait_for(READY, count, timeout_s, meanwhile, every_s)
         self.publisher.update_connections()
         return ready
 
@@ -511,7 +515,10 @@ class _Stage:
 
     def output(self, header_type):
         out = Output(self.node, self.wire["outputs"][0], header_type)
-        out.wait_for_receivers(self.wire["outputs"][0]["readers"])
+        # Heartbeat while readers connect: the supervisor would take a
+        # silent wait for a hang.
+        every_s = self.wire["heartbeat_ms"] / 1000.0
+        out.wait_for_receivers(self.wire["outputs"][0]["readers"], meanwhile=self.beat, every_s=every_s)
         return out
 
     def beat(self):

@@ -17,6 +17,7 @@ use poseflow_contracts::{
 };
 use poseflow_e2e::harness::*;
 use poseflow_e2e::plugin_python;
+use poseflow_graph::Stamp;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 use poseflow_transport::shared_memory_files;
 use serde_json::{Value, json};
@@ -150,18 +151,37 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
 }
 
 /// The Python module's timestamp slots are the Rust `StampSlot`s: same
-/// numbers, same names as graph files' `stamp` key.
+/// numbers, same names as graph files' `stamp` key; a Python stage writes
+/// the slot its wiring's `stamp` names (as `StageWiring::stamp_slot`).
 #[test]
 fn the_python_timestamp_slots_are_the_rust_ones() {
     let plugins = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python");
-    let dump = "import json, sys; sys.path.insert(0, sys.argv[1]); import poseflow_stage as p; \
-                print(json.dumps([p.STAGE_SLOTS, list(p.SLOT_NAMES), [p.SLOT_SOURCE, p.SLOT_SAMPLER, p.SLOT_SINK]]))";
-    let output = Command::new(plugin_python()).args(["-c", dump, plugins]).output().unwrap();
+    let dump = r#"
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import poseflow_stage as p
+wired = lambda wire: type("Stage", (), {"wire": wire})()
+chosen = [p._stamp_slot(wired(json.loads(w)), p.SLOT_SAMPLER) for w in sys.argv[2:]]
+print(json.dumps([p.STAGE_SLOTS, list(p.SLOT_NAMES), [p.SLOT_SOURCE, p.SLOT_SAMPLER, p.SLOT_SINK], chosen]))
+"#;
+    let wirings = [json!({}), json!({"stamp": "grasp"}), json!({"stamp": "none"})];
+    let mut args = vec!["-c".to_string(), dump.to_string(), plugins.to_string()];
+    args.extend(wirings.iter().map(Value::to_string));
+    let output = Command::new(plugin_python()).args(&args).output().unwrap();
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let python: Value = serde_json::from_slice(&output.stdout).unwrap();
     let names: Vec<&str> = StampSlot::ALL.iter().map(|slot| slot.name()).collect();
     let numbers = [StampSlot::Source, StampSlot::Sampler, StampSlot::Sink].map(|slot| slot as usize);
-    assert_eq!(python, json!([STAGE_SLOTS, names, numbers]));
+    // The same choices through the Rust wiring.
+    let rust: Vec<Option<usize>> = wirings
+        .iter()
+        .map(|wire| {
+            let stamp = wire.get("stamp").map(|s| serde_json::from_value::<Stamp>(s.clone()).unwrap());
+            Stamp::resolve(stamp, Some(StampSlot::Sampler)).map(|slot| slot as usize)
+        })
+        .collect();
+    assert_eq!(rust, [Some(3), Some(5), None]);
+    assert_eq!(python, json!([STAGE_SLOTS, names, numbers, rust]));
 }
 
 /// The installed module (`pip install plugins/python`, as `deploy/setup`

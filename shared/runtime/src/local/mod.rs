@@ -142,7 +142,7 @@ impl LocalGraph {
         }
     }
 
-    /// Makes stage `name` (added before or after) write `slot` on its
+    /// Makes stage `name`, added after this call, write `slot` on its
     /// outputs instead of its type's `SLOT` (the graph's `stamp` key).
     pub fn stamp_as(&mut self, name: &str, slot: Option<StampSlot>) {
         self.stamp_slots.insert(name.to_owned(), slot);
