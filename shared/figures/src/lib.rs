@@ -13,6 +13,7 @@ use image::{ExtendedColorType, RgbImage};
 use plotters::coord::Shift;
 use plotters::coord::types::RangedCoordi32;
 use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 use plotters::style::{FontStyle, register_font};
 
 pub use plotters;
@@ -89,11 +90,12 @@ pub fn render(
     })
 }
 
-/// Draws `title` in the strip at the top of `area` and returns the rest.
-pub fn titled<'a>(area: &Area<'a>, title: &str) -> Result<Area<'a>, DrawError> {
+/// Draws `title` in the strip at the top of `area`; returns the strip (for
+/// more in it, such as a legend) and the rest.
+pub fn titled<'a>(area: &Area<'a>, title: &str) -> Result<(Area<'a>, Area<'a>), DrawError> {
     let (strip, rest) = area.split_vertically(TITLE_HEIGHT);
     strip.draw_text(title, &text(17), (MARGIN as i32, 10))?;
-    Ok(rest)
+    Ok((strip, rest))
 }
 
 /// Size of an [`image_panel`] of a `width` × `height` image, title included.
@@ -106,7 +108,7 @@ pub fn image_panel_size(width: u32, height: u32) -> (u32, u32) {
 /// legends and marks in pixel coordinates (x, −row).
 pub fn image_panel<'a>(area: &Area<'a>, image: &RgbImage, title: &str) -> Result<ImageChart<'a>, DrawError> {
     let (width, height) = image.dimensions();
-    let rest = titled(area, title)?;
+    let (_, rest) = titled(area, title)?;
     // The plotting area is exactly the image: one pixel per unit.
     let mut chart = ChartBuilder::on(&rest)
         .margin(MARGIN)
@@ -149,6 +151,12 @@ where
         .draw()
 }
 
+/// The legend key of a line series: a short line of `colour` and `thickness`
+/// (in pixel coordinates of the legend box).
+pub fn line_key(colour: RGBColor, thickness: u32) -> impl Fn((i32, i32)) -> PathElement<(i32, i32)> {
+    move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(thickness))
+}
+
 /// A legend entry with no data of its own: a line of `colour` and
 /// `thickness` labelled `label`.
 pub fn legend_line<'a, X, Y>(
@@ -164,7 +172,7 @@ where
     chart
         .draw_series(std::iter::empty::<PathElement<(X::ValueType, Y::ValueType)>>())?
         .label(label)
-        .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(thickness)));
+        .legend(line_key(colour, thickness));
     Ok(())
 }
 
@@ -210,10 +218,7 @@ pub fn colour_bar(
         Rectangle::new([(0.0, from), (1.0, to)], colour((from + to) / 2.0).filled())
     }))?;
     chart.draw_series([Rectangle::new([(0.0, low), (1.0, low + span)], BLACK.stroke_width(1))])?;
-    let beside = text(12).pos(plotters::style::text_anchor::Pos::new(
-        plotters::style::text_anchor::HPos::Left,
-        plotters::style::text_anchor::VPos::Center,
-    ));
+    let beside = text(12).pos(Pos::new(HPos::Left, VPos::Center));
     chart.draw_series(ticks.iter().map(|&v| Text::new(label(v), (1.15, v), beside.clone())))?;
     Ok(())
 }

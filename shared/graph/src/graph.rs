@@ -65,6 +65,11 @@ impl Stage {
     pub fn reads(&self, edge: &str) -> bool {
         self.inputs.iter().chain(&self.side_inputs).any(|e| e == edge)
     }
+
+    /// The executable's file name: what a stage registry knows it by.
+    pub fn exe_name(&self) -> &str {
+        self.exe.file_name().and_then(|n| n.to_str()).unwrap_or_default()
+    }
 }
 
 /// Reads and validates a graph file. `search_path` is where bare executable

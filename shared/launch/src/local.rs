@@ -97,7 +97,7 @@ pub(crate) fn build(
         local.edge(&edge.name, edge.queue, overflow);
     }
     for stage in graph.stages.values().filter(|stage| keep(stage)) {
-        let exe = stage.exe.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        let exe = stage.exe_name();
         let registration =
             registry.get(exe).filter(|r| r.runs_in_process()).ok_or_else(|| LaunchError::NotInProcess {
                 file: graph.file.clone(),

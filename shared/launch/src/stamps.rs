@@ -15,21 +15,18 @@ use crate::LaunchError;
 /// both. Stages on separate branches may share a slot; the map names the
 /// first by stage name.
 pub fn stamp_owners(graph: &Graph, registry: &Registry) -> Result<BTreeMap<StampSlot, String>, LaunchError> {
-    let slot_of = |name: &String| {
-        let stage = &graph.stages[name];
-        let exe = stage.exe.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-        Stamp::resolve(stage.stamp, registry.get(exe).and_then(|r| r.default_stamp()))
-    };
     let mut writers: BTreeMap<StampSlot, Vec<&String>> = BTreeMap::new();
-    for name in graph.stages.keys() {
-        if let Some(slot) = slot_of(name) {
+    for (name, stage) in &graph.stages {
+        let default = registry.get(stage.exe_name()).and_then(|r| r.default_stamp());
+        if let Some(slot) = Stamp::resolve(stage.stamp, default) {
             writers.entry(slot).or_default().push(name);
         }
     }
     for (slot, names) in &writers {
+        let reach: Vec<BTreeSet<&String>> = names.iter().map(|name| downstream(graph, name)).collect();
         for (i, first) in names.iter().enumerate() {
-            for second in &names[i + 1..] {
-                if downstream(graph, first).contains(*second) || downstream(graph, second).contains(*first) {
+            for (j, second) in names.iter().enumerate().skip(i + 1) {
+                if reach[i].contains(second) || reach[j].contains(first) {
                     return Err(LaunchError::StampClash {
                         file: graph.file.clone(),
                         slot: slot.name(),

@@ -260,13 +260,9 @@ pub fn run_transform<T: Transform, E: Into<BuildError>>(make: impl FnOnce(&Stage
         let output = process.output::<T::Out>()?;
         tracing::info!(input = input.name(), output = output.name(), "running");
         let liveness = &process.liveness;
+        let slot = process.wiring.stamp_slot(T::SLOT);
         let end = process.event_loop(&input, |message| {
-            let mut emitter = IpcEmitter {
-                publisher: &output,
-                slot: process.wiring.stamp_slot(T::SLOT),
-                liveness,
-                while_blocked: &mut || {},
-            };
+            let mut emitter = IpcEmitter { publisher: &output, slot, liveness, while_blocked: &mut || {} };
             transform_one(&mut stage, message, &mut emitter, liveness)
         })?;
         finish_transform(process, &input, &output, end, || Ok(()))
@@ -470,6 +466,7 @@ pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         let input = process.input::<J::In>()?;
         let side = EdgeSubscriber::<J::Side>::create(&process.node, &side_edge.service, &side_edge.options())?;
         let mut stage = build(wiring, make)?;
+        let slot = wiring.stamp_slot(J::SLOT);
         let _span = tracing::info_span!("stage", name = %wiring.stage).entered();
         // In a loop the side input's writer may be this output's reader,
         // waiting on its own output's readers (this stage): answer its
@@ -506,12 +503,7 @@ pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
                 // restarted and waiting for this stage's READY before it
                 // reads again: answer it while blocked.
                 let mut answer_side = || answer_handshake(&side, &side_ended_early);
-                let mut emitter = IpcEmitter {
-                    publisher: &output,
-                    slot: process.wiring.stamp_slot(J::SLOT),
-                    liveness,
-                    while_blocked: &mut answer_side,
-                };
+                let mut emitter = IpcEmitter { publisher: &output, slot, liveness, while_blocked: &mut answer_side };
                 transform_one(&mut **stage, message, &mut emitter, liveness)
             },
             Some(attachment),
@@ -604,13 +596,9 @@ pub fn run_source<S: Source, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         let rate_hz = process.wiring.params.get("rate_hz").and_then(|v| v.as_f64()).filter(|hz| *hz > 0.0);
         tracing::info!(output = output.name(), ?rate_hz, "running");
         let liveness = &process.liveness;
+        let slot = process.wiring.stamp_slot(S::SLOT);
         let mut step = || -> SourceStep {
-            let mut emitter = IpcEmitter {
-                publisher: &output,
-                slot: process.wiring.stamp_slot(S::SLOT),
-                liveness,
-                while_blocked: &mut || {},
-            };
+            let mut emitter = IpcEmitter { publisher: &output, slot, liveness, while_blocked: &mut || {} };
             let started = Instant::now();
             liveness.work_started();
             let result = source.next(&mut emitter);

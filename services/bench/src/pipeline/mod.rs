@@ -230,7 +230,7 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
     let source = graph
         .stages
         .values()
-        .find(|s| s.exe.file_name().is_some_and(|n| n == "frame-source"))
+        .find(|s| s.exe_name() == "frame-source")
         .map(|s| s.name.clone())
         .with_context(|| format!("{}: no stage with exe = \"frame-source\"", graph_file.display()))?;
     let sets = sequence_sets(args, &source);

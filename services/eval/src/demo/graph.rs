@@ -41,11 +41,8 @@ fn absolute(path: &Path) -> anyhow::Result<String> {
 pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> anyhow::Result<Graph> {
     let mut graph = poseflow_graph::load(graph_file, &poseflow_launch::search_path(&[]))
         .with_context(|| format!("{}: cannot load the graph (run from the repository root)", graph_file.display()))?;
-    let stages: Vec<(String, bool)> = graph
-        .stages
-        .iter()
-        .map(|(name, stage)| (name.clone(), stage.exe.file_name().is_some_and(|exe| exe == "truth-prior")))
-        .collect();
+    let stages: Vec<(String, bool)> =
+        graph.stages.iter().map(|(name, stage)| (name.clone(), stage.exe_name() == "truth-prior")).collect();
     for (name, truth_prior) in stages {
         let stage = name.as_str();
         if truth_prior {

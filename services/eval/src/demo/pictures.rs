@@ -11,7 +11,7 @@ use poseflow_figures::plotters::prelude::*;
 use poseflow_figures::plotters::style::text_anchor::{HPos, Pos, VPos};
 use poseflow_figures::{
     Area, DrawError, FigureError, MARGIN, TITLE_HEIGHT, colour_bar, hue, image_panel, image_panel_size, legend,
-    legend_line, render, text, titled,
+    legend_line, line_key, render, text, titled,
 };
 use poseflow_geometry::Pose;
 use poseflow_scene::bop::Raster;
@@ -151,8 +151,7 @@ const COLOUR_BAR_WIDTH: u32 = 130;
 pub fn mollweide_panels(panels: &[SamplePanel<'_>], path: &Path) -> Result<(), FigureError> {
     let size = (PANEL_SIZE.0, TITLE_HEIGHT + PANEL_SIZE.1 * panels.len().max(1) as u32);
     render(path, "Mollweide plot", size, |root| {
-        let rest = titled(root, "Rotation samples: direction of their x axis (Mollweide)")?;
-        let title = root.split_vertically(TITLE_HEIGHT).0;
+        let (title, rest) = titled(root, "Rotation samples: direction of their x axis (Mollweide)")?;
         // One legend for every panel, at the title's right.
         let legend_x = PANEL_SIZE.0 as i32 - 335;
         title.draw(&Circle::new((legend_x, 19), 3, hue(0.0).filled()))?;
@@ -254,7 +253,7 @@ pub fn error_plot(series: &[ErrorSeries], frames: u32, path: &Path) -> Result<()
             chart
                 .draw_series(LineSeries::new([(0, degrees), (last, degrees)], colour.stroke_width(2)))?
                 .label(format!("{degrees:.0}° threshold"))
-                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2)));
+                .legend(line_key(colour, 2));
         }
         for (k, object) in series.iter().enumerate() {
             let colour = hue(k as f64 / series.len() as f64);
@@ -262,7 +261,7 @@ pub fn error_plot(series: &[ErrorSeries], frames: u32, path: &Path) -> Result<()
             chart
                 .draw_series(LineSeries::new(clipped(), colour.stroke_width(2)))?
                 .label(format!("object {}", object.obj_id))
-                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2)));
+                .legend(line_key(colour, 2));
             chart.draw_series(clipped().map(|point| Circle::new(point, 2, colour.filled())))?;
         }
         legend(&mut chart, SeriesLabelPosition::UpperRight)
