@@ -7,6 +7,7 @@ use anyhow::bail;
 use clap::Args;
 use nalgebra::Vector3;
 use poseflow_scene::import::{ImportSpec, import_model};
+use poseflow_scene::symmetry::Symmetry;
 
 #[derive(Debug, Args)]
 pub struct ImportModelArgs {
@@ -28,6 +29,12 @@ pub struct ImportModelArgs {
     /// Axis "X,Y,Z" (object frame) of a continuous rotational symmetry through the origin, e.g. 0,0,1 for a bowl.
     #[arg(long, value_parser = parse_axis)]
     pub symmetry_axis: Option<Vector3<f64>>,
+    /// Search the mesh for its geometric symmetries and record them: turns about its principal and frame axes
+    /// through its surface centroid that move no surface point farther than this fraction of the diameter from
+    /// the surface (e.g. 0.01). Texture is not seen: a can whose label tells its turns apart is still found
+    /// symmetric, so pass this only for objects that look the same.
+    #[arg(long, value_name = "FRACTION")]
+    pub find_symmetries: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -66,6 +73,7 @@ pub fn run(args: &ImportModelArgs) -> anyhow::Result<()> {
         obj_id: args.obj_id,
         colour: args.colour,
         symmetry_axis: args.symmetry_axis,
+        find_symmetries: args.find_symmetries,
     };
     let imported = import_model(&spec, &args.models)?;
     println!(
@@ -78,5 +86,32 @@ pub fn run(args: &ImportModelArgs) -> anyhow::Result<()> {
         imported.size.y * 1e3,
         imported.size.z * 1e3,
     );
+    for symmetry in &imported.symmetries {
+        match symmetry {
+            Symmetry::Continuous { axis, offset } => println!(
+                "  symmetry: any turn about ({:.3}, {:.3}, {:.3}) through ({:.1}, {:.1}, {:.1}) mm",
+                axis.x,
+                axis.y,
+                axis.z,
+                offset.x * 1e3,
+                offset.y * 1e3,
+                offset.z * 1e3
+            ),
+            Symmetry::Discrete(pose) => {
+                let (axis, angle) =
+                    pose.rotation.axis_angle().map_or((Vector3::z(), 0.0), |(a, t)| (a.into_inner(), t));
+                println!(
+                    "  symmetry: {:.0}° about ({:.3}, {:.3}, {:.3}), then ({:.1}, {:.1}, {:.1}) mm",
+                    angle.to_degrees(),
+                    axis.x,
+                    axis.y,
+                    axis.z,
+                    pose.translation.x * 1e3,
+                    pose.translation.y * 1e3,
+                    pose.translation.z * 1e3
+                )
+            }
+        }
+    }
     Ok(())
 }

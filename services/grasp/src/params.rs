@@ -9,7 +9,7 @@ use crate::{GraspError, Gripper};
 /// | key | meaning | default |
 /// |---|---|---|
 /// | `model` | grasp flow model directory (`grasp_encoder.onnx`, `grasp_velocity.onnx`) | `models/grasp-flow` |
-/// | `models` | BOP models directory of the objects to grasp | `objects/ycbv/models` |
+/// | `models` | BOP models directory of the objects to grasp | `objects/ycbv/mug-bowl` |
 /// | `grasps` | grasps G sampled per Estimate | 32 |
 /// | `steps` | Euler steps of the grasp flow | 10 |
 /// | `hypotheses` | pose hypotheses averaged over (the first kept ones of the Estimate); 1 = the single-hypothesis baseline | 8 |
@@ -41,7 +41,7 @@ fn default_model() -> PathBuf {
     PathBuf::from("models/grasp-flow")
 }
 fn default_models() -> PathBuf {
-    PathBuf::from("objects/ycbv/models")
+    PathBuf::from("objects/ycbv/mug-bowl")
 }
 fn default_grasps() -> usize {
     32

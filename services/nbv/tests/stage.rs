@@ -68,7 +68,7 @@ impl MugWorld {
 
 fn mug_planner(workers: usize) -> NbvPlanner {
     let params = NbvParams::from_json(&serde_json::json!({
-        "models": root().join("objects/ycbv/models"),
+        "models": root().join("objects/ycbv/mug-bowl"),
         "hypotheses": 1,
         "workers": workers,
         "inference": {"model": root().join("models/poseflow-lmo10")},
@@ -162,7 +162,7 @@ fn an_observed_wall_hides_the_view_behind_it() {
 #[test]
 fn uninformative_views_count_as_uniform_and_unknown_objects_are_named() {
     let params = NbvParams::from_json(&serde_json::json!({
-        "models": root().join("objects/ycbv/models"),
+        "models": root().join("objects/ycbv/mug-bowl"),
         "candidates": 4,
         "hypotheses": 2,
         "workers": 1,

@@ -57,7 +57,7 @@ pub struct GraspSimArgs {
     #[arg(long, default_value = "models/grasp-flow")]
     pub grasp_model: PathBuf,
     /// BOP models directory holding the mug.
-    #[arg(long, default_value = "objects/ycbv/models")]
+    #[arg(long, default_value = "objects/ycbv/mug-bowl")]
     pub objects: PathBuf,
     /// The mug's object id there.
     #[arg(long, default_value_t = 14)]

@@ -75,7 +75,7 @@ pub struct NbvSimArgs {
     /// Pose model directory.
     #[arg(long, default_value = "models/poseflow-lmo10")]
     pub model: PathBuf,
-    /// BOP models directory [default: objects/ycbv/models for the mug, objects/lmo for clutter].
+    /// BOP models directory [default: objects/ycbv/mug-bowl for the mug, objects/lmo for clutter].
     #[arg(long)]
     pub objects: Option<PathBuf>,
     /// The mug's object id (--scene mug).
@@ -428,7 +428,7 @@ pub fn run(args: &NbvSimArgs) -> anyhow::Result<()> {
         bail!("--trials 0: expected at least one trial");
     }
     let (objects, ids) = match args.scene {
-        StartScene::Mug => (args.objects.clone().unwrap_or_else(|| "objects/ycbv/models".into()), vec![args.mug]),
+        StartScene::Mug => (args.objects.clone().unwrap_or_else(|| "objects/ycbv/mug-bowl".into()), vec![args.mug]),
         StartScene::Clutter => (args.objects.clone().unwrap_or_else(|| "objects/lmo".into()), Vec::new()),
     };
     let library = ModelLibrary::load(&objects, &ids)?;

@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Vector3};
 use serde_json::{Map, Value, json};
 
+use crate::symmetry::{Symmetry, find_symmetries};
 use crate::{ObjectMesh, SceneError, bop, load_mesh, model_file_name};
 
 /// BOP writes millimetres.
@@ -29,6 +30,9 @@ pub struct ImportSpec {
     /// Axis (object frame) of a continuous rotational symmetry through the
     /// origin, as a bowl or a can has about z.
     pub symmetry_axis: Option<Vector3<f64>>,
+    /// Search the mesh for its symmetries ([`find_symmetries`]) with this
+    /// tolerance, a fraction of the diameter, and record what it finds.
+    pub find_symmetries: Option<f64>,
 }
 
 /// The entry written for the imported object.
@@ -41,6 +45,8 @@ pub struct Imported {
     pub diameter: f64,
     /// Metres.
     pub size: Vector3<f64>,
+    /// The symmetries recorded in `models_info.json`.
+    pub symmetries: Vec<Symmetry>,
 }
 
 /// Writes the object into `models_dir` (created if missing), replacing an
@@ -73,8 +79,61 @@ pub fn import_model(spec: &ImportSpec, models_dir: &Path) -> Result<Imported, Sc
         "size_x": (max - min).x * METRES_TO_BOP, "size_y": (max - min).y * METRES_TO_BOP,
         "size_z": (max - min).z * METRES_TO_BOP,
     });
-    if let Some(axis) = symmetry_axis {
-        entry["symmetries_continuous"] = json!([{ "axis": [axis.x, axis.y, axis.z], "offset": [0.0, 0.0, 0.0] }]);
+    let mut symmetries: Vec<Symmetry> = symmetry_axis
+        .map(|axis| Symmetry::Continuous { axis: nalgebra::Unit::new_unchecked(axis), offset: Vector3::zeros() })
+        .into_iter()
+        .collect();
+    if let Some(tolerance) = spec.find_symmetries {
+        if !(tolerance.is_finite() && tolerance > 0.0 && tolerance < 0.5) {
+            return Err(SceneError::Invalid(format!(
+                "symmetry tolerance {tolerance}: expected a fraction of the diameter in (0, 0.5), e.g. 0.01"
+            )));
+        }
+        symmetries.extend(find_symmetries(&mesh, diameter, tolerance)?);
+    }
+    let continuous: Vec<Value> = symmetries
+        .iter()
+        .filter_map(|s| match s {
+            Symmetry::Continuous { axis, offset } => {
+                let offset = offset * METRES_TO_BOP;
+                Some(json!({ "axis": [axis.x, axis.y, axis.z], "offset": [offset.x, offset.y, offset.z] }))
+            }
+            Symmetry::Discrete(_) => None,
+        })
+        .collect();
+    let discrete: Vec<Value> = symmetries
+        .iter()
+        .filter_map(|s| match s {
+            // BOP: the 4×4 matrix row-major, translation in millimetres.
+            Symmetry::Discrete(pose) => {
+                let (r, t) = (pose.rotation.matrix(), pose.translation * METRES_TO_BOP);
+                Some(json!([
+                    r[(0, 0)],
+                    r[(0, 1)],
+                    r[(0, 2)],
+                    t.x,
+                    r[(1, 0)],
+                    r[(1, 1)],
+                    r[(1, 2)],
+                    t.y,
+                    r[(2, 0)],
+                    r[(2, 1)],
+                    r[(2, 2)],
+                    t.z,
+                    0.0,
+                    0.0,
+                    0.0,
+                    1.0
+                ]))
+            }
+            Symmetry::Continuous { .. } => None,
+        })
+        .collect();
+    if !continuous.is_empty() {
+        entry["symmetries_continuous"] = Value::Array(continuous);
+    }
+    if !discrete.is_empty() {
+        entry["symmetries_discrete"] = Value::Array(discrete);
     }
     info.insert(spec.obj_id.to_string(), entry);
     bop::write_json(&info_path, &info)?;
@@ -84,6 +143,7 @@ pub fn import_model(spec: &ImportSpec, models_dir: &Path) -> Result<Imported, Sc
         triangles: mesh.triangles.len(),
         diameter,
         size: max - min,
+        symmetries,
     })
 }
 
@@ -172,6 +232,7 @@ mod tests {
             obj_id: 14,
             colour: Some([200, 30, 30]),
             symmetry_axis: Some(Vector3::new(0.0, 0.0, 2.0)),
+            find_symmetries: None,
         };
         let imported = import_model(&spec, &models).unwrap();
         // Space diagonal of a 10 cm cube.
@@ -197,7 +258,14 @@ mod tests {
         let mesh = dir.join("cube.obj");
         std::fs::write(&mesh, CUBE_OBJ).unwrap();
         let models = dir.join("models");
-        let spec = |obj_id, scale| ImportSpec { mesh: mesh.clone(), scale, obj_id, colour: None, symmetry_axis: None };
+        let spec = |obj_id, scale| ImportSpec {
+            mesh: mesh.clone(),
+            scale,
+            obj_id,
+            colour: None,
+            symmetry_axis: None,
+            find_symmetries: None,
+        };
         import_model(&spec(1, 1.0), &models).unwrap();
         import_model(&spec(2, 1.0), &models).unwrap();
         let again = import_model(&spec(1, 2.0), &models).unwrap();
@@ -213,7 +281,14 @@ mod tests {
         let dir = scratch("axis");
         let mesh = dir.join("cube.obj");
         std::fs::write(&mesh, CUBE_OBJ).unwrap();
-        let spec = ImportSpec { mesh, scale: 1.0, obj_id: 3, colour: None, symmetry_axis: Some(Vector3::zeros()) };
+        let spec = ImportSpec {
+            mesh,
+            scale: 1.0,
+            obj_id: 3,
+            colour: None,
+            symmetry_axis: Some(Vector3::zeros()),
+            find_symmetries: None,
+        };
         let err = import_model(&spec, &dir.join("models")).unwrap_err().to_string();
         assert!(err.contains("symmetry axis") && err.contains("non-zero"), "{err}");
     }

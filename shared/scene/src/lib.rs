@@ -21,6 +21,7 @@ mod ply;
 pub mod primitives;
 mod render;
 pub mod scene;
+pub mod symmetry;
 
 pub use error::SceneError;
 pub use library::{LibraryObject, ModelLibrary, model_file_name};
