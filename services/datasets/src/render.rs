@@ -6,9 +6,10 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use poseflow_scene::camera_path::CameraPath;
-use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset};
+use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset, ycbv_camera};
 use poseflow_scene::part::{ObjectPart, PartVisibility, ViewCondition};
-use poseflow_scene::scene::{Occlusion, ViewRange};
+use poseflow_scene::scene::{Occlusion, SceneStyle, ViewRange};
+use poseflow_scene::sensor::SensorModel;
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
 
@@ -19,6 +20,9 @@ use poseflow_runtime::timing::Timing;
 const MAX_IMAGE_SIDE: u32 = 8192;
 /// Largest orbit step: beyond it consecutive images are not a video.
 const MAX_ORBIT_STEP_DEG: f64 = 90.0;
+/// Camera distances for the YCB-V intrinsics: about the LM-O range's image
+/// scales at 1.9× its focal length, clipped to a tabletop's reach.
+const YCBV_DISTANCE: (f64, f64) = (0.6, 1.6);
 /// Per-channel RGB noise of the default (realistic) render, 8-bit levels.
 const RGB_NOISE: f64 = 2.0;
 
@@ -28,7 +32,9 @@ const RGB_NOISE: f64 = 2.0;
     poseflow render --models objects/lmo --out data/lmo-orbit --split test --frames-per-scene 120 \
     --orbit-step-deg 1   (a 120-image video for tracking)\n  \
     poseflow render --models objects/ycbv/models --objects 14 --out data/mug-hidden --split test --scenes 10 \
-    --frames-per-scene 5 --mug-handle hidden   (mug views whose handle is out of sight)\n\n\
+    --frames-per-scene 5 --mug-handle hidden   (mug views whose handle is out of sight)\n  \
+    poseflow render --models objects/ycbv/models --out data/ycbv-synth --camera ycbv --sensor realistic \
+    --without jpeg   (a real camera's effects but JPEG)\n\n\
     Writes <out>/camera.json, <out>/models/, <out>/poseflow_render.json and <out>/<split>/<scene:06>/ with \
     scene_camera.json, scene_gt.json, scene_gt_info.json, rgb/, depth/ (16-bit, depth_scale 0.1 mm), mask/, \
     mask_visib/. The same arguments give the same files, bit for bit.")]
@@ -54,7 +60,15 @@ pub struct RenderArgs {
     /// How crowded scenes are: clutter shapes and spacing between objects.
     #[arg(long, value_enum, default_value_t = OcclusionArg::Medium)]
     pub occlusion: OcclusionArg,
-    /// Image width in pixels (LM-O intrinsics scaled from 640×480).
+    /// Camera intrinsics (scaled from 640×480 to --width × --height): LM-O's Kinect (fx 572 px) or YCB-V's
+    /// (fx 1067 px, a narrower view).
+    #[arg(long, value_enum, default_value_t = CameraArg::Lmo)]
+    pub camera: CameraArg,
+    /// Camera distance range to the scene centre, metres "MIN,MAX" (default: 0.35,1.5 with --camera lmo, as
+    /// LM-O's; 0.6,1.6 with --camera ycbv, whose narrower view needs more distance for the same scene).
+    #[arg(long, value_parser = parse_range, value_name = "MIN,MAX")]
+    pub distance: Option<(f64, f64)>,
+    /// Image width in pixels.
     #[arg(long, default_value_t = 640)]
     pub width: u32,
     /// Image height in pixels.
@@ -70,14 +84,36 @@ pub struct RenderArgs {
     /// image (elevation, distance and roll drift smoothly; one light per scene). Default: independent views.
     #[arg(long, value_name = "DEG")]
     pub orbit_step_deg: Option<f64>,
-    /// Write noiseless depth and colour (default: depth-sensor and RGB noise).
-    #[arg(long)]
+    /// What the camera does to the render: `basic` (axial depth noise, dropout at depth edges, RGB noise),
+    /// `realistic` (docs/datasets.md: depth quantisation, flying pixels, projector shadow, dropout on dark,
+    /// specular and grazing surfaces, depth-to-colour misregistration; exposure, white balance, gamma, blur, shot
+    /// and read noise, vignetting, JPEG) or `clean` (the exact render).
+    #[arg(long, value_enum, default_value_t = SensorArg::Basic)]
+    pub sensor: SensorArg,
+    /// Same as --sensor clean.
+    #[arg(long, conflicts_with = "sensor")]
     pub clean: bool,
+    /// With --sensor realistic: effects to turn off, comma-separated (depth-noise, quantisation,
+    /// flying-pixels, shadow, dark, grazing, specular, misregistration, exposure, white-balance, gamma, defocus,
+    /// motion-blur, shot-noise, read-noise, vignetting, jpeg).
+    #[arg(long, value_delimiter = ',', value_name = "EFFECT")]
+    pub without: Vec<String>,
     /// Keep only views in which the YCB-V mug (object 14: its handle is object x > 5 cm) is at least half
     /// visible and shows its handle (`visible`: ≥ 150 handle pixels at 640×480) or hides it behind its body or
     /// clutter (`hidden`: ≤ 10): the ambiguity benchmark's views. Random cameras only.
     #[arg(long, value_enum, value_name = "VISIBILITY")]
     pub mug_handle: Option<HandleArg>,
+    /// Pattern the table, the clutter and the backdrop (checker, stripes, blotches, wood grain) instead of plain
+    /// colours.
+    #[arg(long)]
+    pub textured: bool,
+    /// Stand up to this many unannotated distractor objects among the targets in each scene, drawn from
+    /// --distractor-models.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub distractors: u32,
+    /// BOP models directory the distractors come from (default: --models, the objects not in --objects).
+    #[arg(long, value_name = "DIR")]
+    pub distractor_models: Option<PathBuf>,
     /// Print a JSON summary on stdout instead of the text line.
     #[arg(long)]
     pub json: bool,
@@ -87,6 +123,19 @@ pub struct RenderArgs {
 pub enum HandleArg {
     Hidden,
     Visible,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum CameraArg {
+    Lmo,
+    Ycbv,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SensorArg {
+    Basic,
+    Realistic,
+    Clean,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -121,6 +170,18 @@ struct Summary {
     total_s: f64,
 }
 
+fn parse_range(text: &str) -> Result<(f64, f64), String> {
+    let parts: Vec<f64> = text
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("{text:?}: expected two distances in metres separated by a comma, e.g. 0.6,1.6"))?;
+    match parts[..] {
+        [low, high] if low > 0.05 && low <= high && high <= 20.0 => Ok((low, high)),
+        _ => Err(format!("{text:?}: expected MIN,MAX with 0.05 m < MIN ≤ MAX ≤ 20 m")),
+    }
+}
+
 fn check(args: &RenderArgs) -> anyhow::Result<()> {
     for (name, side) in [("--width", args.width), ("--height", args.height)] {
         if side == 0 || side > MAX_IMAGE_SIDE {
@@ -138,6 +199,9 @@ fn check(args: &RenderArgs) -> anyhow::Result<()> {
     if args.mug_handle.is_some() && args.orbit_step_deg.is_some() {
         bail!("--mug-handle with --orbit-step-deg: views are chosen by drawing random cameras, an orbit has none");
     }
+    if !args.without.is_empty() && args.sensor != SensorArg::Realistic {
+        bail!("--without {}: effects are turned off only with --sensor realistic", args.without.join(","));
+    }
     if args.split.is_empty() || args.split.contains(['/', '\\']) || args.split.starts_with('.') {
         bail!("--split {:?}: expected a plain folder name such as train, val or test", args.split);
     }
@@ -146,8 +210,31 @@ fn check(args: &RenderArgs) -> anyhow::Result<()> {
 
 pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     check(args)?;
-    let library = ModelLibrary::load(&args.models, &args.objects)
+    let sensor_kind = if args.clean { SensorArg::Clean } else { args.sensor };
+    let sensor = match sensor_kind {
+        SensorArg::Realistic => Some(
+            args.without
+                .iter()
+                .try_fold(SensorModel::default(), |model, name| model.without(name))
+                .map_err(|detail| anyhow::anyhow!("--without {detail}"))?,
+        ),
+        SensorArg::Basic | SensorArg::Clean => None,
+    };
+    let (camera, default_distance) = match args.camera {
+        CameraArg::Lmo => (lmo_camera(args.width, args.height), ViewRange::default().distance),
+        CameraArg::Ycbv => (ycbv_camera(args.width, args.height), YCBV_DISTANCE),
+    };
+    let views = ViewRange { distance: args.distance.unwrap_or(default_distance), ..ViewRange::default() };
+    let mut library = ModelLibrary::load(&args.models, &args.objects)
         .with_context(|| format!("--models {}: cannot load the object models", args.models.display()))?;
+    if args.distractors > 0 {
+        let dir = args.distractor_models.as_ref().unwrap_or(&args.models);
+        library = library
+            .with_distractors(dir)
+            .with_context(|| format!("--distractor-models {}: cannot load distractors", dir.display()))?;
+    } else if let Some(dir) = &args.distractor_models {
+        bail!("--distractor-models {}: needs --distractors N (how many per scene)", dir.display());
+    }
     let condition = args.mug_handle.map(|handle| {
         let visibility = match handle {
             HandleArg::Hidden => PartVisibility::Hidden,
@@ -172,11 +259,13 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         frames_per_scene: args.frames_per_scene,
         seed: args.seed,
         occlusion: args.occlusion.into(),
-        camera: lmo_camera(args.width, args.height),
-        views: ViewRange::default(),
+        camera,
+        views,
         path: args.orbit_step_deg.map_or(CameraPath::Random, |step_deg| CameraPath::Orbit { step_deg }),
-        depth_noise: (!args.clean).then(DepthNoise::default),
-        rgb_noise: if args.clean { 0.0 } else { RGB_NOISE },
+        depth_noise: (sensor_kind == SensorArg::Basic).then(DepthNoise::default),
+        rgb_noise: if sensor_kind == SensorArg::Basic { RGB_NOISE } else { 0.0 },
+        sensor,
+        style: SceneStyle { textured: args.textured, distractors: args.distractors },
         condition,
     };
     let started = Instant::now();

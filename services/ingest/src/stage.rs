@@ -147,6 +147,8 @@ fn source_from(value: serde_json::Value) -> Result<Box<dyn FrameSource>, IngestE
                 path: orbit_step_deg.map_or(CameraPath::Random, |step_deg| CameraPath::Orbit { step_deg }),
                 depth_noise: Some(DepthNoise::default()),
                 rgb_noise: 2.0,
+                sensor: None,
+                style: Default::default(),
                 condition: None,
             };
             Box::new(SyntheticFrames::new(library, spec))

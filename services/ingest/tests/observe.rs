@@ -40,6 +40,8 @@ fn points_lie_on_the_model_and_tokens_cover_the_projection() {
         path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
+        sensor: None,
+        style: Default::default(),
         condition: None,
     };
     let root = scratch("surface");
@@ -144,6 +146,8 @@ fn mask_files_replace_the_ground_truth() {
         path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
+        sensor: None,
+        style: Default::default(),
         condition: None,
     };
     let root = scratch("mask-files");
@@ -190,6 +194,8 @@ fn test_targets_restrict_only_the_test_split() {
         path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
+        sensor: None,
+        style: Default::default(),
         condition: None,
     };
     let root = scratch("targets");

@@ -67,6 +67,7 @@ fn mug_scene(library: &ModelLibrary, yaw: f64, plane: RenderModel) -> Scene {
         centre: Point3::new(0.0, 0.0, f64::from(max.z - min.z) / 2.0),
         spread: 0.1,
         background: [90, 90, 100],
+        backdrop: None,
     }
 }
 

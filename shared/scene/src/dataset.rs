@@ -29,11 +29,19 @@ use crate::bop::{
 };
 use crate::camera_path::{CameraPath, Orbit};
 use crate::part::ViewCondition;
-use crate::scene::{Occlusion, Scene, View, ViewRange, compose_scene, random_light, render_view};
+use crate::scene::{Occlusion, Scene, SceneStyle, View, ViewRange, compose_styled_scene, random_light, render_view};
+use crate::sensor::SensorModel;
 use crate::{Camera, DepthNoise, ModelLibrary, SceneError, model_file_name};
 
 /// Depth PNG unit: 0.1 mm, so 16 bits reach 6.5 m.
 pub const DEPTH_SCALE: f64 = 0.1;
+
+/// The YCB-Video camera's intrinsics at 640×480 (BOP YCB-V), scaled to
+/// another image size: a narrower view than LM-O's (fx 1067 px).
+pub fn ycbv_camera(width: u32, height: u32) -> Camera {
+    let (sx, sy) = (f64::from(width) / 640.0, f64::from(height) / 480.0);
+    Camera { fx: 1066.778 * sx, fy: 1067.487 * sy, cx: 312.9869 * sx, cy: 241.3109 * sy, width, height }
+}
 
 /// The LM-O (Kinect v1) intrinsics at 640×480, scaled to another image size.
 pub fn lmo_camera(width: u32, height: u32) -> Camera {
@@ -58,6 +66,11 @@ pub struct RenderSpec {
     pub depth_noise: Option<DepthNoise>,
     /// Standard deviation of per-channel RGB noise, 8-bit levels.
     pub rgb_noise: f64,
+    /// A camera's effects on depth and colour (`crate::sensor`); when set,
+    /// they replace `depth_noise` and `rgb_noise`.
+    pub sensor: Option<SensorModel>,
+    /// Patterns and distractors (the library's `distractors`).
+    pub style: SceneStyle,
     /// Keep drawing each image's camera and light until the view meets this
     /// (random camera paths only).
     pub condition: Option<ViewCondition>,
@@ -94,6 +107,14 @@ struct Provenance<'a> {
     objects: Vec<u32>,
     depth_noise: bool,
     rgb_noise: f64,
+    /// The sensor effects, when they replace the two above.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    sensor: Option<String>,
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    textured: bool,
+    /// Up to this many distractors per scene, drawn from these objects.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    distractors: Option<(u32, Vec<u32>)>,
     #[serde(skip_serializing_if = "Option::is_none")]
     view_condition: Option<String>,
     /// Scenes drawn again because no view of their first arrangement met
@@ -169,17 +190,18 @@ pub fn arrangement(library: &ModelLibrary, spec: &RenderSpec, scene_id: u32, k: 
         0 => stream_seed(&[spec.seed, scene_id.into()]),
         k => stream_seed(&[spec.seed, scene_id.into(), 0, k.into()]),
     };
-    compose_scene(library, spec.occlusion, &mut seeded_rng(stream))
+    compose_styled_scene(library, spec.occlusion, &spec.style, &mut seeded_rng(stream))
 }
 
 /// One frame as it goes into the dataset, in memory.
 #[derive(Debug, Clone)]
 pub struct RenderedFrame {
     pub camera_from_world: Pose,
-    /// The noiseless render (RGB with noise when `spec.rgb_noise` > 0).
+    /// The render; its RGB is the camera's (with `spec.rgb_noise` or
+    /// `spec.sensor`), its depth the noiseless one.
     pub view: View,
     /// The depth image as written: with sensor noise when `spec.depth_noise`
-    /// is set. Metres, 0 = no measurement.
+    /// or `spec.sensor` is set. Metres, 0 = no measurement.
     pub depth: Vec<f32>,
 }
 
@@ -234,11 +256,14 @@ pub fn frame(
             (camera_from_world, render_view(library, scene, &spec.camera, &camera_from_world, &orbit.light))
         }
     };
-    let depth = match &spec.depth_noise {
-        Some(noise) => noise.apply(&view.frame.depth, spec.camera.width as usize, &mut rng),
-        None => view.frame.depth.clone(),
+    let depth = match (&spec.sensor, &spec.depth_noise) {
+        (Some(sensor), _) => sensor.apply(&spec.camera, &view.frame.depth, &mut view.frame.rgb, &mut rng),
+        (None, Some(noise)) => noise.apply(&view.frame.depth, spec.camera.width as usize, &mut rng),
+        (None, None) => view.frame.depth.clone(),
     };
-    add_rgb_noise(&mut view.frame.rgb, spec.rgb_noise, &mut rng);
+    if spec.sensor.is_none() {
+        add_rgb_noise(&mut view.frame.rgb, spec.rgb_noise, &mut rng);
+    }
     Ok(RenderedFrame { camera_from_world, view, depth })
 }
 
@@ -297,6 +322,10 @@ pub fn write_dataset(
             objects: library.objects.iter().map(|o| o.obj_id).collect(),
             depth_noise: spec.depth_noise.is_some(),
             rgb_noise: spec.rgb_noise,
+            sensor: spec.sensor.map(|sensor| format!("{sensor:?}")),
+            textured: spec.style.textured,
+            distractors: (spec.style.distractors > 0)
+                .then(|| (spec.style.distractors, library.distractors.iter().map(|o| o.obj_id).collect())),
             view_condition: spec.condition.map(|c| c.to_string()),
             rearranged_scenes,
         },

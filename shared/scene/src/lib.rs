@@ -21,6 +21,7 @@ mod ply;
 pub mod primitives;
 mod render;
 pub mod scene;
+pub mod sensor;
 pub mod symmetry;
 
 pub use error::SceneError;

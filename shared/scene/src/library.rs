@@ -24,6 +24,11 @@ pub struct LibraryObject {
 pub struct ModelLibrary {
     pub dir: PathBuf,
     pub objects: Vec<LibraryObject>,
+    /// Other objects' meshes that scenes may show as unannotated
+    /// distractors (`scene::SceneStyle::distractors`); none after [`load`].
+    ///
+    /// [`load`]: ModelLibrary::load
+    pub distractors: Vec<LibraryObject>,
 }
 
 /// The BOP file name of an object model.
@@ -65,6 +70,22 @@ impl ModelLibrary {
         }
         objects.sort_by_key(|o| o.obj_id);
         objects.dedup_by_key(|o| o.obj_id);
-        Ok(Self { dir: dir.to_path_buf(), objects })
+        Ok(Self { dir: dir.to_path_buf(), objects, distractors: Vec::new() })
+    }
+
+    /// Adds every object of the models directory `dir` whose id is not one
+    /// of this library's targets as a distractor.
+    pub fn with_distractors(mut self, dir: &Path) -> Result<Self, SceneError> {
+        let others = Self::load(dir, &[])?;
+        let same_dir = dir.canonicalize().ok() == self.dir.canonicalize().ok();
+        let targets: Vec<u32> = self.objects.iter().map(|o| o.obj_id).collect();
+        self.distractors = others.objects.into_iter().filter(|o| !(same_dir && targets.contains(&o.obj_id))).collect();
+        if self.distractors.is_empty() {
+            return Err(SceneError::Invalid(format!(
+                "{}: no object is left to be a distractor (every one is a target)",
+                dir.display()
+            )));
+        }
+        Ok(self)
     }
 }

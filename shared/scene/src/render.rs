@@ -14,6 +14,7 @@ use poseflow_geometry::Pose;
 use rayon::prelude::*;
 
 use crate::ObjectMesh;
+use crate::primitives::Texture;
 
 /// Pinhole intrinsics (pixels) and image size.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -44,17 +45,22 @@ impl Camera {
 pub struct RenderModel {
     pub mesh: ObjectMesh,
     trimesh: TriMesh,
+    /// A pattern on the object's xy plane that replaces the vertex colours.
+    pub texture: Option<Texture>,
 }
 
 impl RenderModel {
     pub fn new(mesh: ObjectMesh) -> Result<Self, parry3d::shape::TriMeshBuilderError> {
         let trimesh = mesh.to_trimesh()?;
-        Ok(Self { mesh, trimesh })
+        Ok(Self { mesh, trimesh, texture: None })
     }
 
     /// The colour at a point of triangle `tri` (object frame): vertex colours
     /// interpolated barycentrically, or flat grey for meshes without colour.
     fn color_at(&self, tri: usize, p: &Point3<f32>) -> [f32; 3] {
+        if let Some(texture) = &self.texture {
+            return texture.colour_at(p.x, p.y);
+        }
         let Some(colors) = &self.mesh.colors else {
             return [0.7, 0.7, 0.7];
         };

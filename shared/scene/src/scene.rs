@@ -10,7 +10,7 @@ use nalgebra::{Point3, Rotation3, Vector3};
 use poseflow_geometry::Pose;
 use rand::Rng;
 
-use crate::primitives::{ClutterShape, support_plane};
+use crate::primitives::{ClutterShape, Texture, support_plane};
 use crate::{Camera, Frame, Light, ModelLibrary, Placed, RenderModel, render, silhouettes};
 
 /// How crowded a scene is: how many clutter shapes, how big, and how close
@@ -63,6 +63,21 @@ pub struct Scene {
     pub spread: f64,
     /// Colour of pixels that see nothing (beyond the table).
     pub background: [u8; 3],
+    /// With [`SceneStyle::textured`]: the pattern of those pixels (image
+    /// space, pixels), replacing `background`.
+    pub backdrop: Option<Texture>,
+}
+
+/// What a scene holds beyond its targets, clutter shapes and a plain table.
+/// The default adds nothing and draws nothing, so scenes stay what they
+/// were for the same seed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SceneStyle {
+    /// Patterned table top, clutter and backdrop (`primitives::Texture`).
+    pub textured: bool,
+    /// Up to this many meshes from [`ModelLibrary::distractors`] stand among
+    /// the targets, unannotated, as other objects do in a real scene.
+    pub distractors: u32,
 }
 
 /// The rotation that puts one of the six faces of the object's bounding
@@ -116,6 +131,17 @@ impl Placer {
 
 /// Draws a scene with one instance of every object in `library`.
 pub fn compose_scene<R: Rng + ?Sized>(library: &ModelLibrary, occlusion: Occlusion, rng: &mut R) -> Scene {
+    compose_styled_scene(library, occlusion, &SceneStyle::default(), rng)
+}
+
+/// [`compose_scene`] with `style`'s extras, drawn after everything else:
+/// the same seed places targets and clutter where [`compose_scene`] does.
+pub fn compose_styled_scene<R: Rng + ?Sized>(
+    library: &ModelLibrary,
+    occlusion: Occlusion,
+    style: &SceneStyle,
+    rng: &mut R,
+) -> Scene {
     let crowding = occlusion.crowding();
     let mut rested = Vec::with_capacity(library.objects.len());
     for object in &library.objects {
@@ -163,13 +189,54 @@ pub fn compose_scene<R: Rng + ?Sized>(library: &ModelLibrary, occlusion: Occlusi
     let mean_height = rested.iter().map(|r| r.2).sum::<f64>() / rested.len().max(1) as f64;
     let middle = objects.iter().map(|o| o.world_from_object.translation.xy()).sum::<nalgebra::Vector2<f64>>()
         / objects.len().max(1) as f64;
-    Scene {
+    let mut scene = Scene {
         objects,
         clutter,
         plane,
         centre: Point3::new(middle.x, middle.y, mean_height / 2.0),
         spread,
         background: random_color(rng),
+        backdrop: None,
+    };
+    add_style(&mut scene, library, style, &mut placer, rng);
+    scene
+}
+
+/// `style`'s extras: distractors placed around the targets (the placement
+/// disk grows if they do not fit), then patterns on the table, the clutter
+/// and the backdrop.
+fn add_style<R: Rng + ?Sized>(
+    scene: &mut Scene,
+    library: &ModelLibrary,
+    style: &SceneStyle,
+    placer: &mut Placer,
+    rng: &mut R,
+) {
+    if style.distractors > 0 && !library.distractors.is_empty() {
+        let count = rng.random_range(0..=style.distractors);
+        for _ in 0..count {
+            let object = &library.distractors[rng.random_range(0..library.distractors.len())];
+            let (min, max) = object.model.mesh.bounds();
+            let rotation = resting_rotation(&(max - min), rng);
+            let rotated: Vec<Vector3<f64>> =
+                object.model.mesh.vertices.iter().map(|v| rotation * v.coords.cast::<f64>()).collect();
+            let lowest = rotated.iter().map(|v| v.z).fold(f64::INFINITY, f64::min);
+            let footprint = rotated.iter().map(|v| v.xy().norm()).fold(0.0, f64::max);
+            let at = placer.place(footprint, rng);
+            scene.clutter.push((object.model.clone(), Pose::new(rotation, at - Vector3::z() * lowest)));
+        }
+    }
+    if style.textured {
+        // Table tops and clutter in centimetre-to-decimetre patterns; the
+        // backdrop in image pixels.
+        scene.plane.texture = Some(Texture::random(random_color(rng), (0.02, 0.25), rng));
+        for (model, _) in &mut scene.clutter {
+            if rng.random_bool(0.5) && model.texture.is_none() {
+                let base = model.mesh.colors.as_ref().and_then(|c| c.first().copied()).unwrap_or([128; 3]);
+                model.texture = Some(Texture::random(base, (0.005, 0.05), rng));
+            }
+        }
+        scene.backdrop = Some(Texture::random(scene.background, (8.0, 120.0), rng));
     }
 }
 
@@ -277,8 +344,14 @@ pub fn render_view(
     everything.extend(scene.clutter.iter().zip(&clutter_poses).map(|((model, _), pose)| Placed { model, pose }));
     everything.push(Placed { model: &scene.plane, pose: camera_from_world });
     let mut frame = render(camera, &everything, light);
-    for (rgb, _) in frame.rgb.iter_mut().zip(&frame.label).filter(|(_, label)| **label == 0) {
-        *rgb = scene.background;
+    let width = camera.width as usize;
+    for (i, (rgb, _)) in frame.rgb.iter_mut().zip(&frame.label).enumerate().filter(|(_, (_, label))| **label == 0) {
+        *rgb = match &scene.backdrop {
+            Some(texture) => {
+                texture.colour_at((i % width) as f32, (i / width) as f32).map(|c| (c * 255.0).round() as u8)
+            }
+            None => scene.background,
+        };
     }
     View { frame, silhouettes: silhouettes(camera, &targets), object_poses }
 }

@@ -32,6 +32,8 @@ fn clean_spec() -> RenderSpec {
         path: CameraPath::Random,
         depth_noise: None,
         rgb_noise: 0.0,
+        sensor: None,
+        style: Default::default(),
         condition: None,
     }
 }
@@ -297,4 +299,35 @@ fn a_scene_no_view_can_show_is_arranged_again_and_recorded() {
     let err = write_dataset(&library, &never, &out, |_| {}).unwrap_err().to_string();
     assert!(err.contains("scene 3 image 0") && err.contains("no view in 1 random cameras"), "{err}");
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// A styled scene keeps the targets and clutter of the plain scene with the
+/// same seed, adds unannotated distractors from the other objects (seen as
+/// labels beyond the targets') and patterns the table and backdrop.
+#[test]
+fn styled_scenes_add_distractors_and_patterns_around_the_same_targets() {
+    use poseflow_scene::scene::SceneStyle;
+    let ycbv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/ycbv/models");
+    let library = ModelLibrary::load(&ycbv, &[13, 14]).unwrap().with_distractors(&ycbv).unwrap();
+    assert_eq!(library.distractors.len(), 19, "the 21 YCB-V objects but the two targets");
+    let plain = clean_spec();
+    let styled = RenderSpec { style: SceneStyle { textured: true, distractors: 3 }, ..clean_spec() };
+    let mut distractor_pixels = 0;
+    for scene_id in 3..9 {
+        let (a, b) = (scene(&library, &plain, scene_id), scene(&library, &styled, scene_id));
+        let poses =
+            |s: &poseflow_scene::scene::Scene| s.objects.iter().map(|o| o.world_from_object).collect::<Vec<_>>();
+        assert_eq!(poses(&a), poses(&b), "scene {scene_id}: the targets stay put");
+        assert!(b.clutter.len() >= a.clutter.len() && b.clutter.len() <= a.clutter.len() + 3);
+        assert!(b.plane.texture.is_some() && b.backdrop.is_some() && a.plane.texture.is_none());
+        let rendered = frame(&library, &styled, &b, scene_id, 0).unwrap();
+        // Labels: targets 1..=2, then clutter in order (distractors last), then the table.
+        let first_distractor = 2 + a.clutter.len() as u16 + 1;
+        let last_distractor = 2 + b.clutter.len() as u16;
+        distractor_pixels +=
+            rendered.view.frame.label.iter().filter(|&&l| (first_distractor..=last_distractor).contains(&l)).count();
+    }
+    assert!(distractor_pixels > 100, "distractors in view: {distractor_pixels} pixels");
+    let same = ModelLibrary::load(&ycbv, &[]).unwrap().with_distractors(&ycbv).unwrap_err().to_string();
+    assert!(same.contains("no object is left"), "{same}");
 }

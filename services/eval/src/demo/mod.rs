@@ -209,6 +209,8 @@ pub(crate) fn render_scene(
         path,
         depth_noise: Some(DepthNoise::default()),
         rgb_noise: 2.0,
+        sensor: None,
+        style: Default::default(),
         condition: None,
     };
     write_dataset(library, &spec, out, |_| {}).with_context(|| format!("{}: cannot write the scene", out.display()))
