@@ -459,9 +459,17 @@ def main():
         # learning curve stays cumulative); a fresh optimiser.
         saved = torch.load(config["init_from"], weights_only=False)
         for name, module in modules.items():
-            missing, unexpected = module.load_state_dict(saved[name], strict=False)
+            # A tensor whose shape changed (the object tokens of another
+            # object set) starts fresh like a missing one.
+            own = module.state_dict()
+            reshaped = [k for k, v in saved[name].items() if k in own and own[k].shape != v.shape]
+            weights = {k: v for k, v in saved[name].items() if k not in reshaped}
+            if reshaped:
+                print(f"init_from: {name}: {', '.join(reshaped)} changed shape and start fresh", flush=True)
+            missing, unexpected = module.load_state_dict(weights, strict=False)
             if unexpected:
                 raise SystemExit(f"config: init_from {config['init_from']}: {name} has no {unexpected[0]!r}")
+            missing = [k for k in missing if k not in reshaped]
             if missing:
                 print(f"init_from: {name}: {len(missing)} new tensors ({missing[0]}, ...) start fresh", flush=True)
         state = dict(saved["state"], initialised_at_s=saved["state"]["train_s"])

@@ -51,6 +51,14 @@ pub struct ObserveArgs {
     /// image and masks (a sensor's depth-to-colour registration error).
     #[arg(long, default_value_t = 0, value_name = "PX")]
     pub shift_depth: u32,
+    /// Training data: pixels within this many of each mask's outline take random values (in 2×2 patches), as a
+    /// detector's ragged outline.
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub ragged_masks: u32,
+    /// Training data: with this probability a straight cut removes up to 40 % of an object's mask, as a detector
+    /// that misses part of an object.
+    #[arg(long, default_value_t = 0.0, value_name = "P")]
+    pub cut_masks: f64,
     /// Print the counts as JSON.
     #[arg(long)]
     pub json: bool,
@@ -84,7 +92,16 @@ pub fn run(args: &ObserveArgs) -> anyhow::Result<()> {
     };
     let mut progress = Progress::new("observe", frames.len() as u64);
     let split_dir = args.dataset.join(&args.split);
-    let jitter = MaskJitter { grow: args.grow_masks, shrink: args.shrink_masks, shift: args.shift_depth };
+    if !(0.0..=1.0).contains(&args.cut_masks) {
+        anyhow::bail!("--cut-masks {}: expected a probability in [0, 1]", args.cut_masks);
+    }
+    let jitter = MaskJitter {
+        grow: args.grow_masks,
+        shrink: args.shrink_masks,
+        shift: args.shift_depth,
+        ragged: args.ragged_masks,
+        cut: args.cut_masks,
+    };
     let counts = write_shard(&mut frames, &split_dir, &params, &jitter, &info, &args.out, |c| {
         progress.update(c.frames, &format!("{} observations", c.records))
     })

@@ -210,6 +210,26 @@ impl BopFrames {
                 .collect(),
         };
         let (mut objects, mut skipped) = (Vec::new(), Vec::new());
+        // BOP targets may name an object the image has no annotation of
+        // (annotations left out, a target file from another release): each
+        // such target is counted as skipped, not dropped in silence.
+        if let (Masks::GroundTruth, Some(gts)) = (&self.masks, gts.as_ref())
+            && let Some(gt) = gts.get(&target.im_id)
+        {
+            let mut unannotated: Vec<u32> =
+                target.obj_ids.iter().copied().filter(|id| !gt.iter().any(|g| g.obj_id == *id)).collect();
+            unannotated.dedup();
+            skipped.extend(unannotated.into_iter().map(|obj_id| IngestError::Object {
+                frame: label.clone(),
+                obj_id,
+                instance: 0,
+                detail: format!(
+                    "targeted, but {} has no annotation of it in image {}",
+                    dir.scene_gt().display(),
+                    target.im_id
+                ),
+            }));
+        }
         for (obj_id, instance, path) in files {
             match bop::read_mask_png(&path) {
                 Ok(mask) => objects.push(ObjectMask { obj_id, instance, mask }),

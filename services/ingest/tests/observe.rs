@@ -214,5 +214,21 @@ fn test_targets_restrict_only_the_test_split() {
     let test = BopFrames::open(&root, "test", &[], None, Masks::GroundTruth).unwrap();
     let images: Vec<(u32, u32)> = test.images().map(|(scene, im, _)| (scene, im)).collect();
     assert_eq!(images, [(7, 0), (7, 1)]);
+    // A target the image has no annotation of (as in real BOP releases) is
+    // counted as skipped, naming the file; the annotated one is read.
+    std::fs::write(
+        &own,
+        r#"[{"scene_id": 0, "im_id": 2, "obj_id": 1, "inst_count": 1}, {"scene_id": 0, "im_id": 2, "obj_id": 77, "inst_count": 1}]"#,
+    )
+    .unwrap();
+    let mut frames = BopFrames::open(&root, "train", &[], Some(&own), Masks::GroundTruth).unwrap();
+    let loaded = frames.next_frame().unwrap().unwrap();
+    assert_eq!(loaded.objects.iter().map(|o| o.obj_id).collect::<Vec<_>>(), [1]);
+    assert_eq!(loaded.skipped.len(), 1);
+    let skipped = loaded.skipped[0].to_string();
+    assert!(
+        skipped.contains("object 77") && skipped.contains("scene_gt.json") && skipped.contains("no annotation"),
+        "{skipped}"
+    );
     std::fs::remove_dir_all(&root).unwrap();
 }

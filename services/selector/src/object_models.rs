@@ -10,13 +10,10 @@ use std::time::Instant;
 use nalgebra::Point3;
 use parry3d::shape::{TriMesh, TriMeshBuilderError};
 use poseflow_geometry::models_info::ModelsInfo;
-use poseflow_scene::{SceneError, load_mesh, model_file_name, oriented_trimesh};
+use poseflow_scene::{SceneError, load_bop_model, model_file_name, oriented_trimesh};
 
 use crate::SelectorError;
 use crate::sdf::SignedDistanceGrid;
-
-/// BOP model files are in millimetres.
-const BOP_MODEL_SCALE: f32 = 1e-3;
 
 /// One object model, model frame, metres.
 #[derive(Debug)]
@@ -74,12 +71,12 @@ impl ObjectLibrary {
         let info = ModelsInfo::from_path(&info_path)
             .map_err(|source| SelectorError::ModelsInfo { path: info_path.clone(), source: Box::new(source) })?;
         let mut objects = BTreeMap::new();
-        for &obj_id in info.objects.keys() {
+        for (&obj_id, entry) in &info.objects {
             let path = dir.join(model_file_name(obj_id));
             if !path.is_file() {
                 continue;
             }
-            let mesh = load_mesh(&path, BOP_MODEL_SCALE)?;
+            let mesh = load_bop_model(&path, entry.diameter)?;
             let object = ObjectGeometry::from_mesh(obj_id, mesh.vertices, mesh.triangles, sdf_resolution)
                 .map_err(|source| SceneError::TriMesh { path: path.clone(), source })?;
             objects.insert(obj_id, object);

@@ -25,7 +25,7 @@ pub mod sensor;
 pub mod symmetry;
 
 pub use error::SceneError;
-pub use library::{LibraryObject, ModelLibrary, model_file_name};
+pub use library::{LibraryObject, ModelLibrary, load_bop_model, model_file_name};
 pub use mesh::{MeshFormat, ObjectMesh, load_mesh, oriented_trimesh, parse_mesh};
 pub use noise::DepthNoise;
 pub use render::{Camera, Frame, Light, Placed, RenderModel, object_depth, render, silhouettes};

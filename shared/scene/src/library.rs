@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use poseflow_geometry::models_info::{ModelInfo, ModelsInfo};
 
-use crate::{RenderModel, SceneError, load_mesh};
+use crate::{ObjectMesh, RenderModel, SceneError, load_mesh};
 
 /// BOP model files are in millimetres.
 const BOP_MODEL_SCALE: f32 = 1e-3;
@@ -29,6 +29,39 @@ pub struct ModelLibrary {
     ///
     /// [`load`]: ModelLibrary::load
     pub distractors: Vec<LibraryObject>,
+}
+
+/// Loads a BOP model file (millimetres) and checks it against its
+/// `models_info.json` diameter (metres): a file written in metres, or a
+/// diameter given in metres, is off by a factor of 1000 and would place
+/// every point in the wrong spot, so it is refused with the factor named.
+pub fn load_bop_model(path: &Path, diameter: f64) -> Result<ObjectMesh, SceneError> {
+    let mesh = load_mesh(path, BOP_MODEL_SCALE)?;
+    let (min, max) = mesh.bounds();
+    let box_diagonal = f64::from((max - min).norm());
+    // The diameter lies between the largest box extent and the box diagonal
+    // (at most √3 times the extent); a factor of 3 either way is units.
+    let ratio = box_diagonal / diameter;
+    if diameter > 0.0 && !(1.0 / 3.0..=3.0).contains(&ratio) {
+        let hint = if ratio < 0.01 {
+            "the model file looks like metres; BOP model files are millimetres (poseflow import-model --units m \
+             converts one)"
+        } else if ratio > 100.0 {
+            "the diameter looks like metres; models_info.json gives millimetres"
+        } else {
+            "the model and its models_info.json entry describe different objects"
+        };
+        return Err(SceneError::Malformed {
+            path: path.to_path_buf(),
+            location: "vertices".into(),
+            detail: format!(
+                "they span a box {:.1} mm across, but models_info.json gives diameter {:.1} mm: {hint}",
+                box_diagonal * 1e3,
+                diameter * 1e3
+            ),
+        });
+    }
+    Ok(mesh)
 }
 
 /// The BOP file name of an object model.
@@ -64,7 +97,7 @@ impl ModelLibrary {
                 ))
             })?;
             let path = dir.join(model_file_name(obj_id));
-            let mesh = load_mesh(&path, BOP_MODEL_SCALE)?;
+            let mesh = load_bop_model(&path, info.diameter)?;
             let model = RenderModel::new(mesh).map_err(|source| SceneError::TriMesh { path: path.clone(), source })?;
             objects.push(LibraryObject { obj_id, path, info, model });
         }

@@ -211,6 +211,27 @@ fn missing_models_and_unknown_ids_are_named() {
     assert!(err.contains("obj_000005.ply"), "{err}");
 }
 
+/// A model in the wrong units (a file in metres, a diameter in metres) is
+/// refused with the file, both sizes and the likely cause named.
+#[test]
+fn models_in_the_wrong_units_are_refused() {
+    let source = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/ycbv/mug-bowl");
+    for (factor, hint) in [(1000.0, "model file looks like metres"), (0.001, "diameter looks like metres")] {
+        let dir = scratch(&format!("units-{factor}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::copy(source.join("obj_000014.ply"), dir.join("obj_000014.ply")).unwrap();
+        let mut info: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(source.join("models_info.json")).unwrap()).unwrap();
+        let diameter = info["14"]["diameter"].as_f64().unwrap();
+        info["14"]["diameter"] = serde_json::json!(diameter * factor);
+        std::fs::write(dir.join("models_info.json"), info.to_string()).unwrap();
+        let err = ModelLibrary::load(&dir, &[14]).unwrap_err().to_string();
+        assert!(err.contains("obj_000014.ply") && err.contains(hint), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+    assert!(ModelLibrary::load(&source, &[14]).is_ok());
+}
+
 /// `RenderSpec::condition`: every image drawn for the mug with its handle
 /// hidden shows no handle and at least half the mug; with it visible, the
 /// handle in view; the same seed gives the same views; an object that is
