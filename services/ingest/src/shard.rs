@@ -24,6 +24,7 @@
 use std::io::Write;
 use std::path::Path;
 
+use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::seeded_rng;
 use poseflow_scene::SceneError;
 use poseflow_scene::bop::Raster;
@@ -81,20 +82,23 @@ fn push_u32s(out: &mut Vec<u8>, values: impl IntoIterator<Item = u32>) {
     }
 }
 
-/// One record; `gt` and `info` are the instance's ground truth.
+/// One record; `truth` (camera from object, metres, projected onto SO(3)
+/// as BOP's rounded rotations need) and `info` are the instance's ground
+/// truth.
 fn record(
     loaded: &LoadedFrame,
     prepared: &Prepared,
     object: &ObjectMask,
-    gt: &GtEntry,
+    truth: &Pose,
     info: &GtInfoEntry,
     params: &IngestParams,
 ) -> Vec<u8> {
     let (s, p) = (params.image_size as usize, params.patch_grid as usize);
     let mut out = Vec::with_capacity(record_bytes(params));
-    push_u32s(&mut out, [gt.obj_id, loaded.scene_id, loaded.image_id, object.instance as u32]);
-    push_f32s(&mut out, gt.cam_r_m2c.iter().map(|&v| v as f32));
-    push_f32s(&mut out, gt.cam_t_m2c.iter().map(|&v| (v / 1000.0) as f32));
+    push_u32s(&mut out, [object.obj_id, loaded.scene_id, loaded.image_id, object.instance as u32]);
+    let r = truth.rotation.matrix();
+    push_f32s(&mut out, (0..9).map(|i| r[(i / 3, i % 3)] as f32));
+    push_f32s(&mut out, truth.translation.iter().map(|&v| v as f32));
     push_f32s(&mut out, prepared.centroid.coords.iter().copied());
     push_f32s(&mut out, prepared.crop.corners());
     let c = &loaded.frame.camera;
@@ -163,6 +167,7 @@ pub fn write_shard(
         let mut jitter_rng = seeded_rng(loaded.frame.frame_id ^ JITTER_SEED);
         jitter.apply(&mut loaded.frame, &mut loaded.objects, &mut jitter_rng);
         let mut rng = seeded_rng(loaded.frame.frame_id);
+        let scene_gt = SceneDir::new(split_dir, loaded.scene_id).scene_gt();
         for object in &loaded.objects {
             let gt = gts.get(&loaded.image_id).and_then(|g| g.get(object.instance));
             let info = infos.get(&loaded.image_id).and_then(|g| g.get(object.instance));
@@ -170,9 +175,17 @@ pub fn write_shard(
                 counts.rejected += 1;
                 continue;
             };
+            let gt = match gt.pose(&scene_gt, loaded.image_id, object.instance) {
+                Ok(pose) => pose,
+                Err(err) => {
+                    tracing::warn!(%err, "object skipped");
+                    counts.rejected += 1;
+                    continue;
+                }
+            };
             match prepare(&loaded.frame, object, params, &mut rng) {
                 Ok(prepared) => {
-                    writer.write_all(&record(&loaded, &prepared, object, gt, info, params)).map_err(write_error)?;
+                    writer.write_all(&record(&loaded, &prepared, object, &gt, info, params)).map_err(write_error)?;
                     counts.records += 1;
                 }
                 Err(_) => counts.rejected += 1,

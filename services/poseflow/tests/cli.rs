@@ -672,3 +672,86 @@ fn sim_nbv_reports_each_policy_after_one_and_two_moves() {
     assert_eq!(none.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&none.stderr).contains("--trials 0"));
 }
+
+const REAL_FRAME: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/real/ycbv-frame");
+
+/// A copy of the real frame with `edit` applied to its scene_gt.json.
+fn real_frame_copy(name: &str, edit: impl Fn(&mut serde_json::Value)) -> PathBuf {
+    let root = scratch(name);
+    let scene = root.join("test/000000");
+    for sub in ["rgb", "depth", "mask", "mask_visib"] {
+        std::fs::create_dir_all(scene.join(sub)).unwrap();
+        for entry in std::fs::read_dir(Path::new(REAL_FRAME).join("test/000000").join(sub)).unwrap() {
+            let entry = entry.unwrap();
+            std::fs::copy(entry.path(), scene.join(sub).join(entry.file_name())).unwrap();
+        }
+    }
+    for file in ["scene_camera.json", "scene_gt_info.json"] {
+        std::fs::copy(Path::new(REAL_FRAME).join("test/000000").join(file), scene.join(file)).unwrap();
+    }
+    std::fs::copy(Path::new(REAL_FRAME).join("test_targets_bop19.json"), root.join("test_targets_bop19.json")).unwrap();
+    let gt_path = Path::new(REAL_FRAME).join("test/000000/scene_gt.json");
+    let mut gt: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(gt_path).unwrap()).unwrap();
+    edit(&mut gt);
+    std::fs::write(scene.join("scene_gt.json"), gt.to_string()).unwrap();
+    root
+}
+
+/// Real data as BOP distributes it: depth in 0.1 mm units, ground-truth
+/// rotations orthonormal only to a few 1e-3; every object of the real frame
+/// becomes an observation, and a rotation beyond the 1e-2 tolerance is
+/// refused naming file and image, and counted.
+#[test]
+fn a_real_frame_is_read_as_bop_distributes_it() {
+    let observe = |dataset: &Path, name: &str| {
+        let shard = scratch(name).join("real.obs");
+        std::fs::create_dir_all(shard.parent().unwrap()).unwrap();
+        let dataset = dataset.to_str().unwrap();
+        poseflow(&["observe", "--dataset", dataset, "--split", "test", "--out", shard.to_str().unwrap(), "--json"])
+    };
+    let out = observe(Path::new(REAL_FRAME), "real-shard");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let counts: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!((counts["frames"].as_u64(), counts["records"].as_u64()), (Some(1), Some(4)), "{counts}");
+    assert_eq!(counts["rejected"].as_u64(), Some(0), "{counts}");
+
+    // Rotations off orthonormal by 5e-3 are projected onto SO(3); by 5e-2 refused.
+    let skew = |by: f64| {
+        move |gt: &mut serde_json::Value| {
+            let r = &mut gt["2"][0]["cam_R_m2c"];
+            r[0] = serde_json::json!(r[0].as_f64().unwrap() + by);
+        }
+    };
+    let out = observe(&real_frame_copy("real-skewed", skew(5e-3)), "real-skewed-shard");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let counts: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(counts["records"].as_u64(), Some(4), "{counts}");
+    let out = observe(&real_frame_copy("real-broken", skew(5e-2)), "real-broken-shard");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("scene_gt.json") && stderr.contains("rotation") && stderr.contains("image 2"), "{stderr}");
+    // The broken instance is counted out; the other three are kept.
+    let counts: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!((counts["records"].as_u64(), counts["rejected"].as_u64()), (Some(3), Some(1)), "{counts}");
+}
+
+/// `eval` on the real frame: objects the model was not trained on are
+/// counted, not estimated as some other object; a models directory in the
+/// wrong units is refused before anything runs.
+#[test]
+fn eval_on_the_real_frame_names_wrong_units() {
+    let models = scratch("metres-models");
+    std::fs::create_dir_all(&models).unwrap();
+    std::fs::copy(Path::new(YCBV_MODELS).join("obj_000001.ply"), models.join("obj_000001.ply")).unwrap();
+    let mut info: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(Path::new(YCBV_MODELS).join("models_info.json")).unwrap())
+            .unwrap();
+    // A diameter written in metres, as a user converting by hand might.
+    let diameter = info["1"]["diameter"].as_f64().unwrap() / 1000.0;
+    info["1"]["diameter"] = serde_json::json!(diameter);
+    let info = serde_json::json!({ "1": info["1"] });
+    std::fs::write(models.join("models_info.json"), info.to_string()).unwrap();
+    let out = poseflow(&["eval", "--dataset", REAL_FRAME, "--objects", models.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("obj_000001.ply") && stderr.contains("diameter looks like metres"), "{stderr}");
+}
