@@ -24,6 +24,8 @@ pub struct TruthInstance {
     /// Below [`MIN_VISIB_FRACT`] the instance is not scored (an estimate of
     /// it is neither a hit nor a miss).
     pub scored: bool,
+    /// `scene_gt_info.json`'s visible fraction, when the dataset has it.
+    pub visib_fract: Option<f64>,
 }
 
 #[derive(Debug, Clone)]
@@ -101,11 +103,12 @@ pub fn read_truth(split_dir: &Path, frames: &BopFrames) -> anyhow::Result<Vec<Tr
             if !wanted.is_empty() && !wanted.contains(&gt.obj_id) {
                 continue;
             }
-            let visib_fract = infos.and_then(|infos| infos.get(index)).map_or(1.0, |info| info.visib_fract);
+            let visib_fract = infos.and_then(|infos| infos.get(index)).map(|info| info.visib_fract);
             instances.push(TruthInstance {
                 obj_id: gt.obj_id,
                 pose: gt.pose(&dir.scene_gt(), im_id, index)?,
-                scored: visib_fract >= MIN_VISIB_FRACT,
+                scored: visib_fract.unwrap_or(1.0) >= MIN_VISIB_FRACT,
+                visib_fract,
             });
         }
         images.push(TruthImage { scene_id, im_id, camera, depth, instances });

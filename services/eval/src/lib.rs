@@ -327,6 +327,7 @@ fn score_images(
                 service_time: estimate.and_then(|e| e.service_time),
                 latency: estimate.and_then(|e| e.latency),
                 tracked: estimate.is_some_and(|e| e.tracked),
+                visib_fract: truth.visib_fract,
             });
         }
     }

@@ -24,6 +24,8 @@ pub struct InstanceOutcome {
     pub latency: Option<Duration>,
     /// The estimate's samples started from an earlier estimate or a prior.
     pub tracked: bool,
+    /// The instance's visible fraction (`scene_gt_info.json`), when known.
+    pub visib_fract: Option<f64>,
 }
 
 /// Accuracies in percent over a set of instances.
@@ -194,7 +196,7 @@ pub fn spearman(a: &[f64], b: &[f64]) -> Option<f64> {
 /// unknown.
 pub fn instances_csv(outcomes: &[InstanceOutcome]) -> String {
     let mut out = String::from(
-        "scene_id,im_id,obj_id,estimated,rotation_error_deg,translation_error_cm,rotation_spread_deg,\
+        "scene_id,im_id,obj_id,visib_fract,estimated,rotation_error_deg,translation_error_cm,rotation_spread_deg,\
          rotation_spread_max_deg,covered_10deg_5cm,covered_5deg_5cm\n",
     );
     for o in outcomes {
@@ -202,10 +204,11 @@ pub fn instances_csv(outcomes: &[InstanceOutcome]) -> String {
         let flag = |v: Option<bool>| v.map_or(String::new(), |v| u8::from(v).to_string());
         let score = o.score.as_ref();
         out.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{}\n",
             o.scene_id,
             o.im_id,
             o.obj_id,
+            field(o.visib_fract),
             u8::from(score.is_some()),
             field(score.map(|s| s.rotation_error_deg)),
             field(score.map(|s| s.translation_error_cm)),
@@ -278,6 +281,7 @@ mod tests {
             service_time: Some(Duration::from_millis(u64::from(obj_id) * 10)),
             latency: Some(Duration::from_millis(500)),
             tracked: obj_id == 10,
+            visib_fract: None,
         }
     }
 
@@ -293,6 +297,7 @@ mod tests {
                 service_time: None,
                 latency: None,
                 tracked: false,
+                visib_fract: None,
             },
             outcome(10, [0.0, 0.0, 1.0, 1.0], 8.0, 3.0),
             outcome(10, [0.0; 4], 90.0, 9.0),
