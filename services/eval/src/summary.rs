@@ -297,7 +297,7 @@ mod tests {
                 service_time: None,
                 latency: None,
                 tracked: false,
-                visib_fract: None,
+                visib_fract: Some(0.25),
             },
             outcome(10, [0.0, 0.0, 1.0, 1.0], 8.0, 3.0),
             outcome(10, [0.0; 4], 90.0, 9.0),
@@ -332,8 +332,8 @@ mod tests {
         let csv = instances_csv(&outcomes);
         let lines: Vec<&str> = csv.lines().collect();
         assert_eq!(lines.len(), 5);
-        assert_eq!(lines[1], "0,0,1,1,2.0000,1.0000,1.0000,0.5000,1,1");
-        assert_eq!(lines[2], "0,1,1,0,,,,,,");
+        assert_eq!(lines[1], "0,0,1,,1,2.0000,1.0000,1.0000,0.5000,1,1");
+        assert_eq!(lines[2], "0,1,1,0.2500,0,,,,,,");
     }
 
     #[test]
