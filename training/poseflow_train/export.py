@@ -26,6 +26,7 @@ import torch
 
 from . import se3
 from .model import Encoder, ModelConfig, VelocityNet
+from .objects import write_objects
 
 CONTRACT = "poseflow-onnx/1"
 
@@ -81,6 +82,8 @@ def main():
     parser.add_argument("--checkpoint", required=True)
     parser.add_argument("--out", required=True)
     parser.add_argument("--training-data", default="", help="a line for the metadata: what the model was trained on")
+    parser.add_argument("--models-info", nargs="*", default=[],
+                        help="the training data's models_info.json files: objects.json records each object's diameter")
     args = parser.parse_args()
     saved = torch.load(args.checkpoint, weights_only=False)
     cfg = ModelConfig(**saved["model_config"])
@@ -127,6 +130,8 @@ def main():
     got = vel_session.run(None, {k: tensors[k].numpy() for k in ["condition", "condition_mask", "rotation", "translation", "t"]})
     assert np.abs(got[0] - v_rot.numpy()).max() < 1e-4 and np.abs(got[1] - v_pos.numpy()).max() < 1e-4, "velocity parity"
     write_parity(out, tensors)
+    if args.models_info:
+        write_objects(out, cfg.object_ids, args.models_info)
     sizes = {f.name: f.stat().st_size for f in out.glob("*.onnx")}
     print(json.dumps({"out": str(out), "sizes": sizes, "parity": "ok"}))
 

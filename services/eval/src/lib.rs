@@ -381,6 +381,52 @@ fn run_graph_on(
     Ok((estimates, csv, method))
 }
 
+/// What a model's `objects.json` (written at export) says it was trained on.
+#[derive(Debug, serde::Deserialize)]
+struct TrainedObjects {
+    object_ids: Vec<u32>,
+    diameters_mm: Vec<f64>,
+}
+
+/// Diameters further apart than this share are different objects.
+const SAME_OBJECT_DIAMETER: f64 = 0.05;
+
+/// Refuses a model trained on other objects than `library`'s under the same
+/// ids (LM-O's 1 is the ape, YCB-V's 1 the master chef can): they would be
+/// estimated as the wrong object without a word. Models without
+/// `objects.json` are not checked.
+fn check_model_objects(model: &std::path::Path, library: &ModelLibrary) -> anyhow::Result<()> {
+    let path = model.join("objects.json");
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(());
+    };
+    let trained: TrainedObjects = serde_json::from_str(&text)
+        .with_context(|| format!("{}: expected object_ids and diameters_mm", path.display()))?;
+    for (obj_id, trained_mm) in trained.object_ids.iter().zip(&trained.diameters_mm) {
+        let Some(object) = library.objects.iter().find(|o| o.obj_id == *obj_id) else { continue };
+        let given_mm = object.info.diameter * 1e3;
+        if (given_mm - trained_mm).abs() > SAME_OBJECT_DIAMETER * trained_mm {
+            bail!(
+                "--model {}: trained on object {obj_id} with diameter {trained_mm:.1} mm, but --objects {} has \
+                 object {obj_id} with diameter {given_mm:.1} mm: a different object under the same id (another \
+                 dataset's models?)",
+                model.display(),
+                library.dir.display()
+            );
+        }
+    }
+    let unknown: Vec<u32> =
+        library.objects.iter().map(|o| o.obj_id).filter(|id| !trained.object_ids.contains(id)).collect();
+    if !unknown.is_empty() {
+        tracing::warn!(
+            model = %model.display(),
+            ?unknown,
+            "the model was not trained on these objects: their instances are counted as not estimated"
+        );
+    }
+    Ok(())
+}
+
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     check(args)?;
     let frames = BopFrames::open(&args.dataset, &args.split, &[], args.targets.as_deref(), Masks::GroundTruth)
@@ -390,6 +436,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let library = ModelLibrary::load(&objects_dir, &[])
         .with_context(|| format!("--objects {}: cannot load the object models", objects_dir.display()))?;
     let objects = scored_objects(&library);
+    if args.results.is_none() {
+        check_model_objects(&args.model, &library)?;
+    }
     std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
 
     let (estimates, csv, method) = match &args.results {

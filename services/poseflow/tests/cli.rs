@@ -734,9 +734,9 @@ fn a_real_frame_is_read_as_bop_distributes_it() {
     assert_eq!((counts["records"].as_u64(), counts["rejected"].as_u64()), (Some(3), Some(1)), "{counts}");
 }
 
-/// `eval` on the real frame: objects the model was not trained on are
-/// counted, not estimated as some other object; a models directory in the
-/// wrong units is refused before anything runs.
+/// `eval` on the real frame: a models directory in the wrong units, or one
+/// whose objects are not those the model was trained on under the same
+/// ids, is refused before anything runs.
 #[test]
 fn eval_on_the_real_frame_names_wrong_units() {
     let models = scratch("metres-models");
@@ -754,6 +754,13 @@ fn eval_on_the_real_frame_names_wrong_units() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{stderr}");
     assert!(stderr.contains("obj_000001.ply") && stderr.contains("diameter looks like metres"), "{stderr}");
+    // The default model knows LM-O's object 1 (the ape), not YCB-V's (the
+    // master chef can): refused, not estimated as the ape.
+    let lmo_model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/poseflow-lmo10");
+    let out = poseflow(&["eval", "--dataset", REAL_FRAME, "--objects", YCBV_MODELS, "--model", lmo_model]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("object 1 with diameter 102.1 mm") && stderr.contains("172.0 mm"), "{stderr}");
 }
 
 /// `render --sensor realistic` with patterns and distractors: the same seed
