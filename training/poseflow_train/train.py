@@ -23,11 +23,79 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
 
 from . import se3
 from .data import Observations
 from .evaluate import rollout, symmetries, validate
 from .model import Encoder, ModelConfig, VelocityNet, read_hint
+
+
+class LossModule(torch.nn.Module):
+    """The trained modules as one module whose forward is a step's loss
+    computation (a closure over them), so that DistributedDataParallel sees
+    every parameter the step uses."""
+
+    def __init__(self, modules):
+        super().__init__()
+        self.parts = torch.nn.ModuleDict(modules)
+
+    def forward(self, compute):
+        return compute()
+
+
+class Replicas:
+    """Data-parallel training through PyTorch's own launcher. Under
+    `torchrun` (WORLD_SIZE > 1) every process trains a replica on batches of
+    its own (so the global batch is `batch` x processes), DistributedData-
+    Parallel averages the gradients over the gloo (CPU) or NCCL (CUDA)
+    backend, and rank 0 alone logs, validates and writes the checkpoint, in
+    the same format as a single process. Alone, nothing changes."""
+
+    def __init__(self):
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        self.local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        self.cuda = torch.cuda.is_available()
+        self.ddp = None
+        if self.world > 1:
+            dist.init_process_group("nccl" if self.cuda else "gloo")
+
+    @property
+    def main(self):
+        return self.rank == 0
+
+    def wrap(self, modules):
+        """Replicas start from rank 0's weights (DDP broadcasts them)."""
+        if self.world > 1:
+            device_ids = [self.local_rank] if self.cuda else None
+            self.ddp = DistributedDataParallel(LossModule(modules), device_ids=device_ids, find_unused_parameters=True)
+
+    def loss(self, compute):
+        """`compute()` (the step's loss and its parts), through DDP when
+        distributed so that backward averages the gradients."""
+        return self.ddp(compute) if self.ddp is not None else compute()
+
+    def seed(self, seed):
+        """Rank r > 0 draws its own batches: seeds apart from rank 0's."""
+        return seed if self.rank == 0 else [seed, self.rank]
+
+    def any(self, flag):
+        """True on every process if `flag` is true on any (a stop request)."""
+        if self.world == 1:
+            return flag
+        value = torch.tensor([float(flag)])
+        dist.all_reduce(value, op=dist.ReduceOp.MAX)
+        return bool(value.item())
+
+    def barrier(self):
+        if self.world > 1:
+            dist.barrier()
+
+    def close(self):
+        if self.world > 1:
+            dist.destroy_process_group()
 
 
 def shard_paths(patterns, key):
@@ -366,8 +434,11 @@ def finish_step(config, state, started, log, loss, parts, encoder, velocity, val
                 checkpoint, modules, optimiser, generator, rng, marks):
     """Counts the step's time; logs (the loss and its `parts`, name ->
     tensor), validates and checkpoints when due (`marks` holds the training
-    time of the last validation and checkpoint)."""
+    time of the last validation and checkpoint). `log` is None on replicas
+    other than rank 0, which only count time."""
     state["train_s"] += time.monotonic() - started
+    if log is None:
+        return
     if state["step"] % config.get("log_every", 20) == 0:
         entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "lr": learning_rate(config, state), "loss": loss.item(),
                  **{name: value.item() for name, value in parts.items()}}
@@ -394,7 +465,9 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", required=True)
     parser.add_argument("--max-minutes", type=float, help="stop after this much training time in this run")
+    parser.add_argument("--replica-weights", help="(tests) each process writes its final weights to DIR/rank<r>.pt")
     args = parser.parse_args()
+    replicas = Replicas()
     config = load_config(args.config)
     cfg = config["model"]
     out = Path(config["out"])
@@ -441,8 +514,8 @@ def main():
     optimiser = torch.optim.AdamW(params, lr=config.get("lr", 3e-4), weight_decay=config.get("weight_decay", 1e-4))
     state = {"step": 0, "train_s": 0.0}
     checkpoint = out / "checkpoint.pt"
-    generator = torch.Generator().manual_seed(config.get("seed", 0))
-    rng = np.random.default_rng(config.get("seed", 0))
+    generator = torch.Generator().manual_seed(config.get("seed", 0) + 7919 * replicas.rank)
+    rng = np.random.default_rng(replicas.seed(config.get("seed", 0)))
     resumed = checkpoint.exists()
     if resumed:
         saved = torch.load(checkpoint, weights_only=False)
@@ -450,8 +523,14 @@ def main():
             module.load_state_dict(saved[name])
         optimiser.load_state_dict(saved["optimiser"])
         state = saved["state"]
-        generator.set_state(saved["generator"])
-        rng.bit_generator.state = saved["rng"]
+        if replicas.main:
+            generator.set_state(saved["generator"])
+            rng.bit_generator.state = saved["rng"]
+        else:
+            # The checkpoint holds rank 0's streams; the others start anew
+            # from where the run stands.
+            generator.manual_seed(config.get("seed", 0) + 7919 * replicas.rank + state["step"])
+            rng = np.random.default_rng([config.get("seed", 0), replicas.rank, state["step"]])
         print(f"resumed at step {state['step']} after {state['train_s'] / 60:.1f} min of training", flush=True)
     elif config.get("init_from"):
         # A new run continuing an earlier one with a grown model: its weights
@@ -486,8 +565,16 @@ def main():
         # has it in its own checkpoint, so encoder_from may be gone.
         encoder.load_state_dict(torch.load(config["encoder_from"], weights_only=False)["encoder"])
     source = config.get("encoder_from") or config.get("init_from")
-    cache = condition_cache(encoder, train, config["condition_cache"], source) if frozen else None
-    log = open(out / "log.jsonl", "a")
+    cache = None
+    if frozen:
+        # Rank 0 writes the cache; the others read it once it is there.
+        if replicas.main:
+            cache = condition_cache(encoder, train, config["condition_cache"], source)
+        replicas.barrier()
+        if not replicas.main:
+            cache = condition_cache(encoder, train, config["condition_cache"], source)
+    replicas.wrap(modules)
+    log = open(out / "log.jsonl", "a") if replicas.main else None
     batch_size, samples, steps = config.get("batch", 16), config.get("samples_per_observation", 16), config.get("steps", 5)
     lam = config.get("lambda_pos", 10.0)
     run_started = time.monotonic()
@@ -498,8 +585,9 @@ def main():
     stop = []
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda number, frame: stop.append(number))
-    while state["step"] < config.get("max_steps", 10**9) and not stop:
-        if args.max_minutes is not None and time.monotonic() - run_started > 60 * args.max_minutes:
+    while state["step"] < config.get("max_steps", 10**9):
+        time_up = args.max_minutes is not None and time.monotonic() - run_started > 60 * args.max_minutes
+        if replicas.any(bool(stop) or time_up):
             break
         started = time.monotonic()
         if cache is not None:
@@ -509,13 +597,18 @@ def main():
             targets = targets_of(train, indices, batch, samples, target_table, generator)
             flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0),
                               targets)
-            loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
-            loss = lam * loss_pos + loss_rot
-            parts = {"loss_rot": loss_rot, "loss_pos": loss_pos}
-            if config.get("rollout_energy"):
-                parts["loss_energy"] = rollout_energy(config, cfg, velocity, train, cache, weights, target_table, rng, generator,
-                                                      steps)
-                loss = loss + config["rollout_energy"].get("weight", 1.0) * parts["loss_energy"]
+
+            def cached_loss():
+                loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
+                loss = lam * loss_pos + loss_rot
+                parts = {"loss_rot": loss_rot, "loss_pos": loss_pos}
+                if config.get("rollout_energy"):
+                    parts["loss_energy"] = rollout_energy(config, cfg, velocity, train, cache, weights, target_table, rng,
+                                                          generator, steps)
+                    loss = loss + config["rollout_energy"].get("weight", 1.0) * parts["loss_energy"]
+                return loss, parts
+
+            loss, parts = replicas.loss(cached_loss)
             step(config, state, optimiser, params, loss)
             finish_step(config, state, started, log, loss, parts, encoder, velocity, val, cfg, steps,
                         checkpoint, modules, optimiser, generator, rng, marks)
@@ -530,29 +623,41 @@ def main():
         # it has learnt something).
         refine_warmup_end = state.get("initialised_at_s", 0.0) + config.get("refine_warmup_s", 0)
         warming_up = state["train_s"] < max(config.get("correspondence_warmup_s", 0), refine_warmup_end)
-        if warming_up:
-            batch = train.batch(draw(rng, len(train), batch_size + config.get("correspondence_extra_batch", 0), weights))
-            loss_corr = correspondence_losses(encoder, batch, table, cfg, config, generator)
-            loss_rot = loss_pos = torch.zeros(())
-        else:
-            condition, mask, coordinates = encoder.encode(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
-            targets = targets_of(train, indices, batch, samples, target_table, generator)
-            flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0),
-                              targets)
-            loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
-            loss_corr = sum(correspondence_loss(c, batch, table, cfg) for c in coordinates) / len(coordinates)
-        extra = config.get("correspondence_extra_batch", 0)
-        if extra and not warming_up:
-            # The correspondences are the slow part to learn and cheap to
-            # train alone: each step also trains them on more observations.
-            more = train.batch(draw(rng, len(train), extra, weights))
-            loss_more = correspondence_losses(encoder, more, table, cfg, config, generator)
-            loss_corr = (batch_size * loss_corr + extra * loss_more) / (batch_size + extra)
-        loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr
+
+        def whole_loss():
+            if warming_up:
+                more = train.batch(draw(rng, len(train), batch_size + config.get("correspondence_extra_batch", 0), weights))
+                loss_corr = correspondence_losses(encoder, more, table, cfg, config, generator)
+                loss_rot = loss_pos = torch.zeros(())
+            else:
+                condition, mask, coordinates = encoder.encode(batch["image"], batch["token_mask"], batch["points"],
+                                                              batch["object_index"])
+                targets = targets_of(train, indices, batch, samples, target_table, generator)
+                flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg),
+                                  config.get("hint_paths", 0.0), targets)
+                loss_rot, loss_pos = flow_losses(config, cfg, velocity, condition, mask, flow)
+                loss_corr = sum(correspondence_loss(c, batch, table, cfg) for c in coordinates) / len(coordinates)
+            extra = config.get("correspondence_extra_batch", 0)
+            if extra and not warming_up:
+                # The correspondences are the slow part to learn and cheap to
+                # train alone: each step also trains them on more observations.
+                more = train.batch(draw(rng, len(train), extra, weights))
+                loss_more = correspondence_losses(encoder, more, table, cfg, config, generator)
+                loss_corr = (batch_size * loss_corr + extra * loss_more) / (batch_size + extra)
+            loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr
+            return loss, {"loss_rot": loss_rot, "loss_pos": loss_pos, "loss_corr": loss_corr}
+
+        loss, parts = replicas.loss(whole_loss)
         step(config, state, optimiser, params, loss)
-        finish_step(config, state, started, log, loss, {"loss_rot": loss_rot, "loss_pos": loss_pos, "loss_corr": loss_corr},
-                    encoder, velocity, val, cfg, steps, checkpoint, modules, optimiser, generator, rng, marks)
-    save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
+        finish_step(config, state, started, log, loss, parts, encoder, velocity, val, cfg, steps, checkpoint, modules,
+                    optimiser, generator, rng, marks)
+    if replicas.main:
+        save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
+    if args.replica_weights:
+        Path(args.replica_weights).mkdir(parents=True, exist_ok=True)
+        torch.save({name: module.state_dict() for name, module in modules.items()},
+                   Path(args.replica_weights) / f"rank{replicas.rank}.pt")
+    replicas.close()
     print(f"stopped at step {state['step']} after {state['train_s'] / 60:.1f} min of training", flush=True)
 
 
