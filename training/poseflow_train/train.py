@@ -49,18 +49,17 @@ class Replicas:
     """Data-parallel training through PyTorch's own launcher. Under
     `torchrun` (WORLD_SIZE > 1) every process trains a replica on batches of
     its own (so the global batch is `batch` x processes), DistributedData-
-    Parallel averages the gradients over the gloo (CPU) or NCCL (CUDA)
-    backend, and rank 0 alone logs, validates and writes the checkpoint, in
-    the same format as a single process. Alone, nothing changes."""
+    Parallel averages the gradients over the gloo backend, and rank 0 alone
+    logs, validates and writes the checkpoint, in the same format as a
+    single process. Alone, nothing changes. Training runs on the CPU: the
+    tensors are not placed on a GPU yet."""
 
     def __init__(self):
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
-        self.local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        self.cuda = torch.cuda.is_available()
         self.ddp = None
         if self.world > 1:
-            dist.init_process_group("nccl" if self.cuda else "gloo")
+            dist.init_process_group("gloo")
 
     @property
     def main(self):
@@ -69,8 +68,7 @@ class Replicas:
     def wrap(self, modules):
         """Replicas start from rank 0's weights (DDP broadcasts them)."""
         if self.world > 1:
-            device_ids = [self.local_rank] if self.cuda else None
-            self.ddp = DistributedDataParallel(LossModule(modules), device_ids=device_ids, find_unused_parameters=True)
+            self.ddp = DistributedDataParallel(LossModule(modules), find_unused_parameters=True)
 
     def loss(self, compute):
         """`compute()` (the step's loss and its parts), through DDP when
