@@ -112,6 +112,24 @@ VARIANTS = {
 }
 
 
+# `poseflow render --sensor realistic` effects (shared/scene/src/sensor.rs),
+# rendered one at a time for `--sensor-effects`.
+SENSOR_EFFECTS = ["depth-noise", "quantisation", "flying-pixels", "shadow", "dark", "grazing", "specular",
+                  "misregistration", "exposure", "white-balance", "gamma", "defocus", "motion-blur", "shot-noise",
+                  "read-noise", "vignetting", "jpeg"]
+
+
+def sensor_variants():
+    """name -> `poseflow render` sensor arguments: the exact render, each
+    realistic effect alone, and all of them."""
+    variants = {"sensor: none (exact render)": ["--sensor", "clean"]}
+    for effect in SENSOR_EFFECTS:
+        others = ",".join(e for e in SENSOR_EFFECTS if e != effect)
+        variants[f"sensor: {effect} only"] = ["--sensor", "realistic", "--without", others]
+    variants["sensor: all realistic effects"] = ["--sensor", "realistic"]
+    return variants
+
+
 def dilate(mask, pixels):
     """Binary dilation by a (2·pixels+1)² square, as a max over shifts."""
     out = mask.copy()
@@ -193,13 +211,26 @@ def main():
     parser.add_argument("--only", nargs="+", choices=list(VARIANTS), help="these variants only")
     parser.add_argument("--poseflow", default="../target/release/poseflow")
     parser.add_argument("--ingest-config", help="ingest parameters (TOML, as config/ingest.toml) for `poseflow observe`")
+    parser.add_argument("--sensor-effects", metavar="RENDER_ARGS",
+                        help="instead of perturbing --split, render it again once per sensor effect with these "
+                             "`poseflow render` arguments (the split's models, seed, scenes, camera; not --out, "
+                             "--split or --sensor), e.g. \"--models ../objects/ycbv/models --seed 4 --first-scene "
+                             "3000 --scenes 10 --frames-per-scene 5 --camera ycbv --textured\"")
     args = parser.parse_args()
     model, cfg = load_model(args)
     meta = model.encoder_session.get_modelmeta().custom_metadata_map
     rows = {}
-    for number, name in enumerate(args.only or VARIANTS):
+    sensors = sensor_variants() if args.sensor_effects else {}
+    names = list(sensors) if args.sensor_effects else (args.only or VARIANTS)
+    for number, name in enumerate(names):
         root = Path(args.out) / f"variant{number:02d}"
-        write_variant(args.dataset, args.split, root, VARIANTS[name], args.seed)
+        if args.sensor_effects:
+            shutil.rmtree(root, ignore_errors=True)
+            subprocess.run([args.poseflow, "render", *args.sensor_effects.split(), "--out", str(root), "--split",
+                            args.split, *sensors[name]], check=True, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL)
+        else:
+            write_variant(args.dataset, args.split, root, VARIANTS[name], args.seed)
         shard = root / f"{args.split}.obs"
         observe(args.poseflow, root, args.split, shard, meta["image_size"], meta["patch_grid"], args.ingest_config)
         observations = Observations([shard], model.object_ids)
