@@ -257,7 +257,9 @@ pub fn frame(
         }
     };
     let depth = match (&spec.sensor, &spec.depth_noise) {
-        (Some(sensor), _) => sensor.apply(&spec.camera, &view.frame.depth, &mut view.frame.rgb, &mut rng),
+        (Some(sensor), _) => {
+            sensor.apply(&spec.camera, &view.frame.depth, &view.frame.albedo, &mut view.frame.rgb, &mut rng)
+        }
         (None, Some(noise)) => noise.apply(&view.frame.depth, spec.camera.width as usize, &mut rng),
         (None, None) => view.frame.depth.clone(),
     };

@@ -110,6 +110,9 @@ pub struct Frame {
     /// 0 = background, `k + 1` = the `k`-th object passed to [`render`].
     pub label: Vec<u16>,
     pub rgb: Vec<[u8; 3]>,
+    /// The surface colour before shading (0 where nothing is hit): what an
+    /// active depth sensor's own light sees, whatever the room's light.
+    pub albedo: Vec<[u8; 3]>,
 }
 
 fn isometry(pose: &Pose) -> Isometry3<f32> {
@@ -154,15 +157,21 @@ pub fn render(camera: &Camera, objects: &[Placed<'_>], light: &Light) -> Frame {
     let mut depth = vec![0.0f32; w * h];
     let mut label = vec![0u16; w * h];
     let mut rgb = vec![[0u8; 3]; w * h];
+    let mut albedo = vec![[0u8; 3]; w * h];
     let window = objects
         .iter()
         .filter_map(|o| projected_box(camera, o))
         .reduce(|a, b| (a.0.min(b.0), a.1.min(b.1), a.2.max(b.2), a.3.max(b.3)));
     let Some((u0, v0, u1, v1)) = window else {
-        return Frame { width: camera.width, height: camera.height, depth, label, rgb };
+        return Frame { width: camera.width, height: camera.height, depth, label, rgb, albedo };
     };
-    let rows = depth.par_chunks_mut(w).zip(label.par_chunks_mut(w)).zip(rgb.par_chunks_mut(w)).enumerate();
-    rows.skip(v0).take(v1 + 1 - v0).for_each(|(v, ((depth_row, label_row), rgb_row))| {
+    let rows = depth
+        .par_chunks_mut(w)
+        .zip(label.par_chunks_mut(w))
+        .zip(rgb.par_chunks_mut(w))
+        .zip(albedo.par_chunks_mut(w))
+        .enumerate();
+    rows.skip(v0).take(v1 + 1 - v0).for_each(|(v, (((depth_row, label_row), rgb_row), albedo_row))| {
         for u in u0..=u1 {
             let direction = camera.ray_direction(u as f64, v as f64).cast::<f32>();
             let Some((k, toi, normal, color)) = first_hit(&placed, &direction) else {
@@ -174,9 +183,10 @@ pub fn render(camera: &Camera, objects: &[Placed<'_>], light: &Light) -> Frame {
             let n = if normal.dot(&direction) > 0.0 { -normal } else { normal };
             let shade = light.ambient as f32 + (1.0 - light.ambient as f32) * n.dot(&to_light).max(0.0);
             rgb_row[u] = color.map(|c| (c * shade * 255.0).round().clamp(0.0, 255.0) as u8);
+            albedo_row[u] = color.map(|c| (c * 255.0).round().clamp(0.0, 255.0) as u8);
         }
     });
-    Frame { width: camera.width, height: camera.height, depth, label, rgb }
+    Frame { width: camera.width, height: camera.height, depth, label, rgb, albedo }
 }
 
 /// Each object's full silhouette, ignoring the others (BOP's `mask/`; the

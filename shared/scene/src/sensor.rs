@@ -50,8 +50,9 @@ pub struct DepthEffects {
     /// and the background depth (flying pixels) instead of either.
     pub flying_pixels: Option<f64>,
     pub shadow: Option<Shadow>,
-    /// Largest dropout probability on a black surface (too little returned
-    /// light); it falls linearly to 0 at luminance [`DARK_LUMINANCE`].
+    /// Largest dropout probability on a black material (too little of the
+    /// sensor's light returns); it falls linearly to 0 at albedo luminance
+    /// [`DARK_LUMINANCE`].
     pub dark: Option<f64>,
     /// Largest dropout probability on a surface seen edge-on; it falls
     /// linearly to 0 at [`GRAZING_DEG`] from the line of sight's normal.
@@ -189,12 +190,20 @@ impl SensorModel {
     }
 
     /// Applies every effect to one rendered image: returns the sensor's
-    /// depth and changes `rgb` in place. `clean_rgb` (the render before any
-    /// colour effect) tells dark and bright surfaces apart.
-    pub fn apply<R: Rng + ?Sized>(&self, camera: &Camera, depth: &[f32], rgb: &mut [[u8; 3]], rng: &mut R) -> Vec<f32> {
+    /// depth and changes `rgb` in place. `albedo` (the unshaded surface
+    /// colour) tells dark and bright materials apart, as the sensor's own
+    /// light sees them.
+    pub fn apply<R: Rng + ?Sized>(
+        &self,
+        camera: &Camera,
+        depth: &[f32],
+        albedo: &[[u8; 3]],
+        rgb: &mut [[u8; 3]],
+        rng: &mut R,
+    ) -> Vec<f32> {
         let base: u64 = rng.random();
         let stream = |effect: u64| seeded_rng(base ^ effect.wrapping_mul(0x9E37_79B9_7F4A_7C15));
-        let depth = self.depth.apply(camera, depth, rgb, &stream);
+        let depth = self.depth.apply(camera, depth, albedo, &stream);
         self.colour.apply(camera.width as usize, rgb, &stream);
         depth
     }
@@ -205,7 +214,7 @@ fn luminance(rgb: [u8; 3]) -> f64 {
 }
 
 impl DepthEffects {
-    fn apply(&self, camera: &Camera, clean: &[f32], rgb: &[[u8; 3]], stream: &dyn Fn(u64) -> SeededRng) -> Vec<f32> {
+    fn apply(&self, camera: &Camera, clean: &[f32], albedo: &[[u8; 3]], stream: &dyn Fn(u64) -> SeededRng) -> Vec<f32> {
         let (w, h) = (camera.width as usize, camera.height as usize);
         let mut depth = clean.to_vec();
         if let Some(shadow) = self.shadow {
@@ -223,7 +232,7 @@ impl DepthEffects {
                     if z <= 0.0 {
                         continue;
                     }
-                    let light = luminance(rgb[i]);
+                    let light = luminance(albedo[i]);
                     let facing = facing_cosine(clean, w, h, u, v, camera);
                     let mut keep = 1.0;
                     if let Some(p) = dark {
@@ -551,7 +560,7 @@ mod tests {
         let shadow = Shadow { baseline: 0.075, side: ShadowSide::Left };
         let model = only_depth(DepthEffects { shadow: Some(shadow), ..no_depth_effects() });
         let mut rgb = vec![[128; 3]; w * h];
-        let depth = model.apply(&camera(60, 4), &step_scene(w, h), &mut rgb, &mut seeded_rng(1));
+        let depth = model.apply(&camera(60, 4), &step_scene(w, h), &rgb.clone(), &mut rgb, &mut seeded_rng(1));
         // 500 px · 0.075 m · (1/0.5 − 1/1) m⁻¹ = 37.5 → 38 px, clipped at the image edge.
         let row = &depth[..w];
         assert!(row[..20].iter().all(|&z| z == 0.0), "{row:?}");
@@ -560,7 +569,7 @@ mod tests {
             shadow: Some(Shadow { side: ShadowSide::Right, baseline: 0.01 }),
             ..no_depth_effects()
         });
-        let depth = right.apply(&camera(60, 4), &step_scene(w, h), &mut rgb, &mut seeded_rng(1));
+        let depth = right.apply(&camera(60, 4), &step_scene(w, h), &rgb.clone(), &mut rgb, &mut seeded_rng(1));
         // 500 · 0.01 · 1 = 5 px to the right of the box.
         assert_eq!(depth[40..46], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]);
         assert!(depth[..20].iter().all(|&z| z == 1.0));
@@ -571,7 +580,13 @@ mod tests {
         let (w, h) = (60, 40);
         let model = only_depth(DepthEffects { flying_pixels: Some(1.0), ..no_depth_effects() });
         let clean = step_scene(w, h);
-        let depth = model.apply(&camera(60, 40), &clean, &mut vec![[128; 3]; w * h], &mut seeded_rng(2));
+        let depth = model.apply(
+            &camera(60, 40),
+            &clean,
+            &vec![[128; 3]; w * h],
+            &mut vec![[128; 3]; w * h],
+            &mut seeded_rng(2),
+        );
         let mut mixed = 0;
         for (i, (&z, &c)) in depth.iter().zip(&clean).enumerate() {
             if z != c {
@@ -588,7 +603,13 @@ mod tests {
         let model = only_depth(DepthEffects { quantisation: Some(2.9e-3), ..no_depth_effects() });
         let (w, h) = (200, 1);
         let clean: Vec<f32> = (0..w).map(|i| 1.0 + i as f32 * 1e-4).collect();
-        let depth = model.apply(&camera(200, 1), &clean, &mut vec![[128; 3]; w * h], &mut seeded_rng(3));
+        let depth = model.apply(
+            &camera(200, 1),
+            &clean,
+            &vec![[128; 3]; w * h],
+            &mut vec![[128; 3]; w * h],
+            &mut seeded_rng(3),
+        );
         let mut levels: Vec<f32> = depth.clone();
         levels.dedup();
         // 2 cm of depth at ~1 m in 2.9 mm steps: about 7 levels.
@@ -613,7 +634,7 @@ mod tests {
             .collect();
         let holes = |model: &SensorModel, depth: &[f32], grey: u8| {
             let mut rgb = vec![[grey; 3]; w * h];
-            let out = model.apply(&cam, depth, &mut rgb, &mut seeded_rng(4));
+            let out = model.apply(&cam, depth, &rgb.clone(), &mut rgb, &mut seeded_rng(4));
             // Holes come in 4 px patches: 525 of them here.
             let valid: Vec<usize> = (10..150).flat_map(|v| (10..70).map(move |u| v * w + u)).collect();
             valid.iter().filter(|&&i| out[i] == 0.0).count() as f64 / valid.len() as f64
@@ -638,7 +659,13 @@ mod tests {
         let clean = step_scene(w, h);
         let mut shifts = std::collections::BTreeSet::new();
         for seed in 0..30 {
-            let depth = model.apply(&camera(60, 40), &clean, &mut vec![[0; 3]; w * h], &mut seeded_rng(seed));
+            let depth = model.apply(
+                &camera(60, 40),
+                &clean,
+                &vec![[0; 3]; w * h],
+                &mut vec![[0; 3]; w * h],
+                &mut seeded_rng(seed),
+            );
             let row = &depth[20 * w..21 * w];
             let start = row.iter().position(|&z| z == 0.5).unwrap() as i64 - 20;
             assert!(start.abs() <= 2, "{start}");
@@ -655,7 +682,7 @@ mod tests {
         let render: Vec<[u8; 3]> = (0..w * h).map(|i| [(i % 256) as u8, 90, 200]).collect();
         let run = |model: SensorModel| {
             let mut rgb = render.clone();
-            let depth = model.apply(&cam, &clean, &mut rgb, &mut seeded_rng(7));
+            let depth = model.apply(&cam, &clean, &render, &mut rgb, &mut seeded_rng(7));
             (depth, rgb)
         };
         let all = run(SensorModel::default());
@@ -676,7 +703,7 @@ mod tests {
         let model = SensorModel { depth: no_depth_effects(), ..SensorModel::default() };
         for seed in 0..10 {
             let mut rgb = vec![[128u8; 3]; w * h];
-            model.apply(&camera(64, 48), &vec![0.0; w * h], &mut rgb, &mut seeded_rng(seed));
+            model.apply(&camera(64, 48), &vec![0.0; w * h], &rgb.clone(), &mut rgb, &mut seeded_rng(seed));
             let mean = rgb.iter().map(|p| f64::from(p[1])).sum::<f64>() / (w * h) as f64;
             // ±0.5 stop, ±10 % balance, γ 0.8–1.25 and 30 % vignetting keep a
             // mid grey between these bounds.

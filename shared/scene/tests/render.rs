@@ -98,6 +98,16 @@ fn nearer_objects_occlude_farther_ones() {
     // Lit surfaces are not black; the background is.
     assert!(frame.rgb[i].iter().all(|&c| c > 0));
     assert_eq!(frame.rgb[0], [0, 0, 0]);
+    // The albedo is the mesh's colour (flat grey without vertex colours),
+    // unshaded: never darker than the shaded pixel, and the same on the lit
+    // and the unlit side.
+    let seen: Vec<usize> = (0..frame.label.len()).filter(|&k| frame.label[k] > 0).collect();
+    for &k in &seen {
+        assert_eq!(frame.albedo[k], [179, 179, 179], "pixel {k}");
+        assert!(frame.rgb[k].iter().zip(&frame.albedo[k]).all(|(shaded, albedo)| shaded <= albedo));
+    }
+    assert!(seen.iter().any(|&k| frame.rgb[k][0] < 150), "some of the sphere is in shade");
+    assert_eq!(frame.albedo[0], [0, 0, 0]);
 }
 
 #[test]
