@@ -408,13 +408,25 @@ def condition_cache(encoder, observations, path, source, batch=64):
 
 
 def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
-    """Everything a later run needs to continue, written atomically."""
+    """Everything a later run needs to continue, written atomically; and
+    beside it `weights.pt`, the portable resume point small enough for git
+    (half-precision weights, step, time and random state, no optimiser)."""
     saved = {name: module.state_dict() for name, module in modules.items()}
     saved.update({"optimiser": optimiser.state_dict(), "state": state, "generator": generator.get_state(),
                   "rng": rng.bit_generator.state, "model_config": cfg.to_dict()})
     tmp = path.with_suffix(".tmp")
     torch.save(saved, tmp)
     os.replace(tmp, path)
+    portable = {name: {k: v.half() if v.is_floating_point() else v for k, v in module.state_dict().items()}
+                for name, module in modules.items()}
+    portable.update({k: saved[k] for k in ("state", "generator", "rng", "model_config")})
+    tmp = path.with_name("weights.tmp")
+    torch.save(portable, tmp)
+    os.replace(tmp, path.with_name(PORTABLE))
+
+
+# A run's portable resume point beside its checkpoint (`save_checkpoint`).
+PORTABLE = "weights.pt"
 
 
 def step(config, state, optimiser, params, loss):
@@ -514,12 +526,19 @@ def main():
     checkpoint = out / "checkpoint.pt"
     generator = torch.Generator().manual_seed(config.get("seed", 0) + 7919 * replicas.rank)
     rng = np.random.default_rng(replicas.seed(config.get("seed", 0)))
-    resumed = checkpoint.exists()
+    portable = checkpoint.with_name(PORTABLE)
+    resumed = checkpoint.exists() or portable.exists()
     if resumed:
-        saved = torch.load(checkpoint, weights_only=False)
+        # The full checkpoint, or on another machine the portable weights
+        # committed with the run (a fresh optimiser, which AdamW rebuilds
+        # within a few hundred steps).
+        saved = torch.load(checkpoint if checkpoint.exists() else portable, weights_only=False)
         for name, module in modules.items():
-            module.load_state_dict(saved[name])
-        optimiser.load_state_dict(saved["optimiser"])
+            module.load_state_dict({k: v.to(module.state_dict()[k].dtype) for k, v in saved[name].items()})
+        if "optimiser" in saved:
+            optimiser.load_state_dict(saved["optimiser"])
+        else:
+            print(f"{portable}: half-precision weights, a fresh optimiser", flush=True)
         state = saved["state"]
         if replicas.main:
             generator.set_state(saved["generator"])
