@@ -233,7 +233,11 @@ impl DepthEffects {
                         continue;
                     }
                     let light = luminance(albedo[i]);
-                    let facing = facing_cosine(clean, w, h, u, v, camera);
+                    let facing = if grazing.is_some() || specular.is_some() {
+                        facing_cosine(clean, w, h, u, v, camera)
+                    } else {
+                        None
+                    };
                     let mut keep = 1.0;
                     if let Some(p) = dark {
                         keep *= 1.0 - p * ((DARK_LUMINANCE - light) / DARK_LUMINANCE).clamp(0.0, 1.0);
@@ -255,6 +259,7 @@ impl DepthEffects {
             }
         }
         if let Some(share) = self.flying_pixels {
+            let edge_jump = self.noise.map_or(DepthNoise::default().edge_jump, |n| n.edge_jump);
             let mut rng = stream(2);
             for v in 0..h {
                 for u in 0..w {
@@ -272,7 +277,6 @@ impl DepthEffects {
                         .map(|&(nu, nv)| clean[nv * w + nu])
                         .filter(|&n| n > 0.0)
                         .max_by(|a, b| (a - z).abs().total_cmp(&(b - z).abs()));
-                    let edge_jump = self.noise.map_or(DepthNoise::default().edge_jump, |n| n.edge_jump);
                     if let Some(other) = other.filter(|n| (n - z).abs() > edge_jump) {
                         depth[i] = z + mix * (other - z);
                     }
