@@ -121,6 +121,45 @@ fn a_hung_stage_is_killed_at_its_heartbeat_deadline_and_restarted() {
     assert_nothing_leaked(&before);
 }
 
+/// A stopped process (SIGSTOP: its heartbeat thread stops with it) is told
+/// from one busy in a long message by its heartbeats' silence, and replaced
+/// after a few heartbeat periods, not at the busy deadline (20 s here, as in
+/// deploy/tracking.toml).
+#[test]
+fn a_stopped_stage_is_replaced_within_a_few_heartbeats() {
+    let _serial = serial();
+    let before = shared_memory_files();
+    let scratch = Scratch::new("sigstop");
+    let graph = scratch.graph(2500, 500.0, "drop-oldest");
+    let text = std::fs::read_to_string(&graph).unwrap();
+    std::fs::write(&graph, text.replace("heartbeat_timeout_ms = 3000", "heartbeat_timeout_ms = 20000")).unwrap();
+    let instance = format!("sigstop-{}", std::process::id());
+    let (run, relay) = start_and_wait_for(&graph, &instance, "relay");
+    std::thread::sleep(Duration::from_millis(800));
+    let stopped = Instant::now();
+    // SAFETY: signalling a process this test started (through poseflow).
+    assert_eq!(unsafe { libc::kill(relay as i32, libc::SIGSTOP) }, 0);
+    let replaced = loop {
+        match find_stage_pid(&instance, "relay") {
+            Some(pid) if pid != relay => break stopped.elapsed(),
+            _ if stopped.elapsed() > Duration::from_secs(15) => panic!("the stopped relay was not replaced"),
+            _ => std::thread::sleep(Duration::from_millis(10)),
+        }
+    };
+    let output = run.wait_with_output().unwrap();
+    let (summary, stderr) = (summary(&output), String::from_utf8_lossy(&output.stderr));
+    assert!(output.status.success(), "{summary}\n{stderr}");
+    eprintln!("stopped relay replaced {} ms after SIGSTOP", replaced.as_millis());
+    // Heartbeats every 100 ms, silence deadline 5 of them, 100 ms backoff.
+    assert!(replaced < Duration::from_millis(1500), "replaced after {replaced:?}");
+    let relay = &summary["stages"]["relay"];
+    assert_eq!((relay["hangs"].as_u64(), relay["restarts"].as_u64()), (Some(1), Some(1)), "{summary}");
+    assert!(stderr.contains("heartbeats stopped for longer than graph.silence_timeout_ms"), "{stderr}");
+    let report = scratch.report();
+    assert_recovered(&summary, &report, 2500);
+    assert_nothing_leaked(&before);
+}
+
 /// As above with blocking queues: the source is held back by the hung
 /// relay's full queue when the relay is killed; once the supervisor has
 /// removed the dead reader's port, the source's send stops waiting for it
@@ -319,4 +358,61 @@ fn the_same_graph_runs_in_process() {
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("`stages.relay.exe`") && stderr.contains("smoke-relay"), "{stderr}");
+}
+
+/// The tracking demo's graph (deploy/tracking.toml, the default model, real
+/// processes) with its sampler stopped mid-video, as a user might try: the
+/// frozen sampler is replaced within 1.5 s although the graph allows 20 s
+/// for one busy message, and every object's estimates resume to the end.
+#[test]
+fn a_stopped_sampler_of_the_tracking_graph_is_replaced_and_every_object_tracked_again() {
+    let _serial = serial();
+    let scratch = Scratch::new("track-sigstop");
+    let out = scratch.dir.join("demo");
+    let frames = 30;
+    let demo = poseflow()
+        .args(["demo", "--track", "--json", "--samples", "12", "--steps", "3", "--rate-hz", "5"])
+        .args(["--frames", &frames.to_string(), "--out", out.to_str().unwrap()])
+        .current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let instance = format!("tracking-{}", demo.id());
+    let waiting = Instant::now();
+    let sampler = loop {
+        if let Some(pid) = find_stage_pid(&instance, "sampler") {
+            break pid;
+        }
+        assert!(waiting.elapsed() < Duration::from_secs(120), "the tracking graph's sampler never started");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    // A few images into the video (5 Hz): every object is being tracked.
+    std::thread::sleep(Duration::from_secs(3));
+    let stopped = Instant::now();
+    // SAFETY: signalling a process this test started (through poseflow).
+    assert_eq!(unsafe { libc::kill(sampler as i32, libc::SIGSTOP) }, 0);
+    let replaced = loop {
+        match find_stage_pid(&instance, "sampler") {
+            Some(pid) if pid != sampler => break stopped.elapsed(),
+            _ if stopped.elapsed() > Duration::from_secs(30) => panic!("the stopped sampler was not replaced"),
+            _ => std::thread::sleep(Duration::from_millis(10)),
+        }
+    };
+    let output = demo.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    eprintln!("stopped sampler replaced {} ms after SIGSTOP", replaced.as_millis());
+    assert!(replaced < Duration::from_millis(1500), "replaced after {replaced:?}");
+    let log = std::fs::read_to_string(out.join("graph.log")).unwrap();
+    assert!(log.contains("heartbeats stopped for longer than graph.silence_timeout_ms"), "{log}");
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let objects = report["objects"].as_array().unwrap();
+    assert_eq!(objects.len(), 3, "{report}");
+    for o in objects {
+        // At most the image in the frozen sampler's hands is lost; the
+        // queues before it block, so the frames wait rather than drop.
+        assert!(o["estimated"].as_u64().unwrap() >= frames - 2, "{o}");
+        assert!(o["acc_10deg_5cm"].as_f64().unwrap() >= 80.0, "{o}");
+    }
 }

@@ -120,6 +120,9 @@ fn the_tracking_demo_follows_every_object_through_the_video() {
         assert!(o["acc_10deg_5cm"].as_f64().unwrap() >= 80.0, "{o}");
         assert!(o["acc_5deg_5cm"].as_f64().unwrap() <= o["acc_10deg_5cm"].as_f64().unwrap(), "{o}");
         assert!(o["latency"]["p50_ms"].as_f64().unwrap() > 0.0, "{o}");
+        // The track check ran: a re-initialisation needs a loss before it.
+        assert!(o["reinitialised"].as_u64().unwrap() <= o["lost"].as_u64().unwrap(), "{o}");
+        assert!(o["lost"].as_u64().unwrap() + o["unsure"].as_u64().unwrap() < frames, "{o}");
     }
     let plot = image::open(out_dir.join("tracking.png")).unwrap();
     assert_eq!((plot.width(), plot.height()), (900, 380));

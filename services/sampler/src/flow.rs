@@ -38,6 +38,10 @@ pub enum Start {
     /// Tracking: the previous estimate (camera frame), perturbed, placed at
     /// `tracking.start_time`.
     Track(Pose),
+    /// An unsure track: `tracking.prior_share` of the samples from the
+    /// prior, the rest tracked from the previous estimate, so the selector
+    /// can pick whichever explains the observation.
+    Mixed(Pose),
 }
 
 /// The sampler with its buffers (reused across frames).
@@ -94,13 +98,33 @@ impl FlowSampler {
             });
         }
         let centroid = Vector3::from(handle.centroid.map(f64::from));
-        let (start_time, steps) = self.draw(handle, start, scale, centroid);
-        let dt = (1.0 - start_time) / steps as f64;
-        let n = self.poses.len();
-        for k in 0..steps {
-            let t = start_time + k as f64 * dt;
+        let groups = self.draw(handle, start, scale, centroid);
+        for group in &groups {
+            self.integrate(handle, group, field)?;
+        }
+        for pose in &mut self.poses {
+            pose.translation = pose.translation * scale + centroid;
+        }
+        let steps = groups.iter().map(|g| g.steps).max().unwrap_or(0);
+        Ok(Sampled { poses: &self.poses, steps })
+    }
+
+    /// Integrates the samples of `group` from its start time to t = 1 in
+    /// its number of Euler steps.
+    fn integrate(
+        &mut self,
+        handle: &ConditionHandle,
+        group: &Group,
+        field: &mut dyn VelocityField,
+    ) -> Result<(), SamplerError> {
+        let (frame, object) = (handle.header.frame_id, handle.header.object_id);
+        let poses = &mut self.poses[group.samples.clone()];
+        let n = poses.len();
+        let dt = (1.0 - group.start_time) / group.steps as f64;
+        for k in 0..group.steps {
+            let t = group.start_time + k as f64 * dt;
             self.request.clear();
-            self.request.extend(self.poses.iter().flat_map(|p| p.to_f32_row_major()));
+            self.request.extend(poses.iter().flat_map(|p| p.to_f32_row_major()));
             self.response.clear();
             self.response.resize(n * VELOCITY_LEN, 0.0);
             self.requests += 1;
@@ -111,7 +135,7 @@ impl FlowSampler {
                 sample_count: n as u32,
                 t: t as f32,
                 step_index: k as u32,
-                step_count: steps as u32,
+                step_count: group.steps as u32,
             };
             field.velocities(&request, &self.request, &mut self.response).map_err(|source| SamplerError::Velocity {
                 frame,
@@ -120,50 +144,67 @@ impl FlowSampler {
                 source,
             })?;
             if let Some(bad) = self.response.iter().position(|v| !v.is_finite()) {
-                let (component, sample) = (bad % VELOCITY_LEN, bad / VELOCITY_LEN);
+                let (component, sample) = (bad % VELOCITY_LEN, group.samples.start + bad / VELOCITY_LEN);
                 return Err(SamplerError::NonFinite { frame, object, step: k, component, sample });
             }
             self.velocities.clear();
             self.velocities.extend(
                 self.response.chunks_exact(VELOCITY_LEN).map(|v| Velocity::from_f32(v.try_into().expect("6 values"))),
             );
-            euler_step(&mut self.poses, &self.velocities, dt).map_err(|e| SamplerError::Geometry {
+            euler_step(poses, &self.velocities, dt).map_err(|e| SamplerError::Geometry {
                 frame,
                 object,
                 detail: e.to_string(),
             })?;
         }
-        for pose in &mut self.poses {
-            pose.translation = pose.translation * scale + centroid;
-        }
-        Ok(Sampled { poses: &self.poses, steps })
+        Ok(())
     }
 
-    /// Fills `self.poses` with the start samples in the request frame;
-    /// returns the start time and the number of steps.
-    fn draw(&mut self, handle: &ConditionHandle, start: &Start, scale: f64, centroid: Vector3<f64>) -> (f64, usize) {
+    /// Fills `self.poses` with the start samples in the request frame; the
+    /// groups that integrate from different start times.
+    fn draw(&mut self, handle: &ConditionHandle, start: &Start, scale: f64, centroid: Vector3<f64>) -> Vec<Group> {
         let params = &self.params;
         let mut rng = seeded_rng(sample_seed(params.seed, handle.header.frame_id, handle.header.object_id));
-        self.poses.clear();
-        match start {
-            Start::Prior => {
-                let noise = TranslationNoise::Gaussian { std_dev: params.translation_noise_std / scale };
-                self.poses.extend((0..params.samples).map(|_| initial_pose(&mut rng, &noise)));
-                (0.0, params.steps)
+        let n = params.samples;
+        let (from_prior, previous) = match start {
+            Start::Prior => (n, None),
+            Start::Track(previous) => (0, Some(previous)),
+            // At least one sample of each kind when there are two.
+            Start::Mixed(previous) => {
+                let share = (params.tracking.prior_share * n as f64).round() as usize;
+                (share.clamp(1, n.saturating_sub(1).max(1)), Some(previous))
             }
-            Start::Track(previous) => {
-                let tracking = &params.tracking;
-                let sigma_rot = tracking.rotation_noise_deg.to_radians();
-                let centred = (previous.translation - centroid) / scale;
-                self.poses.extend((0..params.samples).map(|_| {
-                    let turn = gaussian3(&mut rng, sigma_rot);
-                    let shift = gaussian3(&mut rng, tracking.translation_noise / scale);
-                    Pose::new(previous.rotation * so3::exp(&turn), centred + shift)
-                }));
-                (tracking.start_time, tracking.steps)
+        };
+        self.poses.clear();
+        let noise = TranslationNoise::Gaussian { std_dev: params.translation_noise_std / scale };
+        self.poses.extend((0..from_prior).map(|_| initial_pose(&mut rng, &noise)));
+        let mut groups = Vec::with_capacity(2);
+        if from_prior > 0 {
+            groups.push(Group { samples: 0..from_prior, start_time: 0.0, steps: params.steps });
+        }
+        if let Some(previous) = previous {
+            let tracking = &params.tracking;
+            let sigma_rot = tracking.rotation_noise_deg.to_radians();
+            let centred = (previous.translation - centroid) / scale;
+            self.poses.extend((from_prior..n).map(|_| {
+                let turn = gaussian3(&mut rng, sigma_rot);
+                let shift = gaussian3(&mut rng, tracking.translation_noise / scale);
+                Pose::new(previous.rotation * so3::exp(&turn), centred + shift)
+            }));
+            if from_prior < n {
+                groups.push(Group { samples: from_prior..n, start_time: tracking.start_time, steps: tracking.steps });
             }
         }
+        groups
     }
+}
+
+/// Samples that start at one flow time and take one number of steps.
+#[derive(Debug, Clone)]
+struct Group {
+    samples: std::ops::Range<usize>,
+    start_time: f64,
+    steps: usize,
 }
 
 fn gaussian3<R: Rng + ?Sized>(rng: &mut R, sigma: f64) -> Vector3<f64> {

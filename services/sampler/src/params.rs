@@ -41,6 +41,10 @@ pub struct SamplerParams {
 /// | `rotation_noise_deg` | σ per axis of the perturbation about the previous rotation | 5 |
 /// | `translation_noise` | σ per axis of the perturbation of the previous translation, metres | 0.01 |
 /// | `max_age_frames` | an estimate older than this many frames is not used | 5 |
+/// | `prior_share` | after an estimate flagged `UNSURE`: share of the samples drawn from the prior (K = `steps` from t = 0) beside the tracked ones | 0.5 |
+///
+/// After an estimate flagged `LOST` (the selector's track check) the object's
+/// next frame starts from the prior, every sample.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrackingParams {
@@ -56,6 +60,8 @@ pub struct TrackingParams {
     pub translation_noise: f64,
     #[serde(default = "default_max_age")]
     pub max_age_frames: u64,
+    #[serde(default = "default_prior_share")]
+    pub prior_share: f64,
 }
 
 impl Default for TrackingParams {
@@ -67,6 +73,7 @@ impl Default for TrackingParams {
             rotation_noise_deg: default_rotation_noise(),
             translation_noise: default_translation_noise(),
             max_age_frames: default_max_age(),
+            prior_share: default_prior_share(),
         }
     }
 }
@@ -98,6 +105,9 @@ fn default_translation_noise() -> f64 {
 fn default_max_age() -> u64 {
     5
 }
+fn default_prior_share() -> f64 {
+    0.5
+}
 
 impl Default for SamplerParams {
     fn default() -> Self {
@@ -116,7 +126,7 @@ impl SamplerParams {
 
     fn validate(&self) -> Result<(), SamplerError> {
         let max = poseflow_contracts::limits::MAX_SAMPLES as usize;
-        let checks: [(&'static str, bool, String); 7] = [
+        let checks: [(&'static str, bool, String); 8] = [
             ("samples", (1..=max).contains(&self.samples), format!("{}: expected 1 to {max}", self.samples)),
             ("steps", (1..=1000).contains(&self.steps), format!("{}: expected 1 to 1000", self.steps)),
             (
@@ -134,6 +144,11 @@ impl SamplerParams {
                 "tracking.start_time",
                 (0.0..1.0).contains(&self.tracking.start_time),
                 format!("{}: expected a flow time 0 <= t < 1", self.tracking.start_time),
+            ),
+            (
+                "tracking.prior_share",
+                self.tracking.prior_share > 0.0 && self.tracking.prior_share < 1.0,
+                format!("{}: expected a share strictly between 0 and 1", self.tracking.prior_share),
             ),
             (
                 "tracking.rotation_noise_deg / translation_noise",

@@ -72,7 +72,15 @@ const KEPT_ESTIMATES: usize = 32;
 pub struct SamplerStage<F> {
     sampler: FlowSampler,
     field: F,
-    previous: HashMap<u32, BTreeMap<u64, Pose>>,
+    previous: HashMap<u32, BTreeMap<u64, Remembered>>,
+}
+
+/// An object's estimate as the sampler keeps it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Remembered {
+    pose: Pose,
+    /// The Estimate's `LOST` and `UNSURE` bits.
+    track_flags: u32,
 }
 
 impl<F: VelocityField> SamplerStage<F> {
@@ -81,12 +89,15 @@ impl<F: VelocityField> SamplerStage<F> {
     }
 
     /// Records an estimate (camera frame) that later frames of the object
-    /// start from in tracking mode. An id below the object's latest means
-    /// the source restarted its numbering: the later ids are another run's.
-    pub fn remember(&mut self, frame_id: u64, object_id: u32, pose: Pose) {
+    /// start from in tracking mode, with its Estimate header's flags (of
+    /// which `LOST` and `UNSURE` matter). An id below the object's latest
+    /// means the source restarted its numbering: the later ids are another
+    /// run's.
+    pub fn remember(&mut self, frame_id: u64, object_id: u32, pose: Pose, estimate_flags: u32) {
         let estimates = self.previous.entry(object_id).or_default();
         estimates.split_off(&frame_id);
-        estimates.insert(frame_id, pose);
+        let track_flags = estimate_flags & (flags::LOST | flags::UNSURE);
+        estimates.insert(frame_id, Remembered { pose, track_flags });
         while estimates.len() > KEPT_ESTIMATES {
             estimates.pop_first();
         }
@@ -94,7 +105,8 @@ impl<F: VelocityField> SamplerStage<F> {
 
     /// Where the handle's frame starts: the object's latest estimate when
     /// tracking and recent enough (an earlier frame's, or one of this frame
-    /// that arrived first), else the prior.
+    /// that arrived first), else the prior; an estimate flagged `LOST`
+    /// means the prior, one flagged `UNSURE` a mix of both.
     pub fn start_for(&self, handle: &ConditionHandle) -> Start {
         let tracking = &self.sampler.params().tracking;
         let frame = handle.header.frame_id;
@@ -104,7 +116,11 @@ impl<F: VelocityField> SamplerStage<F> {
             .and_then(|estimates| estimates.range(..=frame).next_back())
             .filter(|&(&estimated, _)| frame - estimated <= tracking.max_age_frames);
         match recent {
-            Some((_, &pose)) if tracking.enabled => Start::Track(pose),
+            Some((_, remembered)) if tracking.enabled => match remembered.track_flags {
+                f if f & flags::LOST != 0 => Start::Prior,
+                f if f & flags::UNSURE != 0 => Start::Mixed(remembered.pose),
+                _ => Start::Track(remembered.pose),
+            },
             _ => Start::Prior,
         }
     }
@@ -115,7 +131,7 @@ impl<F: VelocityField> SamplerStage<F> {
         let start = self.start_for(handle);
         let sampled = self.sampler.sample(handle, &start, &mut self.field)?;
         let mut header = handle.header;
-        if matches!(start, Start::Track(_)) {
+        if matches!(start, Start::Track(_) | Start::Mixed(_)) {
             header.flags |= flags::TRACKING;
         }
         let out =
@@ -161,7 +177,7 @@ impl<F: VelocityField> Joined for SamplerStage<F> {
             object: header.object_id,
             detail: format!("estimate's best pose: {e}"),
         })?;
-        self.remember(header.frame_id, header.object_id, best);
+        self.remember(header.frame_id, header.object_id, best, header.flags);
         Ok(())
     }
 }

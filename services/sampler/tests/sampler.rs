@@ -97,7 +97,7 @@ fn tracking_starts_from_the_previous_estimate_late_in_the_flow() {
         let field = toward_target(&first, &mut times);
         let mut stage = SamplerStage::new(params, field);
         assert_eq!(stage.start_for(&first), Start::Prior);
-        stage.remember(10, 5, target());
+        stage.remember(10, 5, target(), 0);
         let next = handle(11);
         assert_eq!(stage.start_for(&next), Start::Track(target()));
         let (header, poses) = stage.hypotheses(&next).unwrap();
@@ -109,16 +109,56 @@ fn tracking_starts_from_the_previous_estimate_late_in_the_flow() {
         // An estimate of the frame itself (a prior from elsewhere) is; one of
         // a later frame is not.
         let other = Pose::new(target().rotation, target().translation + Vector3::new(0.0, 0.0, 0.1));
-        stage.remember(17, 5, other);
+        stage.remember(17, 5, other, 0);
         assert_eq!(stage.start_for(&handle(17)), Start::Track(other));
         assert_eq!(stage.start_for(&handle(16)), Start::Prior);
         // A side input running ahead (frame 19's estimate already in) does
         // not hide frame 17's from frame 18.
-        stage.remember(19, 5, target());
+        stage.remember(19, 5, target(), 0);
         assert_eq!(stage.start_for(&handle(18)), Start::Track(other));
     }
     assert_eq!(times.len(), 2);
     assert!((times[0] - 0.8).abs() < 1e-6 && (times[1] - 0.9).abs() < 1e-6, "{times:?}");
+}
+
+/// The selector's track check steers the next frame: after `LOST` every
+/// sample starts from the prior (K steps from t = 0); after `UNSURE`
+/// `prior_share` of them do and the rest are tracked (late in the flow), each
+/// group integrated from its own start time.
+#[test]
+fn lost_and_unsure_estimates_start_from_the_prior_wholly_or_in_part() {
+    let params = SamplerParams {
+        samples: 10,
+        steps: 4,
+        tracking: TrackingParams { enabled: true, steps: 1, prior_share: 0.3, ..Default::default() },
+        ..Default::default()
+    };
+    let mut times = Vec::new();
+    let mut counts = Vec::new();
+    {
+        let next = handle(11);
+        let mut exact = toward_target(&next, &mut times);
+        let field = |request: &VelocityRequest, poses: &[f32], out: &mut [f32]| {
+            counts.push(request.sample_count);
+            exact(request, poses, out)
+        };
+        let mut stage = SamplerStage::new(params, field);
+        stage.remember(10, 5, target(), flags::LOST);
+        assert_eq!(stage.start_for(&next), Start::Prior);
+        stage.remember(10, 5, target(), flags::UNSURE);
+        assert_eq!(stage.start_for(&next), Start::Mixed(target()));
+        let (header, poses) = stage.hypotheses(&next).unwrap();
+        assert!(header.header.has_flag(flags::TRACKING));
+        assert_eq!((poses.len(), header.step_count), (10, 4));
+        assert_near_target(poses, 1e-3, 1e-5);
+        // REINITIALISED (or any other bit) tracks as usual.
+        stage.remember(10, 5, target(), flags::REINITIALISED);
+        assert_eq!(stage.start_for(&next), Start::Track(target()));
+    }
+    // 3 of 10 from the prior in 4 steps from t = 0, then 7 tracked in one
+    // step from t = 0.8.
+    assert_eq!(counts, vec![3, 3, 3, 3, 7]);
+    assert_eq!(times, vec![0.0, 0.25, 0.5, 0.75, 0.8]);
 }
 
 /// A restarted source numbers its frames from 0 again and may show another
@@ -137,7 +177,7 @@ fn an_upstream_restart_drops_the_tracks() {
     };
     let mut stage = SamplerStage::new(params, zero);
     let mut out = Collect(Vec::new());
-    stage.remember(500, 5, target());
+    stage.remember(500, 5, target(), 0);
     assert_eq!(stage.start_for(&handle(501)), Start::Track(target()));
 
     let mut restarted = handle(0);
@@ -150,9 +190,9 @@ fn an_upstream_restart_drops_the_tracks() {
 
     // An estimate of the old numbering still in flight, then the new frame 0's:
     // the lower id wins and the old one is forgotten.
-    stage.remember(502, 5, target());
+    stage.remember(502, 5, target(), 0);
     let other = Pose::new(target().rotation, target().translation + Vector3::new(0.0, 0.1, 0.0));
-    stage.remember(0, 5, other);
+    stage.remember(0, 5, other, 0);
     assert_eq!(stage.start_for(&handle(1)), Start::Track(other));
     assert_eq!(stage.start_for(&handle(503)), Start::Prior);
 }

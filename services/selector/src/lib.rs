@@ -22,6 +22,7 @@ pub mod score;
 pub mod sdf;
 mod select;
 pub mod stage;
+pub mod track;
 
 pub use error::SelectorError;
 pub use object_models::{ObjectGeometry, ObjectLibrary};

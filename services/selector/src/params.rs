@@ -57,6 +57,7 @@ impl Method {
 /// | `refine_iterations` | iterations per hypothesis | 10 |
 /// | `distribution` | with `refine`: the kept hypotheses reported are the `samples` or the `refined` ones | `samples` |
 /// | `observations` | Observations kept while their Hypotheses are awaited | 64 |
+/// | `tracking` | the track check of a tracking graph ([`crate::track::TrackCheckParams`]) | off |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SelectorParams {
@@ -93,6 +94,8 @@ pub struct SelectorParams {
     pub distribution: Distribution,
     #[serde(default = "default_observations")]
     pub observations: usize,
+    #[serde(default)]
+    pub tracking: crate::track::TrackCheckParams,
 }
 
 fn default_method() -> Method {
@@ -200,6 +203,7 @@ impl SelectorParams {
         if let Some((key, _, detail)) = checks.into_iter().find(|(_, ok, _)| !ok) {
             return Err(SelectorError::Params { key, detail });
         }
+        self.tracking.validate()?;
         if self.needs_models() && self.models.is_none() {
             return Err(SelectorError::Params {
                 key: "models",

@@ -6,11 +6,12 @@ use std::collections::VecDeque;
 use nalgebra::{Point3, Vector3};
 use poseflow_contracts::{
     EstimateHeader, Header, HypothesesHeader, ObservationHeader, POSE_LEN, SelectionMethod, StampSlot,
-    WEIGHTED_POSE_LEN,
+    WEIGHTED_POSE_LEN, flags,
 };
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
 
+use crate::track::{Evidence, TrackMonitor, inlier_share};
 use crate::{Method, ObjectLibrary, Selection, SelectorError, SelectorParams, select};
 
 /// One Observation's points (camera frame, metres), kept until its
@@ -19,6 +20,8 @@ use crate::{Method, ObjectLibrary, Selection, SelectorError, SelectorParams, sel
 struct Observed {
     frame_id: u64,
     object_id: u32,
+    /// Valid depth points the Observation had (before subsampling).
+    valid_points: usize,
     points: Vec<Point3<f64>>,
 }
 
@@ -27,6 +30,8 @@ pub struct SelectorStage {
     params: SelectorParams,
     library: Option<ObjectLibrary>,
     observations: VecDeque<Observed>,
+    /// With `tracking.check`.
+    monitor: Option<TrackMonitor>,
 }
 
 impl SelectorStage {
@@ -42,7 +47,8 @@ impl SelectorStage {
         if let (Some(library), true) = (&library, params.method == Method::Sdf || params.refine) {
             library.build_grids();
         }
-        Ok(Self { params, library, observations: VecDeque::new() })
+        let monitor = params.tracking.check.then(|| TrackMonitor::new(params.tracking.clone()));
+        Ok(Self { params, library, observations: VecDeque::new(), monitor })
     }
 
     pub fn params(&self) -> &SelectorParams {
@@ -77,13 +83,56 @@ impl SelectorStage {
         self.observations.push_back(Observed {
             frame_id: header.header.frame_id,
             object_id: header.header.object_id,
+            valid_points: header.valid_point_count as usize,
             points,
         });
         Ok(())
     }
 
-    /// Selects from one Hypotheses message.
-    pub fn select_for(&mut self, header: &HypothesesHeader, payload: &[f32]) -> Result<Selection, SelectorError> {
+    /// Selects from one Hypotheses message; with the track check on, also
+    /// returns the header bits of its verdict ([`TrackMonitor`]).
+    pub fn select_and_check(
+        &mut self,
+        header: &HypothesesHeader,
+        payload: &[f32],
+    ) -> Result<(Selection, u32), SelectorError> {
+        let (selection, observed) = self.select_for(header, payload)?;
+        let Some(monitor) = &mut self.monitor else { return Ok((selection, 0)) };
+        if header.header.has_flag(flags::UPSTREAM_RESTARTED) {
+            monitor.reset();
+        }
+        let (frame, object) = (header.header.frame_id, header.header.object_id);
+        let points = observed.as_ref().map_or(&[][..], |o| o.points.as_slice());
+        let model = self.library.as_ref().and_then(|library| library.get(object));
+        let inlier_distance = monitor.params().inlier_distance;
+        let evidence = Evidence {
+            frame_id: frame,
+            observed_points: observed.as_ref().map_or(0, |o| o.valid_points),
+            inlier_share: model
+                .map(|model| inlier_share(&selection.best, points, inlier_distance, |y| model.grid().value(y))),
+            spread_deg: selection.statistics.rotation_covariance().trace().max(0.0).sqrt().to_degrees(),
+            pose: selection.best,
+        };
+        let verdict = monitor.check(object, &evidence);
+        let failures = verdict.failures.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ");
+        let share = evidence.inlier_share.map_or(f64::NAN, |s| (s * 1e3).round() / 1e3);
+        let jump_deg = verdict.jump.map_or(f64::NAN, |(degrees, _)| (degrees * 10.0).round() / 10.0);
+        if verdict.before == verdict.after {
+            tracing::debug!(state = ?verdict.after, points = evidence.observed_points, inlier_share = share,
+                spread_deg = evidence.spread_deg, jump_deg, failures, "track check");
+        } else {
+            tracing::info!(from = ?verdict.before, to = ?verdict.after, points = evidence.observed_points,
+                inlier_share = share, spread_deg = evidence.spread_deg, jump_deg, failures, "track state changed");
+        }
+        Ok((selection, verdict.flags()))
+    }
+
+    /// Selects from one Hypotheses message; the Observation it used.
+    fn select_for(
+        &mut self,
+        header: &HypothesesHeader,
+        payload: &[f32],
+    ) -> Result<(Selection, Option<Observed>), SelectorError> {
         let (frame, object) = (header.header.frame_id, header.header.object_id);
         let in_frame = |detail: String| SelectorError::Frame { frame, object, detail };
         let hypotheses = payload
@@ -109,8 +158,9 @@ impl SelectorStage {
             })?),
             None => None,
         };
-        select(&hypotheses, observed.as_ref().map(|o| o.points.as_slice()), model, &self.params)
-            .map_err(|e| in_frame(e.to_string()))
+        let selection = select(&hypotheses, observed.as_ref().map(|o| o.points.as_slice()), model, &self.params)
+            .map_err(|e| in_frame(e.to_string()))?;
+        Ok((selection, observed))
     }
 }
 
@@ -164,8 +214,10 @@ impl Transform for SelectorStage {
         let header = input.header;
         let _span =
             tracing::debug_span!("select", frame = header.header.frame_id, object = header.header.object_id).entered();
-        let selection = self.select_for(header, input.payload)?;
-        let estimate = estimate_header(&selection, input.forward_header());
+        let (selection, track_flags) = self.select_and_check(header, input.payload)?;
+        let mut forwarded = input.forward_header();
+        forwarded.flags |= track_flags;
+        let estimate = estimate_header(&selection, forwarded);
         output.emit(estimate, estimate_payload_len(&selection), &mut |out| write_estimate_payload(&selection, out))?;
         Ok(())
     }
@@ -183,6 +235,13 @@ impl Joined for SelectorStage {
 /// observed points needs the Observation edge among the side inputs.
 pub fn from_wiring(wiring: &poseflow_graph::StageWiring) -> Result<SelectorStage, poseflow_runtime::BuildError> {
     let params = SelectorParams::from_json(&wiring.params)?;
+    if params.tracking.check && wiring.side_inputs.is_empty() {
+        return Err(format!(
+            "stage `{}`: the track check (`tracking.check`) counts the observed points: list the Observation edge in `side_inputs`",
+            wiring.stage
+        )
+        .into());
+    }
     if params.needs_models() && wiring.side_inputs.is_empty() {
         return Err(format!(
             "stage `{}`: method {:?}{} scores the observed points: list the Observation edge in `side_inputs`",

@@ -97,6 +97,18 @@ pub mod flags {
     /// Fewer valid depth points than requested were observed; points were
     /// resampled with replacement to fill the fixed count.
     pub const POINTS_RESAMPLED: u32 = 1 << 2;
+    /// Estimate: the selector's track check found the object lost (the
+    /// pose does not explain the observation, or too little of the object
+    /// was seen to tell); do not act on it. The tracking sampler starts the
+    /// object's next frame from the prior.
+    pub const LOST: u32 = 1 << 3;
+    /// Estimate: the track check failed softly (a poor fit, a jump, a wide
+    /// spread), not yet often enough to declare the object lost. The
+    /// tracking sampler draws part of the next frame's samples from the prior.
+    pub const UNSURE: u32 = 1 << 4;
+    /// Estimate: the first that passed the track check after the object
+    /// was lost; tracking resumes from it.
+    pub const REINITIALISED: u32 = 1 << 5;
 }
 
 /// The first 80 bytes of every message header.

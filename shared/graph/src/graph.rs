@@ -10,6 +10,10 @@ use crate::stamp::Stamp;
 use crate::wiring::{EdgeWiring, StageWiring};
 use crate::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, resolve_executable};
 
+/// Heartbeat periods a started process may miss before it counts as
+/// frozen: one late beat on a loaded machine is not a hang.
+const SILENT_HEARTBEATS: u64 = 5;
+
 /// A validated graph.
 #[derive(Debug, Clone)]
 pub struct Graph {
@@ -17,7 +21,14 @@ pub struct Graph {
     pub name: String,
     pub description: String,
     pub heartbeat: Duration,
+    /// Longest time a process may be busy in one message, or take to send
+    /// its first heartbeat.
     pub heartbeat_timeout: Duration,
+    /// Longest gap between heartbeats once they started. The heartbeat
+    /// thread beats whatever the stage's own code does, so only a frozen
+    /// process falls silent: it gets a deadline of a few periods instead of
+    /// the busy deadline.
+    pub silence_timeout: Duration,
     pub edges: BTreeMap<String, Edge>,
     pub stages: BTreeMap<String, Stage>,
 }
@@ -132,6 +143,14 @@ impl Checker<'_> {
                 spec.graph.heartbeat_timeout_ms.to_string(),
             ));
         }
+        let silence_timeout_ms = spec.graph.silence_timeout_ms.unwrap_or(SILENT_HEARTBEATS * spec.graph.heartbeat_ms);
+        if silence_timeout_ms <= spec.graph.heartbeat_ms {
+            return Err(self.invalid(
+                "graph.silence_timeout_ms",
+                format!("more than graph.heartbeat_ms ({})", spec.graph.heartbeat_ms),
+                silence_timeout_ms.to_string(),
+            ));
+        }
         if spec.stages.is_empty() {
             return Err(self.invalid("stages", "at least one [stages.<name>] table", "none"));
         }
@@ -154,6 +173,7 @@ impl Checker<'_> {
             description: spec.graph.description,
             heartbeat: Duration::from_millis(spec.graph.heartbeat_ms),
             heartbeat_timeout: Duration::from_millis(spec.graph.heartbeat_timeout_ms),
+            silence_timeout: Duration::from_millis(silence_timeout_ms),
             edges,
             stages,
         })

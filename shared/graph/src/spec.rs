@@ -22,9 +22,15 @@ pub(crate) struct GraphSection {
     /// How often each stage publishes its heartbeat.
     #[serde(default = "default_heartbeat_ms")]
     pub heartbeat_ms: u64,
-    /// A stage silent for this long is considered hung and is restarted.
+    /// A stage busy in one message this long, or without a first
+    /// heartbeat this long after it started, is considered hung and is
+    /// restarted.
     #[serde(default = "default_heartbeat_timeout_ms")]
     pub heartbeat_timeout_ms: u64,
+    /// A stage whose heartbeats stop this long after they started is
+    /// frozen (stopped, or every thread deadlocked) and is restarted;
+    /// default 5 × `heartbeat_ms`.
+    pub silence_timeout_ms: Option<u64>,
 }
 
 fn default_heartbeat_ms() -> u64 {

@@ -20,6 +20,7 @@ impl Graph {
         graph.insert("description".into(), self.description.clone().into());
         graph.insert("heartbeat_ms".into(), (self.heartbeat.as_millis() as i64).into());
         graph.insert("heartbeat_timeout_ms".into(), (self.heartbeat_timeout.as_millis() as i64).into());
+        graph.insert("silence_timeout_ms".into(), (self.silence_timeout.as_millis() as i64).into());
         file.insert("graph".into(), graph.into());
 
         let mut edges = toml::Table::new();
@@ -103,8 +104,8 @@ mod tests {
             assert_eq!(read.edges, graph.edges, "{}", path.display());
             assert_eq!(read.stages, graph.stages, "{}", path.display());
             assert_eq!(
-                (&read.name, &read.description, read.heartbeat, read.heartbeat_timeout),
-                (&graph.name, &graph.description, graph.heartbeat, graph.heartbeat_timeout)
+                (&read.name, &read.description, read.heartbeat, read.heartbeat_timeout, read.silence_timeout),
+                (&graph.name, &graph.description, graph.heartbeat, graph.heartbeat_timeout, graph.silence_timeout)
             );
             checked += 1;
         }

@@ -80,6 +80,20 @@ fn bad_values_name_key_and_expectation() {
     assert!(err.contains("`graph.name`"), "{err}");
 }
 
+/// A frozen process is told from a busy one by its silent heartbeats: a
+/// deadline of its own, 5 periods unless set, and more than one period.
+#[test]
+fn the_silence_deadline_defaults_to_five_heartbeats_and_is_checked() {
+    use std::time::Duration;
+    let graph = check(&CHAIN.replace("name = \"chain\"", "name = \"chain\"\nheartbeat_ms = 150")).unwrap();
+    assert_eq!((graph.heartbeat, graph.silence_timeout), (Duration::from_millis(150), Duration::from_millis(750)));
+    assert_eq!(graph.heartbeat_timeout, Duration::from_millis(3000));
+    let set = CHAIN.replace("name = \"chain\"", "name = \"chain\"\nsilence_timeout_ms = 1200");
+    assert_eq!(check(&set).unwrap().silence_timeout, Duration::from_millis(1200));
+    let err = error(&CHAIN.replace("name = \"chain\"", "name = \"chain\"\nsilence_timeout_ms = 200"));
+    assert!(err.contains("`graph.silence_timeout_ms`") && err.contains("more than graph.heartbeat_ms (200)"), "{err}");
+}
+
 #[test]
 fn missing_executables_list_where_they_were_sought() {
     let err = error(&CHAIN.replace("exe = \"/bin/true\"", "exe = \"no-such-stage-binary\""));

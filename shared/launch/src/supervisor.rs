@@ -142,15 +142,19 @@ impl Supervised<'_> {
         self.next_backoff = (self.next_backoff * 2).min(self.stage.restart.max_backoff);
     }
 
-    /// Why the stage counts as hung, if it does: silent (the process is
-    /// frozen) or stuck in its own code. Time spent waiting on a full
-    /// downstream queue does not count.
-    fn hung(&self, now: Instant, timeout: Duration) -> Option<&'static str> {
-        if now.duration_since(self.last_heartbeat_at) > timeout {
-            return Some("no heartbeat within graph.heartbeat_timeout_ms");
+    /// Why the stage counts as hung, if it does: frozen (its heartbeats
+    /// stopped), never started beating, or stuck in its own code. Time spent
+    /// waiting on a full downstream queue does not count.
+    fn hung(&self, now: Instant, graph: &Graph) -> Option<&'static str> {
+        let silent = now.duration_since(self.last_heartbeat_at);
+        let Some(beat) = self.report.heartbeat.filter(|b| b.pid == self.report.pid) else {
+            return (silent > graph.heartbeat_timeout)
+                .then_some("no first heartbeat within graph.heartbeat_timeout_ms");
+        };
+        if silent > graph.silence_timeout {
+            return Some("heartbeats stopped for longer than graph.silence_timeout_ms (process frozen or stopped)");
         }
-        let beat = self.report.heartbeat.filter(|b| b.pid == self.report.pid)?;
-        (u128::from(beat.busy_us) > timeout.as_micros())
+        (u128::from(beat.busy_us) > graph.heartbeat_timeout.as_micros())
             .then_some("busy in one message longer than graph.heartbeat_timeout_ms")
     }
 
@@ -277,7 +281,7 @@ fn step(
                 child.try_wait().map_err(|source| LaunchError::Wait { stage: s.stage.name.clone(), source })?;
             if let Some(status) = exited {
                 s.on_exit(status);
-            } else if let Some(reason) = s.hung(now, graph.heartbeat_timeout) {
+            } else if let Some(reason) = s.hung(now, graph) {
                 tracing::error!(stage = %s.stage.name, reason, "stage hung; killing it");
                 s.report.hangs += 1;
                 s.kill(libc::SIGKILL);

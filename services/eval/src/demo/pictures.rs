@@ -226,11 +226,14 @@ const PLOT_MAX_DEG: f64 = 20.0;
 pub struct ErrorSeries {
     pub obj_id: u32,
     pub points: Vec<(u32, f64)>,
+    /// Images whose estimate was flagged `LOST`: crosses at the top.
+    pub lost: Vec<u32>,
 }
 
 /// Rotation error per image, one line per object, x from image 0 to
 /// `frames − 1`, y from 0 to 20° (larger errors clipped to the top), lines
-/// at the 5° and 10° thresholds.
+/// at the 5° and 10° thresholds; images flagged `LOST` as crosses along the
+/// top, one row per object.
 pub fn error_plot(series: &[ErrorSeries], frames: u32, path: &Path) -> Result<(), FigureError> {
     let last = frames.max(2) - 1;
     render(path, "tracking error plot", (900, 380), |root| {
@@ -263,6 +266,8 @@ pub fn error_plot(series: &[ErrorSeries], frames: u32, path: &Path) -> Result<()
                 .label(format!("object {}", object.obj_id))
                 .legend(line_key(colour, 2));
             chart.draw_series(clipped().map(|point| Circle::new(point, 2, colour.filled())))?;
+            let top = PLOT_MAX_DEG * (0.97 - 0.04 * k as f64);
+            chart.draw_series(object.lost.iter().map(|&im_id| Cross::new((im_id, top), 4, colour.stroke_width(2))))?;
         }
         legend(&mut chart, SeriesLabelPosition::UpperRight)
     })
@@ -298,7 +303,11 @@ mod tests {
     #[test]
     fn the_error_plot_has_a_title_labelled_axes_and_a_legend() {
         let path = scratch("tracking.png");
-        let low = |obj_id, degrees| ErrorSeries { obj_id, points: (0..30).map(|i| (i, degrees)).collect() };
+        let low = |obj_id, degrees| ErrorSeries {
+            obj_id,
+            points: (0..30).map(|i| (i, degrees)).collect(),
+            lost: vec![10, 11],
+        };
         error_plot(&[low(1, 1.0), low(5, 2.0)], 30, &path).unwrap();
         let image = image::open(&path).unwrap().to_rgb8();
         assert_eq!(image.dimensions(), (900, 380));

@@ -28,6 +28,11 @@ struct TrackedObject {
     estimated: u32,
     /// Estimates whose samples started from the previous estimate.
     tracked: u32,
+    /// Estimates the selector's track check flagged `LOST`, `UNSURE`,
+    /// `REINITIALISED` (0 without the check).
+    lost: u32,
+    unsure: u32,
+    reinitialised: u32,
     /// Percent of the annotated images whose estimate is within 5°/5 cm
     /// (resp. 10°/5 cm) of the truth; an image without an estimate counts
     /// as a miss.
@@ -74,6 +79,9 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
     let mut by_object: BTreeMap<u32, Vec<(u32, f64, f64)>> = BTreeMap::new();
     let mut latencies: BTreeMap<u32, Vec<Duration>> = BTreeMap::new();
     let mut tracked: BTreeMap<u32, u32> = BTreeMap::new();
+    // Per object: [LOST, UNSURE, REINITIALISED] counts, and the LOST images.
+    let mut track_flags: BTreeMap<u32, [u32; 3]> = BTreeMap::new();
+    let mut lost_images: BTreeMap<u32, Vec<u32>> = BTreeMap::new();
     // Built once per object: a continuous symmetry is hundreds of transforms.
     let mut symmetry_sets = BTreeMap::new();
     for entry in read_recording(recording)? {
@@ -95,6 +103,13 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         if header.flags & flags::TRACKING != 0 {
             *tracked.entry(header.object_id).or_default() += 1;
         }
+        let counts = track_flags.entry(header.object_id).or_default();
+        for (count, bit) in counts.iter_mut().zip([flags::LOST, flags::UNSURE, flags::REINITIALISED]) {
+            *count += u32::from(header.flags & bit != 0);
+        }
+        if header.flags & flags::LOST != 0 {
+            lost_images.entry(header.object_id).or_default().push(im_id);
+        }
     }
     if by_object.is_empty() {
         bail!("the tracking graph produced no estimate for the video's objects (see {})", recording.display());
@@ -115,6 +130,9 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
             frames: *frames,
             estimated: errors.len() as u32,
             tracked: tracked.get(obj_id).copied().unwrap_or(0),
+            lost: track_flags.get(obj_id).map_or(0, |c| c[0]),
+            unsure: track_flags.get(obj_id).map_or(0, |c| c[1]),
+            reinitialised: track_flags.get(obj_id).map_or(0, |c| c[2]),
             acc_5deg_5cm: percent(tight, *frames as usize),
             acc_10deg_5cm: percent(loose, *frames as usize),
             median_rotation_error_deg: median(errors.iter().map(|e| e.1).collect()),
@@ -126,7 +144,11 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
     let plot = args.out.join("tracking.png");
     let series: Vec<ErrorSeries> = by_object
         .iter()
-        .map(|(obj_id, errors)| ErrorSeries { obj_id: *obj_id, points: errors.iter().map(|e| (e.0, e.1)).collect() })
+        .map(|(obj_id, errors)| ErrorSeries {
+            obj_id: *obj_id,
+            points: errors.iter().map(|e| (e.0, e.1)).collect(),
+            lost: lost_images.remove(obj_id).unwrap_or_default(),
+        })
         .collect();
     error_plot(&series, args.frames, &plot)?;
     let report = TrackingReport {
@@ -148,15 +170,18 @@ fn print_table(report: &TrackingReport) {
         report.frames, report.orbit_step_deg, report.rate_hz, report.acc_5deg_5cm, report.acc_10deg_5cm
     );
     println!(
-        "object  estimated  tracked  5°5cm %  10°5cm %  median rot °  max rot °  median trans cm  latency p50/p99 ms"
+        "object  estimated  tracked  lost  unsure  reinit  5°5cm %  10°5cm %  median rot °  max rot °  median trans cm  latency p50/p99 ms"
     );
     for o in &report.objects {
         println!(
-            "{:>6}  {:>4}/{:<4}  {:>7}  {:>7.1}  {:>8.1}  {:>12.2}  {:>9.1}  {:>15.2}  {:>8.1}/{:.1}",
+            "{:>6}  {:>4}/{:<4}  {:>7}  {:>4}  {:>6}  {:>6}  {:>7.1}  {:>8.1}  {:>12.2}  {:>9.1}  {:>15.2}  {:>8.1}/{:.1}",
             o.obj_id,
             o.estimated,
             o.frames,
             o.tracked,
+            o.lost,
+            o.unsure,
+            o.reinitialised,
             o.acc_5deg_5cm,
             o.acc_10deg_5cm,
             o.median_rotation_error_deg,
@@ -167,7 +192,7 @@ fn print_table(report: &TrackingReport) {
         );
     }
     println!(
-        "plot: {} (rotation error per image, one colour per object; grey lines at 5° and 10°)",
+        "plot: {} (rotation error per image, one colour per object; grey lines at 5° and 10°; crosses: LOST)",
         report.plot.display()
     );
 }
