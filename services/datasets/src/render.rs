@@ -10,6 +10,7 @@ use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset, ycbv_camera
 use poseflow_scene::part::{ObjectPart, PartVisibility, ViewCondition};
 use poseflow_scene::scene::{Occlusion, SceneStyle, ViewRange};
 use poseflow_scene::sensor::SensorModel;
+use poseflow_scene::video::VideoEvents;
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
 
@@ -84,6 +85,14 @@ pub struct RenderArgs {
     /// image (elevation, distance and roll drift smoothly; one light per scene). Default: independent views.
     #[arg(long, value_name = "DEG")]
     pub orbit_step_deg: Option<f64>,
+    /// With --orbit-step-deg: occlusion events per scene, each an object fully hidden for 5-20 images by a box
+    /// sliding across its line of sight (listed in each scene's video_events.json).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub occlusions: u32,
+    /// With --orbit-step-deg: teleports per scene, each an object turned 90-180° about the vertical and shifted up
+    /// to 5 cm between two images (listed in video_events.json).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub teleports: u32,
     /// What the camera does to the render: `basic` (axial depth noise, dropout at depth edges, RGB noise),
     /// `realistic` (docs/datasets.md: depth quantisation, flying pixels, projector shadow, dropout on dark,
     /// specular and grazing surfaces, depth-to-colour misregistration; exposure, white balance, gamma, blur, shot
@@ -196,6 +205,13 @@ fn check(args: &RenderArgs) -> anyhow::Result<()> {
     {
         bail!("--orbit-step-deg {step}: expected degrees per image within ±{MAX_ORBIT_STEP_DEG}");
     }
+    if (args.occlusions > 0 || args.teleports > 0) && args.orbit_step_deg.is_none() {
+        bail!(
+            "--occlusions {} --teleports {}: events happen in videos; add --orbit-step-deg",
+            args.occlusions,
+            args.teleports
+        );
+    }
     if args.mug_handle.is_some() && args.orbit_step_deg.is_some() {
         bail!("--mug-handle with --orbit-step-deg: views are chosen by drawing random cameras, an orbit has none");
     }
@@ -261,7 +277,10 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         occlusion: args.occlusion.into(),
         camera,
         views,
-        path: args.orbit_step_deg.map_or(CameraPath::Random, |step_deg| CameraPath::Orbit { step_deg }),
+        path: args.orbit_step_deg.map_or(CameraPath::Random, |step_deg| CameraPath::Orbit {
+            step_deg,
+            events: VideoEvents { occlusions: args.occlusions, teleports: args.teleports },
+        }),
         depth_noise: (sensor_kind == SensorArg::Basic).then(DepthNoise::default),
         rgb_noise: if sensor_kind == SensorArg::Basic { RGB_NOISE } else { 0.0 },
         sensor,

@@ -9,6 +9,7 @@ mod bop_csv;
 mod dataset;
 pub mod demo;
 pub(crate) mod estimates;
+pub mod recovery;
 mod score;
 mod summary;
 

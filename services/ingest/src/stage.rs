@@ -144,7 +144,8 @@ fn source_from(value: serde_json::Value) -> Result<Box<dyn FrameSource>, IngestE
                 },
                 camera: lmo_camera(width, height),
                 views: ViewRange::default(),
-                path: orbit_step_deg.map_or(CameraPath::Random, |step_deg| CameraPath::Orbit { step_deg }),
+                path: orbit_step_deg
+                    .map_or(CameraPath::Random, |step_deg| CameraPath::Orbit { step_deg, events: Default::default() }),
                 depth_noise: Some(DepthNoise::default()),
                 rgb_noise: 2.0,
                 sensor: None,

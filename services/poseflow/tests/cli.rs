@@ -439,6 +439,10 @@ fn render_rejects_bad_arguments_with_what_was_expected() {
             "--mug-handle with --orbit-step-deg",
         ),
         (vec!["--models", MODELS, "--out", out, "--mug-handle", "hidden"], "the scenes have no object 14"),
+        (
+            vec!["--models", MODELS, "--out", out, "--occlusions", "2"],
+            "--occlusions 2 --teleports 0: events happen in videos; add --orbit-step-deg",
+        ),
     ] {
         let result = poseflow(&[&["render"][..], &args].concat());
         assert_eq!(result.status.code(), Some(1), "{args:?}");

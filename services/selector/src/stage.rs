@@ -11,7 +11,7 @@ use poseflow_contracts::{
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
 
-use crate::track::{Evidence, TrackMonitor, inlier_share};
+use crate::track::{Evidence, TrackMonitor, facing_share, inlier_share};
 use crate::{Method, ObjectLibrary, Selection, SelectorError, SelectorParams, select};
 
 /// One Observation's points (camera frame, metres), kept until its
@@ -113,15 +113,18 @@ impl SelectorStage {
             spread_deg: selection.statistics.rotation_covariance().trace().max(0.0).sqrt().to_degrees(),
             pose: selection.best,
         };
+        let facing = model
+            .map(|model| facing_share(&selection.best, points, inlier_distance, |y| model.grid().value_and_gradient(y)))
+            .map_or(f64::NAN, |s| (s * 1e3).round() / 1e3);
         let verdict = monitor.check(object, &evidence);
         let failures = verdict.failures.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ");
         let share = evidence.inlier_share.map_or(f64::NAN, |s| (s * 1e3).round() / 1e3);
         let jump_deg = verdict.jump.map_or(f64::NAN, |(degrees, _)| (degrees * 10.0).round() / 10.0);
         if verdict.before == verdict.after {
-            tracing::debug!(state = ?verdict.after, points = evidence.observed_points, inlier_share = share,
+            tracing::debug!(frame, object, state = ?verdict.after, points = evidence.observed_points, inlier_share = share, facing,
                 spread_deg = evidence.spread_deg, jump_deg, failures, "track check");
         } else {
-            tracing::info!(from = ?verdict.before, to = ?verdict.after, points = evidence.observed_points,
+            tracing::info!(frame, object, from = ?verdict.before, to = ?verdict.after, points = evidence.observed_points, facing,
                 inlier_share = share, spread_deg = evidence.spread_deg, jump_deg, failures, "track state changed");
         }
         Ok((selection, verdict.flags()))

@@ -349,6 +349,28 @@ pub fn inlier_share(pose: &Pose, points: &[Point3<f64>], distance: f64, residual
     inliers as f64 / points.len() as f64
 }
 
+/// Share of the inliers (points within `distance` of the surface at
+/// `pose`) whose surface there faces the camera (at the origin), by the
+/// gradient of `signed` at model-frame points. Recorded, not yet judged:
+/// a pose that fits the points onto the object's far side would show here.
+pub fn facing_share(
+    pose: &Pose,
+    points: &[Point3<f64>],
+    distance: f64,
+    signed: impl Fn(&Point3<f64>) -> (f64, nalgebra::Vector3<f64>),
+) -> f64 {
+    let inverse = pose.inverse();
+    let (mut inliers, mut facing) = (0usize, 0usize);
+    for x in points {
+        let (value, gradient) = signed(&inverse.transform_point(x));
+        if value.abs() <= distance {
+            inliers += 1;
+            facing += usize::from((pose.rotation * gradient).dot(&-x.coords) > 0.0);
+        }
+    }
+    if inliers == 0 { 0.0 } else { facing as f64 / inliers as f64 }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -458,6 +480,19 @@ mod tests {
             [1.0, 1.0, 1.0, 1.5].iter().map(|r| pose.transform_point(&Point3::new(*r, 0.0, 0.0))).collect();
         assert_eq!(inlier_share(&pose, &points, 0.01, sphere), 0.75);
         assert_eq!(inlier_share(&pose, &[], 0.01, sphere), 0.0);
+    }
+
+    #[test]
+    fn facing_share_tells_the_near_side_from_the_far_side() {
+        // A unit sphere 3 m in front of the camera: its near cap faces the
+        // camera, its far cap faces away.
+        let sphere = |y: &Point3<f64>| (y.coords.norm() - 1.0, y.coords.normalize());
+        let pose = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, 3.0));
+        let near = [Point3::new(0.0, 0.0, 2.0), Point3::new(0.1, 0.0, 2.005)];
+        let far = [Point3::new(0.0, 0.0, 4.0)];
+        assert_eq!(facing_share(&pose, &near, 0.01, sphere), 1.0);
+        assert_eq!(facing_share(&pose, &far, 0.01, sphere), 0.0);
+        assert_eq!(facing_share(&pose, &[near[0], far[0]], 0.01, sphere), 0.5);
     }
 
     #[test]

@@ -195,6 +195,10 @@ impl SceneDir {
     pub fn scene_gt_info(&self) -> PathBuf {
         self.path.join("scene_gt_info.json")
     }
+    /// A rendered video's events ([`crate::video::EventRecord`]); not BOP.
+    pub fn video_events(&self) -> PathBuf {
+        self.path.join("video_events.json")
+    }
     pub fn rgb(&self, im_id: u32) -> PathBuf {
         self.path.join(format!("rgb/{im_id:06}.png"))
     }

@@ -12,6 +12,7 @@ use crate::Light;
 #[cfg(doc)]
 use crate::scene::Scene;
 use crate::scene::{ViewRange, look_at, random_light};
+use crate::video::VideoEvents;
 
 /// Relative swing of the orbit's distance about its mean.
 const DISTANCE_SWING: f64 = 0.15;
@@ -34,8 +35,9 @@ pub enum CameraPath {
     Random,
     /// A video: the camera circles the scene centre, `step_deg` degrees of
     /// azimuth per image, while its elevation, distance and roll drift
-    /// smoothly; one light for the whole scene.
-    Orbit { step_deg: f64 },
+    /// smoothly; one light for the whole scene; `events` happen on the way
+    /// ([`crate::video`]).
+    Orbit { step_deg: f64, events: VideoEvents },
 }
 
 /// One scene's orbit, drawn once per scene.

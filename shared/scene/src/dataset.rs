@@ -31,6 +31,7 @@ use crate::camera_path::{CameraPath, Orbit};
 use crate::part::ViewCondition;
 use crate::scene::{Occlusion, Scene, SceneStyle, View, ViewRange, compose_styled_scene, random_light, render_view};
 use crate::sensor::SensorModel;
+use crate::video::{self, VideoEvents};
 use crate::{Camera, DepthNoise, ModelLibrary, SceneError, model_file_name};
 
 /// Depth PNG unit: 0.1 mm, so 16 bits reach 6.5 m.
@@ -249,11 +250,18 @@ pub fn frame(
                 }
             }
         }
-        CameraPath::Orbit { step_deg } => {
+        CameraPath::Orbit { step_deg, events } => {
             // Stream 0 of the scene: the same orbit for all of its images.
             let orbit = Orbit::draw(&spec.views, &mut seeded_rng(stream_seed(&[spec.seed, scene_id.into(), 0])));
             let camera_from_world = orbit.camera_from_world(&scene.centre, step_deg * f64::from(im_id));
-            (camera_from_world, render_view(library, scene, &spec.camera, &camera_from_world, &orbit.light))
+            let view = if events.is_empty() {
+                render_view(library, scene, &spec.camera, &camera_from_world, &orbit.light)
+            } else {
+                let schedule = video_schedule(spec, scene, scene_id, &events);
+                let shown = video::scene_at(scene, library, &schedule, im_id, &camera_from_world);
+                render_view(library, &shown, &spec.camera, &camera_from_world, &orbit.light)
+            };
+            (camera_from_world, view)
         }
     };
     let depth = match (&spec.sensor, &spec.depth_noise) {
@@ -267,6 +275,13 @@ pub fn frame(
         add_rgb_noise(&mut view.frame.rgb, spec.rgb_noise, &mut rng);
     }
     Ok(RenderedFrame { camera_from_world, view, depth })
+}
+
+/// The video events of scene `scene_id` (stream 2 of the scene: the same
+/// schedule for every image).
+pub fn video_schedule(spec: &RenderSpec, scene: &Scene, scene_id: u32, events: &VideoEvents) -> Vec<video::Event> {
+    let mut rng = seeded_rng(stream_seed(&[spec.seed, scene_id.into(), 2]));
+    video::schedule(events, scene.objects.len(), spec.frames_per_scene, &mut rng)
 }
 
 /// Renders `spec` with every object of `library` in every scene, writing
@@ -319,7 +334,11 @@ pub fn write_dataset(
             occlusion: format!("{:?}", spec.occlusion).to_lowercase(),
             camera_path: match spec.path {
                 CameraPath::Random => "random".into(),
-                CameraPath::Orbit { step_deg } => format!("orbit {step_deg}°/image"),
+                CameraPath::Orbit { step_deg, events } if events.is_empty() => format!("orbit {step_deg}°/image"),
+                CameraPath::Orbit { step_deg, events } => format!(
+                    "orbit {step_deg}°/image, {} occlusion(s) and {} teleport(s) per scene wanted",
+                    events.occlusions, events.teleports
+                ),
             },
             objects: library.objects.iter().map(|o| o.obj_id).collect(),
             depth_noise: spec.depth_noise.is_some(),
@@ -398,6 +417,13 @@ fn write_scene(
         infos.insert(im_id, info);
         *done += 1;
         on_frame(&FrameDone { scene_id, im_id, done: *done, total, render: render_time, write: started.elapsed() });
+    }
+    if let CameraPath::Orbit { events, .. } = spec.path
+        && !events.is_empty()
+    {
+        let schedule = video_schedule(spec, scene, scene_id, &events);
+        let records: Vec<video::EventRecord> = schedule.iter().map(|e| video::EventRecord::new(e, scene)).collect();
+        write_json(&dir.video_events(), &records)?;
     }
     write_by_image(&dir.scene_camera(), &cameras)?;
     write_by_image(&dir.scene_gt(), &gts)?;

@@ -23,6 +23,7 @@ mod render;
 pub mod scene;
 pub mod sensor;
 pub mod symmetry;
+pub mod video;
 
 pub use error::SceneError;
 pub use library::{LibraryObject, ModelLibrary, load_bop_model, model_file_name};

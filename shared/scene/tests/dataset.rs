@@ -352,3 +352,52 @@ fn styled_scenes_add_distractors_and_patterns_around_the_same_targets() {
     let same = ModelLibrary::load(&ycbv, &[]).unwrap().with_distractors(&ycbv).unwrap_err().to_string();
     assert!(same.contains("no object is left"), "{same}");
 }
+
+/// A video with events: each occlusion hides its object wholly for some of
+/// its images (the box covers the bounding sphere), each teleport turns
+/// its object by 90-180° between two images while the camera moves 1°;
+/// `video_events.json` lists them by object id.
+#[test]
+fn video_events_hide_and_move_their_objects() {
+    use poseflow_scene::video::{EventRecord, VideoEvents};
+    let library = ModelLibrary::load(&objects_dir(), &[]).unwrap();
+    let out = scratch("video-events");
+    let events = VideoEvents { occlusions: 2, teleports: 2 };
+    let spec = RenderSpec {
+        scenes: 1,
+        frames_per_scene: 150,
+        camera: lmo_camera(160, 120),
+        path: CameraPath::Orbit { step_deg: 1.0, events },
+        ..clean_spec()
+    };
+    write_dataset(&library, &spec, &out, |_| {}).unwrap();
+    let dir = SceneDir::new(&out.join("test"), 3);
+    let records: Vec<EventRecord> = bop::read_json(&dir.video_events()).unwrap();
+    let gt: ByImage<Vec<GtEntry>> = bop::read_json(&dir.scene_gt()).unwrap();
+    let info: ByImage<Vec<GtInfoEntry>> = bop::read_json(&dir.scene_gt_info()).unwrap();
+    let index = |obj_id: u32| gt[&0].iter().position(|e| e.obj_id == obj_id).unwrap();
+    let rotation = |im: u32, obj_id: u32| {
+        let entries = &gt[&im];
+        entries[index(obj_id)].pose(&dir.scene_gt(), im, index(obj_id)).unwrap().rotation
+    };
+    let (mut occlusions, mut teleports) = (0, 0);
+    for record in &records {
+        match *record {
+            EventRecord::Occlusion { obj_id, start, end, hidden } => {
+                occlusions += 1;
+                let shares: Vec<f64> = (start..end).map(|im| info[&im][index(obj_id)].visib_fract).collect();
+                let gone = shares.iter().filter(|&&share| share == 0.0).count() as u32;
+                assert!(gone >= hidden.div_ceil(2), "hidden {hidden}, wholly hidden in {gone}: {shares:?}");
+                assert!(shares[0] > 0.0 && shares[shares.len() - 1] > 0.0, "{shares:?}");
+            }
+            EventRecord::Teleport { obj_id, at, turn_deg, .. } => {
+                teleports += 1;
+                let jump = rotation(at - 1, obj_id).angle_to(&rotation(at, obj_id)).to_degrees();
+                let before = rotation(at - 2, obj_id).angle_to(&rotation(at - 1, obj_id)).to_degrees();
+                assert!((jump - turn_deg.abs()).abs() < 5.0 && before < 5.0, "{turn_deg}: {jump} after {before}");
+            }
+        }
+    }
+    assert!(occlusions >= 1 && teleports >= 1, "{records:?}");
+    let _ = std::fs::remove_dir_all(&out);
+}

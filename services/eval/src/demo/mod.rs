@@ -19,6 +19,7 @@ use poseflow_scene::bop::{CameraEntry, GtEntry, SceneDir, read_json, read_rgb_pn
 use poseflow_scene::camera_path::CameraPath;
 use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset};
 use poseflow_scene::scene::{Occlusion, ViewRange};
+use poseflow_scene::video::VideoEvents;
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
 
@@ -98,6 +99,12 @@ pub struct DemoArgs {
     /// With --track: degrees of camera azimuth per image.
     #[arg(long, default_value_t = 1.0)]
     pub orbit_step_deg: f64,
+    /// With --track: occlusion events in the video (an object fully hidden for 5-20 images by a sliding box).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub occlusions: u32,
+    /// With --track: teleports in the video (an object turned 90-180° and shifted up to 5 cm between two images).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub teleports: u32,
     /// With --track: frames per second the frame source plays the video at (a camera's pace; a faster pace than
     /// the graph keeps up with shows as growing latency).
     #[arg(long, default_value_t = 5.0)]
@@ -333,6 +340,12 @@ fn check(args: &DemoArgs) -> anyhow::Result<()> {
         if !(args.rate_hz.is_finite() && args.rate_hz > 0.0) {
             bail!("--rate-hz {}: expected frames per second > 0", args.rate_hz);
         }
+    } else if args.occlusions > 0 || args.teleports > 0 {
+        bail!(
+            "--occlusions {} --teleports {}: events happen in the video; add --track",
+            args.occlusions,
+            args.teleports
+        );
     }
     Ok(())
 }
@@ -343,7 +356,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         .with_context(|| format!("--objects {}: cannot load the object models", args.objects.display()))?;
     if args.track {
         let graph = args.graph.clone().unwrap_or_else(|| PathBuf::from("deploy/tracking.toml"));
-        let path = CameraPath::Orbit { step_deg: args.orbit_step_deg };
+        let events = VideoEvents { occlusions: args.occlusions, teleports: args.teleports };
+        let path = CameraPath::Orbit { step_deg: args.orbit_step_deg, events };
         let recording = render_and_run(args, &library, (args.frames, path), &graph, "estimates")?;
         return tracking::report(args, &library, &recording);
     }

@@ -11,8 +11,12 @@ use poseflow_geometry::Pose;
 use poseflow_scene::ModelLibrary;
 use serde::Serialize;
 
+use poseflow_scene::bop::{GtEntry, GtInfoEntry, SceneDir, read_json};
+use poseflow_scene::video::EventRecord;
+
 use super::pictures::{ErrorSeries, error_plot};
 use super::{DemoArgs, ground_truth, print_report, read_recording, symmetries};
+use crate::recovery::{EventOutcome, PROMPT_IMAGES, REAPPEARED_VISIBLE, outcomes};
 use poseflow_runtime::timing::Timing;
 
 /// Accuracy thresholds of the report: (degrees, metres).
@@ -55,6 +59,12 @@ struct TrackingReport {
     acc_5deg_5cm: f64,
     acc_10deg_5cm: f64,
     objects: Vec<TrackedObject>,
+    /// The video's occlusions and teleports (`--occlusions`, `--teleports`)
+    /// and how soon each object was back within 10°5cm.
+    events: Vec<EventOutcome>,
+    /// Percent of the events after which the estimate was back within
+    /// 10°5cm at most 2 images after the object reappeared or moved.
+    events_prompt_pct: f64,
     plot: PathBuf,
 }
 
@@ -141,6 +151,11 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
             latency: Timing::of(latencies.remove(obj_id).unwrap_or_default()),
         });
     }
+    let within_loose: BTreeMap<(u32, u32), bool> = by_object
+        .iter()
+        .flat_map(|(obj_id, errors)| errors.iter().map(move |e| ((e.0, *obj_id), within(LOOSE, (e.1, e.2)))))
+        .collect();
+    let events = event_outcomes(&args.out.join("scene"), &within_loose, args.frames)?;
     let plot = args.out.join("tracking.png");
     let series: Vec<ErrorSeries> = by_object
         .iter()
@@ -159,9 +174,34 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         acc_5deg_5cm: percent(tight_all, frames_all),
         acc_10deg_5cm: percent(loose_all, frames_all),
         objects,
+        events_prompt_pct: percent(events.iter().filter(|e| e.prompt()).count(), events.len()),
+        events,
         plot,
     };
     print_report(&report, args.json, print_table)
+}
+
+/// The outcomes of the rendered video's events, if it has any.
+fn event_outcomes(
+    dataset: &Path,
+    within: &BTreeMap<(u32, u32), bool>,
+    frames: u32,
+) -> anyhow::Result<Vec<EventOutcome>> {
+    let scene = SceneDir::new(&dataset.join("test"), 0);
+    if !scene.video_events().is_file() {
+        return Ok(Vec::new());
+    }
+    let events: Vec<EventRecord> = read_json(&scene.video_events())?;
+    let gt: BTreeMap<u32, Vec<GtEntry>> = read_json(&scene.scene_gt())?;
+    let info: BTreeMap<u32, Vec<GtInfoEntry>> = read_json(&scene.scene_gt_info())?;
+    let visible = gt
+        .iter()
+        .flat_map(|(im_id, entries)| {
+            let shares = info.get(im_id).map_or(&[][..], Vec::as_slice);
+            entries.iter().zip(shares).map(move |(entry, share)| ((*im_id, entry.obj_id), share.visib_fract))
+        })
+        .collect();
+    Ok(outcomes(&events, &visible, within, frames))
 }
 
 fn print_table(report: &TrackingReport) {
@@ -190,6 +230,25 @@ fn print_table(report: &TrackingReport) {
             o.latency.p50_ms,
             o.latency.p99_ms
         );
+    }
+    if !report.events.is_empty() {
+        println!(
+            "events: {} of {} back within 10°5cm at most {PROMPT_IMAGES} images after the object reappeared (≥ {:.0} % visible) or moved ({:.1} %)",
+            report.events.iter().filter(|e| e.prompt()).count(),
+            report.events.len(),
+            REAPPEARED_VISIBLE * 100.0,
+            report.events_prompt_pct
+        );
+        for e in &report.events {
+            let image = |v: Option<u32>| v.map_or("-".to_string(), |v| v.to_string());
+            println!(
+                "  {:<9} object {:>2}: from image {:>4}, back after {} images",
+                e.kind,
+                e.obj_id,
+                image(e.reappeared),
+                image(e.recovered_after)
+            );
+        }
     }
     println!(
         "plot: {} (rotation error per image, one colour per object; grey lines at 5° and 10°; crosses: LOST)",
