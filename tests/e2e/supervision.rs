@@ -121,6 +121,21 @@ fn a_hung_stage_is_killed_at_its_heartbeat_deadline_and_restarted() {
     assert_nothing_leaked(&before);
 }
 
+/// Sends SIGSTOP to `pid`, the process of `stage`, and waits for another
+/// process of that stage; how long that took.
+fn stop_and_time_replacement(instance: &str, stage: &str, pid: u32) -> Duration {
+    let stopped = Instant::now();
+    // SAFETY: signalling a process this test started (through poseflow).
+    assert_eq!(unsafe { libc::kill(pid as i32, libc::SIGSTOP) }, 0);
+    loop {
+        match find_stage_pid(instance, stage) {
+            Some(new) if new != pid => return stopped.elapsed(),
+            _ if stopped.elapsed() > Duration::from_secs(30) => panic!("the stopped {stage} was not replaced"),
+            _ => std::thread::sleep(Duration::from_millis(10)),
+        }
+    }
+}
+
 /// A stopped process (SIGSTOP: its heartbeat thread stops with it) is told
 /// from one busy in a long message by its heartbeats' silence, and replaced
 /// after a few heartbeat periods, not at the busy deadline (20 s here, as in
@@ -136,16 +151,7 @@ fn a_stopped_stage_is_replaced_within_a_few_heartbeats() {
     let instance = format!("sigstop-{}", std::process::id());
     let (run, relay) = start_and_wait_for(&graph, &instance, "relay");
     std::thread::sleep(Duration::from_millis(800));
-    let stopped = Instant::now();
-    // SAFETY: signalling a process this test started (through poseflow).
-    assert_eq!(unsafe { libc::kill(relay as i32, libc::SIGSTOP) }, 0);
-    let replaced = loop {
-        match find_stage_pid(&instance, "relay") {
-            Some(pid) if pid != relay => break stopped.elapsed(),
-            _ if stopped.elapsed() > Duration::from_secs(15) => panic!("the stopped relay was not replaced"),
-            _ => std::thread::sleep(Duration::from_millis(10)),
-        }
-    };
+    let replaced = stop_and_time_replacement(&instance, "relay", relay);
     let output = run.wait_with_output().unwrap();
     let (summary, stderr) = (summary(&output), String::from_utf8_lossy(&output.stderr));
     assert!(output.status.success(), "{summary}\n{stderr}");
@@ -389,16 +395,7 @@ fn a_stopped_sampler_of_the_tracking_graph_is_replaced_and_every_object_tracked_
     };
     // A few images into the video (5 Hz): every object is being tracked.
     std::thread::sleep(Duration::from_secs(3));
-    let stopped = Instant::now();
-    // SAFETY: signalling a process this test started (through poseflow).
-    assert_eq!(unsafe { libc::kill(sampler as i32, libc::SIGSTOP) }, 0);
-    let replaced = loop {
-        match find_stage_pid(&instance, "sampler") {
-            Some(pid) if pid != sampler => break stopped.elapsed(),
-            _ if stopped.elapsed() > Duration::from_secs(30) => panic!("the stopped sampler was not replaced"),
-            _ => std::thread::sleep(Duration::from_millis(10)),
-        }
-    };
+    let replaced = stop_and_time_replacement(&instance, "sampler", sampler);
     let output = demo.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{stderr}");
@@ -410,9 +407,10 @@ fn a_stopped_sampler_of_the_tracking_graph_is_replaced_and_every_object_tracked_
     let objects = report["objects"].as_array().unwrap();
     assert_eq!(objects.len(), 3, "{report}");
     for o in objects {
-        // At most the image in the frozen sampler's hands is lost; the
-        // queues before it block, so the frames wait rather than drop.
-        assert!(o["estimated"].as_u64().unwrap() >= frames - 2, "{o}");
+        // What dies with the frozen sampler is lost (counted as gaps
+        // downstream): the image in its hands and the two its input queue
+        // held. The queues before them block, so later frames wait.
+        assert!(o["estimated"].as_u64().unwrap() >= frames - 3, "{o}");
         assert!(o["acc_10deg_5cm"].as_f64().unwrap() >= 80.0, "{o}");
     }
 }
