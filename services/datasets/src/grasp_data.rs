@@ -8,7 +8,8 @@ use anyhow::{Context, bail};
 use clap::Args;
 use poseflow_geometry::sampling::seeded_rng;
 use poseflow_grasp::data::GraspSet;
-use poseflow_grasp::{Gripper, sample_grasps, surface_points};
+use poseflow_grasp::{Gripper, sample_grasps};
+use poseflow_scene::surface_points;
 use poseflow_scene::{ModelLibrary, oriented_trimesh};
 
 #[derive(Debug, Args)]

@@ -28,7 +28,7 @@ pub use gripper::{Gripper, GripperError};
 pub use marginal::{GraspField, MeanFieldError, MeanFieldParams, marginal_grasps};
 pub use params::GraspParams;
 pub use planner::{GraspObject, GraspObjects, GraspPlanner, OnnxGraspField, PlannedGrasp, isometry, judge};
-pub use sample::{ObjectGrasp, SampledGrasps, sample_grasps, surface_points};
+pub use sample::{ObjectGrasp, SampledGrasps, sample_grasps};
 
 /// The stage of this crate: `grasp` (Estimate in, Grasps out).
 pub fn registrations() -> Vec<poseflow_runtime::Registration> {

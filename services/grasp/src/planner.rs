@@ -10,11 +10,9 @@ use parry3d::shape::TriMesh;
 use poseflow_geometry::Pose;
 use poseflow_geometry::sampling::{TranslationNoise, farthest_point_indices, sample_seed, seeded_rng};
 use poseflow_inference::GraspFlowModel;
-use poseflow_scene::{ModelLibrary, SceneError, oriented_trimesh};
+use poseflow_scene::{ModelLibrary, SceneError, oriented_trimesh, surface_points};
 
-use crate::{
-    GraspError, GraspField, GraspParams, Gripper, MeanFieldParams, check_grasp, marginal_grasps, surface_points,
-};
+use crate::{GraspError, GraspField, GraspParams, Gripper, MeanFieldParams, check_grasp, marginal_grasps};
 
 /// One object: its mesh (object frame, outward faces) and the cloud the
 /// grasp flow sees (farthest-point ordered surface points).

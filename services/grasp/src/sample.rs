@@ -4,6 +4,7 @@
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use parry3d::query::{Ray, RayCast};
 use parry3d::shape::TriMesh;
+use poseflow_scene::surface_points;
 use rand::Rng;
 
 use crate::check::{GraspOutcome, check_grasp};
@@ -15,32 +16,6 @@ use crate::gripper::Gripper;
 pub struct ObjectGrasp {
     pub object_from_grasp: Isometry3<f32>,
     pub width: f32,
-}
-
-/// `count` points on the surface, uniform by area, each with the outward
-/// normal of its triangle (object frame).
-pub fn surface_points<R: Rng + ?Sized>(mesh: &TriMesh, count: usize, rng: &mut R) -> Vec<(Point3<f32>, Vector3<f32>)> {
-    let triangles: Vec<_> = (0..mesh.indices().len() as u32).map(|i| mesh.triangle(i)).collect();
-    let mut cumulative = Vec::with_capacity(triangles.len());
-    let mut total = 0.0f64;
-    for t in &triangles {
-        total += f64::from((t.b - t.a).cross(&(t.c - t.a)).norm() / 2.0);
-        cumulative.push(total);
-    }
-    (0..count)
-        .map(|_| {
-            let pick = rng.random::<f64>() * total;
-            let index = cumulative.partition_point(|&c| c < pick).min(triangles.len() - 1);
-            let t = &triangles[index];
-            // Uniform on the triangle: fold the unit square onto it.
-            let (mut u, mut v) = (rng.random::<f32>(), rng.random::<f32>());
-            if u + v > 1.0 {
-                (u, v) = (1.0 - u, 1.0 - v);
-            }
-            let point = t.a + (t.b - t.a) * u + (t.c - t.a) * v;
-            (point, t.normal().map_or_else(Vector3::z, |n| n.into_inner()))
-        })
-        .collect()
 }
 
 /// A unit vector within `half_angle` of `axis`, uniform on that cap.

@@ -23,6 +23,7 @@ pub mod sdf;
 mod select;
 pub mod stage;
 pub mod track;
+pub mod visibility;
 
 pub use error::SelectorError;
 pub use object_models::{ObjectGeometry, ObjectLibrary};

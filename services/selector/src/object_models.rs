@@ -10,10 +10,15 @@ use std::time::Instant;
 use nalgebra::Point3;
 use parry3d::shape::{TriMesh, TriMeshBuilderError};
 use poseflow_geometry::models_info::ModelsInfo;
-use poseflow_scene::{SceneError, load_bop_model, model_file_name, oriented_trimesh};
+use poseflow_geometry::sampling::seeded_rng;
+use poseflow_scene::{SceneError, load_bop_model, model_file_name, oriented_trimesh, surface_points};
 
 use crate::SelectorError;
 use crate::sdf::SignedDistanceGrid;
+
+/// Surface points per object for the silhouette check: a few per cell of
+/// its grid even where the object is thin.
+const SURFACE_POINTS: usize = 2000;
 
 /// One object model, model frame, metres.
 #[derive(Debug)]
@@ -22,6 +27,7 @@ pub struct ObjectGeometry {
     pub mesh: TriMesh,
     resolution: usize,
     grid: OnceLock<SignedDistanceGrid>,
+    surface: OnceLock<Vec<Point3<f64>>>,
 }
 
 impl ObjectGeometry {
@@ -34,7 +40,23 @@ impl ObjectGeometry {
         resolution: usize,
     ) -> Result<Self, TriMeshBuilderError> {
         let mesh = oriented_trimesh(vertices, triangles)?;
-        Ok(Self { obj_id, mesh, resolution, grid: OnceLock::new() })
+        Ok(Self { obj_id, mesh, resolution, grid: OnceLock::new(), surface: OnceLock::new() })
+    }
+
+    /// Points spread over the whole surface (model frame), uniform by area
+    /// and the same on every run: what the silhouette check projects.
+    pub fn surface(&self) -> &[Point3<f64>] {
+        self.surface.get_or_init(|| {
+            surface_points(&self.mesh, SURFACE_POINTS, &mut seeded_rng(u64::from(self.obj_id)))
+                .into_iter()
+                .map(|(p, _)| p.cast::<f64>())
+                .collect()
+        })
+    }
+
+    /// The largest side of the model's bounding box, metres.
+    pub fn extent(&self) -> f64 {
+        f64::from(self.mesh.local_aabb().extents().max())
     }
 
     /// The signed distance grid, computed on first use (about a second for

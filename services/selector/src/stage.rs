@@ -11,8 +11,9 @@ use poseflow_contracts::{
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
 
-use crate::track::{Evidence, TrackMonitor, facing_share, inlier_share};
-use crate::{Method, ObjectLibrary, Selection, SelectorError, SelectorParams, select};
+use crate::track::{Evidence, TrackMonitor, Verdict};
+use crate::visibility::{FitSettings, Pinhole, point_fit, silhouette};
+use crate::{Method, ObjectGeometry, ObjectLibrary, Selection, SelectorError, SelectorParams, select};
 
 /// One Observation's points (camera frame, metres), kept until its
 /// Hypotheses come.
@@ -22,7 +23,17 @@ struct Observed {
     object_id: u32,
     /// Valid depth points the Observation had (before subsampling).
     valid_points: usize,
+    /// The Observation's valid points, farthest-point ordered (so that a
+    /// prefix is an even subsample).
     points: Vec<Point3<f64>>,
+    camera: Pinhole,
+}
+
+impl Observed {
+    /// The points the scores use: the first `count`.
+    fn scored(&self, count: usize) -> &[Point3<f64>] {
+        &self.points[..count.min(self.points.len())]
+    }
 }
 
 #[derive(Debug)]
@@ -55,8 +66,7 @@ impl SelectorStage {
         &self.params
     }
 
-    /// Keeps the first `score_points` points of an Observation (a prefix of
-    /// the farthest-point order: an even subsample) in the camera frame.
+    /// Keeps an Observation's valid points in the camera frame.
     pub fn keep_observation(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<(), SelectorError> {
         let view = header.view(payload).map_err(|e| SelectorError::Frame {
             frame: header.header.frame_id,
@@ -69,7 +79,7 @@ impl SelectorStage {
         let points = view
             .points
             .chunks_exact(3)
-            .take(valid.min(self.params.score_points))
+            .take(valid)
             .map(|p| Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) * scale + centroid)
             .collect();
         if self.observations.len() == self.params.observations {
@@ -85,6 +95,12 @@ impl SelectorStage {
             object_id: header.header.object_id,
             valid_points: header.valid_point_count as usize,
             points,
+            camera: Pinhole {
+                fx: f64::from(header.intrinsics.fx),
+                fy: f64::from(header.intrinsics.fy),
+                cx: f64::from(header.intrinsics.cx),
+                cy: f64::from(header.intrinsics.cy),
+            },
         });
         Ok(())
     }
@@ -102,31 +118,28 @@ impl SelectorStage {
             monitor.reset();
         }
         let (frame, object) = (header.header.frame_id, header.header.object_id);
-        let points = observed.as_ref().map_or(&[][..], |o| o.points.as_slice());
+        let points = observed.as_ref().map_or(&[][..], |o| o.scored(self.params.score_points));
         let model = self.library.as_ref().and_then(|library| library.get(object));
-        let inlier_distance = monitor.params().inlier_distance;
+        let settings = FitSettings {
+            inlier_distance: monitor.params().inlier_distance,
+            hidden_depth: HIDDEN_DEPTH,
+            reach: model.map_or(0.0, ObjectGeometry::extent),
+        };
         let evidence = Evidence {
             frame_id: frame,
             observed_points: observed.as_ref().map_or(0, |o| o.valid_points),
-            inlier_share: model
-                .map(|model| inlier_share(&selection.best, points, inlier_distance, |y| model.grid().value(y))),
+            fit: model.and_then(|model| point_fit(&selection.best, points, &settings, |y| model.grid().value(y))),
+            silhouette: match (model, &observed) {
+                (Some(model), Some(o)) => {
+                    silhouette(&selection.best, model.surface(), &o.points, &o.camera, SILHOUETTE_CELLS)
+                }
+                _ => None,
+            },
             spread_deg: selection.statistics.rotation_covariance().trace().max(0.0).sqrt().to_degrees(),
             pose: selection.best,
         };
-        let facing = model
-            .map(|model| facing_share(&selection.best, points, inlier_distance, |y| model.grid().value_and_gradient(y)))
-            .map_or(f64::NAN, |s| (s * 1e3).round() / 1e3);
         let verdict = monitor.check(object, &evidence);
-        let failures = verdict.failures.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ");
-        let share = evidence.inlier_share.map_or(f64::NAN, |s| (s * 1e3).round() / 1e3);
-        let jump_deg = verdict.jump.map_or(f64::NAN, |(degrees, _)| (degrees * 10.0).round() / 10.0);
-        if verdict.before == verdict.after {
-            tracing::debug!(frame, object, state = ?verdict.after, points = evidence.observed_points, inlier_share = share, facing,
-                spread_deg = evidence.spread_deg, jump_deg, failures, "track check");
-        } else {
-            tracing::info!(frame, object, from = ?verdict.before, to = ?verdict.after, points = evidence.observed_points, facing,
-                inlier_share = share, spread_deg = evidence.spread_deg, jump_deg, failures, "track state changed");
-        }
+        log_verdict(frame, object, &evidence, &verdict);
         Ok((selection, verdict.flags()))
     }
 
@@ -161,9 +174,45 @@ impl SelectorStage {
             })?),
             None => None,
         };
-        let selection = select(&hypotheses, observed.as_ref().map(|o| o.points.as_slice()), model, &self.params)
-            .map_err(|e| in_frame(e.to_string()))?;
+        let selection =
+            select(&hypotheses, observed.as_ref().map(|o| o.scored(self.params.score_points)), model, &self.params)
+                .map_err(|e| in_frame(e.to_string()))?;
         Ok((selection, observed))
+    }
+}
+
+/// A line of sight passing this deep inside the object hides its point
+/// (metres): a few grid cells of the signed distance, past its
+/// interpolation error at thin parts.
+const HIDDEN_DEPTH: f64 = 0.004;
+
+/// Cells across the silhouette's larger side: with 1,024 points spread
+/// over a fully visible mask, several points per cell.
+const SILHOUETTE_CELLS: usize = 16;
+
+/// Logs a track check: `info` when the state changes, `debug` otherwise,
+/// with the evidence (rounded) and the failures.
+fn log_verdict(frame: u64, object: u32, evidence: &Evidence, verdict: &Verdict) {
+    let changed = verdict.before != verdict.after;
+    if !changed && !tracing::enabled!(tracing::Level::DEBUG) {
+        return;
+    }
+    let round = |v: f64| (v * 1e3).round() / 1e3;
+    let fit = evidence.fit;
+    let inlier_share = fit.map_or(f64::NAN, |f| round(f.inlier_share));
+    let rms_mm = fit.map_or(f64::NAN, |f| round(f.rms_residual * 1e3));
+    let hidden = fit.map_or(f64::NAN, |f| round(f.hidden_share));
+    let covered = evidence.silhouette.map_or(f64::NAN, |s| round(s.covered));
+    let spread_deg = round(evidence.spread_deg);
+    let jump_deg = verdict.jump.map_or(f64::NAN, |(degrees, _)| (degrees * 10.0).round() / 10.0);
+    let failures = verdict.failures.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ");
+    let points = evidence.observed_points;
+    if changed {
+        tracing::info!(frame, object, from = ?verdict.before, to = ?verdict.after, points, inlier_share, rms_mm, hidden,
+            covered, spread_deg, jump_deg, failures, "track state changed");
+    } else {
+        tracing::debug!(frame, object, state = ?verdict.after, points, inlier_share, rms_mm, hidden, covered,
+            spread_deg, jump_deg, failures, "track check");
     }
 }
 

@@ -4,33 +4,57 @@
 //!
 //! Evidence per estimate (all from what the selector already has):
 //! - the valid depth points the Observation had;
-//! - the share of scored points within `inlier_distance` of the object's
-//!   surface at the selected pose (needs the object model);
+//! - how the scored points sit on the surface at the selected pose (needs
+//!   the object model, [`PointFit`]): the share within `inlier_distance`,
+//!   the RMS of their distances, and the share the object would hide from
+//!   the camera at that pose;
+//! - how the pose's silhouette agrees with the observed points' pixels
+//!   ([`Silhouette`]);
 //! - the rotational spread of the kept hypotheses, √trace of their
 //!   rotational covariance;
 //! - the jump of the selected pose from where the motion so far predicts
 //!   it (constant velocity over the last two accepted estimates).
 //!
+//! A wrong pose can fit every point to within a centimetre: a turned object
+//! puts the points on another part of its surface. It shows as a larger RMS
+//! residual (absolute, and relative to the track's own), as points its own
+//! body would hide, or as a silhouette the mask does not fill.
+//!
 //! Spread and jump are only meaningful while tracking: an estimate from the
 //! prior of a symmetric object spreads over its symmetric poses, and an
-//! object being re-acquired has no motion to compare with. An estimate made
-//! while the object is unsure or lost is judged by its points and its fit.
+//! object being re-acquired has no motion to compare with. The relative
+//! residual needs a fit history, which a lost object starts afresh. An
+//! estimate made while the object is unsure or lost is judged by its
+//! points, its fit and its silhouette.
 //!
-//! | state      | passes                       | soft failure                    | hard failure |
-//! |------------|------------------------------|---------------------------------|--------------|
-//! | acquiring  | tracking                     | lost                            | lost         |
-//! | tracking   | tracking                     | unsure (1)                      | lost         |
-//! | unsure (n) | tracking                     | unsure (n+1), lost at `lost_after` | lost      |
-//! | lost       | tracking, `REINITIALISED`    | lost                            | lost         |
+//! One estimate from the prior is not yet a track: the model's prior can
+//! put a turned object on a pose that fits its points nearly as well. So a
+//! first estimate (of a run, or after a loss) is a candidate, flagged
+//! `UNSURE` so that the next frame mixes fresh prior samples with samples
+//! from it. It becomes a track when the next estimate agrees with it (no
+//! jump); a disagreeing one is the new candidate.
+//!
+//! | state        | passes                      | jump only               | other soft failure | hard failure |
+//! |--------------|-----------------------------|-------------------------|--------------------|--------------|
+//! | acquiring    | confirming                  | –                       | lost               | lost         |
+//! | confirming   | tracking (`REINITIALISED` after a loss) | confirming (new candidate) | lost | lost         |
+//! | tracking     | tracking                    | unsure (1)              | unsure (1)         | lost         |
+//! | unsure (n)   | tracking                    | unsure (n+1), lost at `lost_after` | same    | lost         |
+//!
+//! A silhouette the observed points do not cover is a weak failure: it
+//! makes a tracked object unsure (n unchanged) but never lost by itself,
+//! since an occluder hides part of a correct track for many frames. Out
+//! of tracking it counts as a soft failure.
+//! | lost         | confirming                  | –                       | lost               | lost         |
 
 use std::collections::{HashMap, VecDeque};
 
-use nalgebra::Point3;
 use poseflow_contracts::flags;
 use poseflow_geometry::{Pose, so3};
 use serde::Deserialize;
 
 use crate::SelectorError;
+use crate::visibility::{PointFit, Silhouette};
 
 /// The selector's `tracking` parameters.
 ///
@@ -41,6 +65,10 @@ use crate::SelectorError;
 /// | `inlier_distance` | a scored point within this of the surface is an inlier, metres | 0.01 |
 /// | `min_inlier_share` | a smaller share of inliers is a poor fit (soft) | 0.6 |
 /// | `lost_inlier_share` | a smaller share is a lost fit (hard) | 0.3 |
+/// | `max_residual` | a larger RMS distance of the points to the surface is a poor fit (soft), metres | 0.004 |
+/// | `residual_ratio` | an RMS residual this many times the track's usual one is a poor fit (soft) | 1.5 |
+/// | `max_hidden_share` | a larger share of the points hidden by the object's own body at the pose is a poor fit (soft) | 0.25 |
+/// | `min_covered` | a smaller share of the pose's silhouette holding observed points is unexplained (soft) | 0.5 |
 /// | `max_spread_deg` | tracking: a wider rotational spread of the kept hypotheses is unsure (soft) | 45 |
 /// | `max_jump_deg` | tracking: a larger turn away from the predicted pose is a jump (soft) | 30 |
 /// | `max_jump_m` | tracking: a larger shift away from the predicted position is a jump (soft) | 0.05 |
@@ -58,6 +86,14 @@ pub struct TrackCheckParams {
     pub min_inlier_share: f64,
     #[serde(default = "default_lost_inlier_share")]
     pub lost_inlier_share: f64,
+    #[serde(default = "default_max_residual")]
+    pub max_residual: f64,
+    #[serde(default = "default_residual_ratio")]
+    pub residual_ratio: f64,
+    #[serde(default = "default_max_hidden_share")]
+    pub max_hidden_share: f64,
+    #[serde(default = "default_min_covered")]
+    pub min_covered: f64,
     #[serde(default = "default_max_spread_deg")]
     pub max_spread_deg: f64,
     #[serde(default = "default_max_jump_deg")]
@@ -79,6 +115,18 @@ fn default_min_inlier_share() -> f64 {
 }
 fn default_lost_inlier_share() -> f64 {
     0.3
+}
+fn default_max_residual() -> f64 {
+    0.004
+}
+fn default_residual_ratio() -> f64 {
+    1.5
+}
+fn default_max_hidden_share() -> f64 {
+    0.25
+}
+fn default_min_covered() -> f64 {
+    0.5
 }
 fn default_max_spread_deg() -> f64 {
     45.0
@@ -103,7 +151,7 @@ impl TrackCheckParams {
     pub fn validate(&self) -> Result<(), SelectorError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
         let share = |x: f64| (0.0..=1.0).contains(&x);
-        let checks: [(&'static str, bool, String); 6] = [
+        let checks: [(&'static str, bool, String); 10] = [
             (
                 "tracking.inlier_distance",
                 positive(self.inlier_distance),
@@ -118,6 +166,26 @@ impl TrackCheckParams {
                     "{} / {}: expected shares in [0, 1], the lost one at most the minimum",
                     self.min_inlier_share, self.lost_inlier_share
                 ),
+            ),
+            (
+                "tracking.max_residual",
+                positive(self.max_residual),
+                format!("{}: expected metres > 0", self.max_residual),
+            ),
+            (
+                "tracking.residual_ratio",
+                self.residual_ratio.is_finite() && self.residual_ratio > 1.0,
+                format!("{}: expected a ratio > 1", self.residual_ratio),
+            ),
+            (
+                "tracking.max_hidden_share",
+                share(self.max_hidden_share),
+                format!("{}: expected a share in [0, 1]", self.max_hidden_share),
+            ),
+            (
+                "tracking.min_covered",
+                share(self.min_covered),
+                format!("{}: expected a share in [0, 1]", self.min_covered),
             ),
             (
                 "tracking.max_spread_deg",
@@ -145,9 +213,12 @@ pub struct Evidence {
     pub frame_id: u64,
     /// Valid depth points of the Observation.
     pub observed_points: usize,
-    /// Share of the scored points on the surface at `pose`; `None` without
-    /// an object model.
-    pub inlier_share: Option<f64>,
+    /// How the scored points fit the surface at `pose`; `None` without an
+    /// object model or points.
+    pub fit: Option<PointFit>,
+    /// How the silhouette at `pose` agrees with the observed points; `None`
+    /// without an object model or points.
+    pub silhouette: Option<Silhouette>,
     /// √trace of the kept hypotheses' rotational covariance, degrees.
     pub spread_deg: f64,
     /// The selected pose (camera frame).
@@ -160,6 +231,10 @@ pub enum Failure {
     TooFewPoints { points: usize },
     LostFit { inlier_share: f64 },
     PoorFit { inlier_share: f64 },
+    Residual { metres: f64 },
+    ResidualGrew { metres: f64, usual: f64 },
+    Hidden { share: f64 },
+    Uncovered { covered: f64 },
     Spread { degrees: f64 },
     Jump { degrees: f64, metres: f64 },
 }
@@ -168,6 +243,14 @@ impl Failure {
     /// A hard failure declares the object lost at once.
     pub fn is_hard(&self) -> bool {
         matches!(self, Self::TooFewPoints { .. } | Self::LostFit { .. })
+    }
+
+    /// A weak failure makes a tracked object unsure but never lost on its
+    /// own: an occluder hides part of a correctly tracked object's
+    /// silhouette for many frames, and estimating it afresh from the prior
+    /// while half hidden does worse than tracking it.
+    pub fn is_weak(&self) -> bool {
+        matches!(self, Self::Uncovered { .. })
     }
 }
 
@@ -180,6 +263,24 @@ impl std::fmt::Display for Failure {
             }
             Self::PoorFit { inlier_share } => {
                 write!(f, "{:.0} % of points on the surface (below tracking.min_inlier_share)", inlier_share * 100.0)
+            }
+            Self::Residual { metres } => {
+                write!(f, "RMS residual {:.1} mm (over tracking.max_residual)", metres * 1e3)
+            }
+            Self::ResidualGrew { metres, usual } => write!(
+                f,
+                "RMS residual {:.1} mm, {:.1}× the track's usual {:.1} mm (over tracking.residual_ratio)",
+                metres * 1e3,
+                metres / usual,
+                usual * 1e3
+            ),
+            Self::Hidden { share } => write!(
+                f,
+                "{:.0} % of the points on surface the object would hide (over tracking.max_hidden_share)",
+                share * 100.0
+            ),
+            Self::Uncovered { covered } => {
+                write!(f, "{:.0} % of the silhouette observed (below tracking.min_covered)", covered * 100.0)
             }
             Self::Spread { degrees } => write!(f, "hypotheses spread {degrees:.1}° (over tracking.max_spread_deg)"),
             Self::Jump { degrees, metres } => write!(
@@ -196,6 +297,11 @@ impl std::fmt::Display for Failure {
 pub enum TrackState {
     /// No estimate has passed yet.
     Acquiring,
+    /// One estimate passed, from the prior: a candidate awaiting the next
+    /// estimate's agreement; whether it follows a loss.
+    Confirming {
+        after_loss: bool,
+    },
     Tracking,
     /// This many consecutive soft failures.
     Unsure(u32),
@@ -219,8 +325,8 @@ impl Verdict {
     pub fn flags(&self) -> u32 {
         match (self.before, self.after) {
             (_, TrackState::Lost) => flags::LOST,
-            (_, TrackState::Unsure(_)) => flags::UNSURE,
-            (TrackState::Lost, TrackState::Tracking) => flags::REINITIALISED,
+            (_, TrackState::Unsure(_) | TrackState::Confirming { .. }) => flags::UNSURE,
+            (TrackState::Confirming { after_loss: true }, TrackState::Tracking) => flags::REINITIALISED,
             _ => 0,
         }
     }
@@ -232,6 +338,10 @@ struct Track {
     state: TrackState,
     /// The last two estimates that passed, oldest first.
     accepted: VecDeque<(u64, Pose)>,
+    /// The RMS residuals of the last estimates that passed while tracking,
+    /// with their frames. Kept through a loss: how well the object fits
+    /// is a matter of its shape and the sensor, not of the track.
+    residuals: VecDeque<(u64, f64)>,
     last_frame: u64,
 }
 
@@ -259,7 +369,12 @@ impl TrackMonitor {
 
     /// Judges one estimate of `object` and moves its track on.
     pub fn check(&mut self, object: u32, evidence: &Evidence) -> Verdict {
-        let fresh = Track { state: TrackState::Acquiring, accepted: VecDeque::new(), last_frame: evidence.frame_id };
+        let fresh = Track {
+            state: TrackState::Acquiring,
+            accepted: VecDeque::new(),
+            residuals: VecDeque::new(),
+            last_frame: evidence.frame_id,
+        };
         let track = self.tracks.entry(object).or_insert_with(|| fresh.clone());
         if evidence.frame_id < track.last_frame {
             // The source numbered from the start again: another run.
@@ -272,54 +387,110 @@ impl TrackMonitor {
         if evidence.observed_points < params.min_points {
             failures.push(Failure::TooFewPoints { points: evidence.observed_points });
         }
-        if let Some(inlier_share) = evidence.inlier_share {
+        if let Some(fit) = evidence.fit {
+            let inlier_share = fit.inlier_share;
             if inlier_share < params.lost_inlier_share {
                 failures.push(Failure::LostFit { inlier_share });
             } else if inlier_share < params.min_inlier_share {
                 failures.push(Failure::PoorFit { inlier_share });
             }
-        }
-        let mut jump = None;
-        if before == TrackState::Tracking {
-            if evidence.spread_deg > params.max_spread_deg {
-                failures.push(Failure::Spread { degrees: evidence.spread_deg });
-            }
-            if let Some(predicted) = predict(&track.accepted, evidence.frame_id) {
-                let degrees = so3::geodesic_angle(&predicted.rotation, &evidence.pose.rotation).to_degrees();
-                let metres = (predicted.translation - evidence.pose.translation).norm();
-                jump = Some((degrees, metres));
-                if degrees > params.max_jump_deg || metres > params.max_jump_m {
-                    failures.push(Failure::Jump { degrees, metres });
+            if fit.rms_residual > params.max_residual {
+                failures.push(Failure::Residual { metres: fit.rms_residual });
+            } else if let Some(usual) = usual_residual(&track.residuals, evidence.frame_id) {
+                // A floor of a tenth of a millimetre: a perfect track must
+                // not make every later frame's noise a failure.
+                if fit.rms_residual > params.residual_ratio * usual.max(1e-4) {
+                    failures.push(Failure::ResidualGrew { metres: fit.rms_residual, usual });
                 }
             }
+            if fit.hidden_share > params.max_hidden_share {
+                failures.push(Failure::Hidden { share: fit.hidden_share });
+            }
         }
+        if let Some(silhouette) = evidence.silhouette
+            && silhouette.covered < params.min_covered
+        {
+            failures.push(Failure::Uncovered { covered: silhouette.covered });
+        }
+        let mut jump = None;
+        if before == TrackState::Tracking && evidence.spread_deg > params.max_spread_deg {
+            failures.push(Failure::Spread { degrees: evidence.spread_deg });
+        }
+        if matches!(before, TrackState::Tracking | TrackState::Confirming { .. })
+            && let Some(predicted) = predict(&track.accepted, evidence.frame_id)
+        {
+            let degrees = so3::geodesic_angle(&predicted.rotation, &evidence.pose.rotation).to_degrees();
+            let metres = (predicted.translation - evidence.pose.translation).norm();
+            jump = Some((degrees, metres));
+            if degrees > params.max_jump_deg || metres > params.max_jump_m {
+                failures.push(Failure::Jump { degrees, metres });
+            }
+        }
+        let only_jumped = matches!(failures[..], [Failure::Jump { .. }]);
+        let only_weak = failures.iter().all(Failure::is_weak);
         let after = if failures.iter().any(Failure::is_hard) {
             TrackState::Lost
         } else if failures.is_empty() {
-            TrackState::Tracking
+            match before {
+                TrackState::Acquiring => TrackState::Confirming { after_loss: false },
+                TrackState::Lost => TrackState::Confirming { after_loss: true },
+                _ => TrackState::Tracking,
+            }
         } else {
             match before {
+                TrackState::Confirming { after_loss } if only_jumped => TrackState::Confirming { after_loss },
+                TrackState::Tracking if only_weak => TrackState::Unsure(0),
+                TrackState::Unsure(n) if only_weak => TrackState::Unsure(n),
                 TrackState::Tracking => TrackState::Unsure(1),
                 TrackState::Unsure(n) if n + 1 < params.lost_after => TrackState::Unsure(n + 1),
                 _ => TrackState::Lost,
             }
         };
-        // A lost object's motion history no longer says where it is.
+        // A lost object's motion no longer says where it is; a new
+        // candidate starts the motion afresh.
         if after == TrackState::Lost {
             track.accepted.clear();
         }
+        if let TrackState::Confirming { .. } = after {
+            track.accepted.clear();
+            track.accepted.push_back((evidence.frame_id, evidence.pose));
+        }
         if after == TrackState::Tracking {
-            if before != TrackState::Tracking {
+            if matches!(before, TrackState::Unsure(_)) {
                 track.accepted.clear();
             }
             track.accepted.push_back((evidence.frame_id, evidence.pose));
             if track.accepted.len() > 2 {
                 track.accepted.pop_front();
             }
+            if let Some(fit) = evidence.fit {
+                track.residuals.push_back((evidence.frame_id, fit.rms_residual));
+                if track.residuals.len() > USUAL_RESIDUAL_FRAMES {
+                    track.residuals.pop_front();
+                }
+            }
         }
         track.state = after;
         Verdict { before, after, failures, jump }
     }
+}
+
+/// The track's usual RMS residual is the median over this many accepted
+/// estimates: long enough to outlast a few noisy frames.
+const USUAL_RESIDUAL_FRAMES: usize = 9;
+
+/// Residuals older than this many frames are forgotten: the object may
+/// have moved further from the camera meanwhile, where its depth is
+/// noisier, and a stale usual residual would keep it lost.
+const RESIDUAL_MEMORY_FRAMES: u64 = 30;
+
+/// The median of the residuals accepted within [`RESIDUAL_MEMORY_FRAMES`]
+/// before `frame`.
+fn usual_residual(residuals: &VecDeque<(u64, f64)>, frame: u64) -> Option<f64> {
+    let mut recent: Vec<f64> =
+        residuals.iter().filter(|(at, _)| frame.saturating_sub(*at) <= RESIDUAL_MEMORY_FRAMES).map(|r| r.1).collect();
+    recent.sort_by(f64::total_cmp);
+    recent.get(recent.len() / 2).copied()
 }
 
 /// Where constant velocity over the accepted estimates puts the object at
@@ -338,39 +509,6 @@ fn predict(accepted: &VecDeque<(u64, Pose)>, frame: u64) -> Option<Pose> {
     Some(Pose::new(so3::exp(&turn) * last.rotation, last.translation + shift))
 }
 
-/// Share of `points` (camera frame) within `distance` of the surface at
-/// `pose`, by `residual` of model-frame points.
-pub fn inlier_share(pose: &Pose, points: &[Point3<f64>], distance: f64, residual: impl Fn(&Point3<f64>) -> f64) -> f64 {
-    if points.is_empty() {
-        return 0.0;
-    }
-    let inverse = pose.inverse();
-    let inliers = points.iter().filter(|x| residual(&inverse.transform_point(x)).abs() <= distance).count();
-    inliers as f64 / points.len() as f64
-}
-
-/// Share of the inliers (points within `distance` of the surface at
-/// `pose`) whose surface there faces the camera (at the origin), by the
-/// gradient of `signed` at model-frame points. Recorded, not yet judged:
-/// a pose that fits the points onto the object's far side would show here.
-pub fn facing_share(
-    pose: &Pose,
-    points: &[Point3<f64>],
-    distance: f64,
-    signed: impl Fn(&Point3<f64>) -> (f64, nalgebra::Vector3<f64>),
-) -> f64 {
-    let inverse = pose.inverse();
-    let (mut inliers, mut facing) = (0usize, 0usize);
-    for x in points {
-        let (value, gradient) = signed(&inverse.transform_point(x));
-        if value.abs() <= distance {
-            inliers += 1;
-            facing += usize::from((pose.rotation * gradient).dot(&-x.coords) > 0.0);
-        }
-    }
-    if inliers == 0 { 0.0 } else { facing as f64 / inliers as f64 }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -378,7 +516,21 @@ mod tests {
     use proptest::prelude::*;
 
     fn evidence(frame_id: u64, inlier_share: f64, pose: Pose) -> Evidence {
-        Evidence { frame_id, observed_points: 500, inlier_share: Some(inlier_share), spread_deg: 3.0, pose }
+        Evidence {
+            frame_id,
+            observed_points: 500,
+            fit: Some(PointFit { inlier_share, rms_residual: 0.0015, hidden_share: 0.0 }),
+            silhouette: Some(Silhouette { covered: 0.9, explained: 1.0 }),
+            spread_deg: 3.0,
+            pose,
+        }
+    }
+
+    fn with_residual(frame_id: u64, rms_residual: f64) -> Evidence {
+        Evidence {
+            fit: Some(PointFit { inlier_share: 1.0, rms_residual, hidden_share: 0.0 }),
+            ..evidence(frame_id, 1.0, turned(0.0))
+        }
     }
 
     fn turned(degrees: f64) -> Pose {
@@ -389,39 +541,68 @@ mod tests {
         TrackMonitor::new(TrackCheckParams { check: true, ..Default::default() })
     }
 
+    /// A monitor tracking object 1 at `turned(0)` after frames 0 and 1.
+    fn tracking() -> TrackMonitor {
+        let mut monitor = monitor();
+        monitor.check(1, &evidence(0, 1.0, turned(0.0)));
+        assert_eq!(monitor.check(1, &evidence(1, 1.0, turned(0.0))).after, TrackState::Tracking);
+        monitor
+    }
+
+    #[test]
+    fn a_first_estimate_is_a_candidate_until_the_next_agrees() {
+        let mut monitor = monitor();
+        let first = monitor.check(1, &evidence(0, 0.95, turned(0.0)));
+        assert_eq!((first.after, first.flags()), (TrackState::Confirming { after_loss: false }, flags::UNSURE));
+        // A second estimate elsewhere is the new candidate.
+        let other = monitor.check(1, &evidence(1, 0.95, turned(120.0)));
+        assert!(matches!(other.failures[..], [Failure::Jump { .. }]), "{other:?}");
+        assert_eq!((other.after, other.flags()), (TrackState::Confirming { after_loss: false }, flags::UNSURE));
+        let agreed = monitor.check(1, &evidence(2, 0.95, turned(121.0)));
+        assert_eq!((agreed.after, agreed.flags()), (TrackState::Tracking, 0));
+    }
+
     #[test]
     fn a_good_track_stays_tracking_without_flags() {
-        let mut monitor = monitor();
-        for frame in 0..20 {
-            let verdict = monitor.check(1, &evidence(frame, 0.95, turned(frame as f64 * 2.0)));
-            assert_eq!(verdict.after, TrackState::Tracking, "{verdict:?}");
-            assert_eq!(verdict.flags(), 0);
+        let mut monitor = tracking();
+        for frame in 2..20 {
+            let verdict = monitor.check(1, &evidence(frame, 0.95, turned(frame as f64 * 2.0 - 2.0)));
+            assert_eq!((verdict.after, verdict.flags()), (TrackState::Tracking, 0), "{verdict:?}");
         }
     }
 
     #[test]
-    fn one_poor_frame_is_unsure_and_two_are_lost_then_a_good_one_reinitialises() {
-        let mut monitor = monitor();
-        monitor.check(1, &evidence(0, 0.9, turned(0.0)));
-        let unsure = monitor.check(1, &evidence(1, 0.5, turned(0.0)));
+    fn one_poor_frame_is_unsure_and_two_are_lost_then_two_agreeing_ones_reinitialise() {
+        let mut monitor = tracking();
+        let unsure = monitor.check(1, &evidence(2, 0.5, turned(0.0)));
         assert_eq!((unsure.after, unsure.flags()), (TrackState::Unsure(1), flags::UNSURE));
         // Hysteresis: a good frame after one poor one carries on.
-        assert_eq!(monitor.check(1, &evidence(2, 0.9, turned(0.0))).flags(), 0);
-        monitor.check(1, &evidence(3, 0.5, turned(0.0)));
-        let lost = monitor.check(1, &evidence(4, 0.5, turned(0.0)));
+        assert_eq!(monitor.check(1, &evidence(3, 0.9, turned(0.0))).flags(), 0);
+        monitor.check(1, &evidence(4, 0.5, turned(0.0)));
+        let lost = monitor.check(1, &evidence(5, 0.5, turned(0.0)));
         assert_eq!((lost.after, lost.flags()), (TrackState::Lost, flags::LOST));
-        let back = monitor.check(1, &evidence(5, 0.9, turned(90.0)));
+        let candidate = monitor.check(1, &evidence(6, 0.9, turned(90.0)));
+        assert_eq!(candidate.after, TrackState::Confirming { after_loss: true });
+        assert_eq!(candidate.flags(), flags::UNSURE);
+        let back = monitor.check(1, &evidence(7, 0.9, turned(91.0)));
         assert_eq!((back.after, back.flags()), (TrackState::Tracking, flags::REINITIALISED));
-        // Re-acquired far from the old pose: its motion history starts again.
-        assert_eq!(monitor.check(1, &evidence(6, 0.9, turned(91.0))).flags(), 0);
+        assert_eq!(monitor.check(1, &evidence(8, 0.9, turned(92.0))).flags(), 0);
+    }
+
+    #[test]
+    fn a_candidate_with_a_poor_fit_is_lost_again() {
+        let mut monitor = tracking();
+        monitor.check(1, &evidence(2, 0.1, turned(0.0)));
+        monitor.check(1, &evidence(3, 0.9, turned(0.0)));
+        let verdict = monitor.check(1, &evidence(4, 0.5, turned(0.0)));
+        assert_eq!((verdict.before, verdict.after), (TrackState::Confirming { after_loss: true }, TrackState::Lost));
     }
 
     #[test]
     fn a_lost_fit_or_too_few_points_lose_the_object_at_once() {
-        let mut monitor = monitor();
-        monitor.check(1, &evidence(0, 0.9, turned(0.0)));
-        assert_eq!(monitor.check(1, &evidence(1, 0.1, turned(0.0))).flags(), flags::LOST);
-        let mut hidden = evidence(2, 0.9, turned(0.0));
+        let mut monitor = tracking();
+        assert_eq!(monitor.check(1, &evidence(2, 0.1, turned(0.0))).flags(), flags::LOST);
+        let mut hidden = evidence(3, 0.9, turned(0.0));
         hidden.observed_points = 3;
         let verdict = monitor.check(1, &hidden);
         assert_eq!(verdict.failures, vec![Failure::TooFewPoints { points: 3 }]);
@@ -434,8 +615,8 @@ mod tests {
         // 10° per frame is motion, not a jump.
         for frame in 0..5 {
             let verdict = monitor.check(1, &evidence(frame, 0.9, turned(frame as f64 * 10.0)));
-            assert_eq!(verdict.flags(), 0, "{verdict:?}");
             if frame >= 2 {
+                assert_eq!(verdict.flags(), 0, "{verdict:?}");
                 let (degrees, _) = verdict.jump.unwrap();
                 assert!(degrees < 1e-6, "{degrees}");
             }
@@ -450,49 +631,81 @@ mod tests {
     }
 
     #[test]
-    fn spread_and_jump_are_not_held_against_an_estimate_from_the_prior() {
+    fn a_turned_pose_that_fits_worse_than_the_track_did_is_unsure() {
+        let mut monitor = tracking();
+        for frame in 2..6 {
+            assert_eq!(monitor.check(1, &with_residual(frame, 0.0015)).flags(), 0);
+        }
+        // Every point still within a centimetre, but three times as far off
+        // the surface as the track's usual 1.5 mm: over the absolute limit.
+        let verdict = monitor.check(1, &with_residual(6, 0.0045));
+        assert!(matches!(verdict.failures[..], [Failure::Residual { .. }]), "{verdict:?}");
+        // Under the absolute limit, but twice the usual.
+        let verdict = monitor.check(1, &with_residual(7, 0.003));
+        assert!(matches!(verdict.failures[..], [Failure::ResidualGrew { .. }]), "{verdict:?}");
+        assert_eq!(verdict.flags(), flags::LOST, "the second soft failure in a row");
+        // The usual residual outlasts the loss: a candidate that fits as
+        // poorly is not taken, one that fits as the track did is.
+        let candidate = monitor.check(1, &with_residual(8, 0.003));
+        assert!(matches!(candidate.failures[..], [Failure::ResidualGrew { .. }]), "{candidate:?}");
+        assert_eq!(candidate.after, TrackState::Lost);
+        assert_eq!(monitor.check(1, &with_residual(9, 0.0016)).after, TrackState::Confirming { after_loss: true });
+        let back = monitor.check(1, &with_residual(10, 0.0016));
+        assert_eq!((back.after, back.flags()), (TrackState::Tracking, flags::REINITIALISED));
+        // Long after, the old residuals are forgotten (the object may be
+        // further away, its depth noisier).
+        let later = monitor.check(1, &with_residual(10 + RESIDUAL_MEMORY_FRAMES + 1, 0.003));
+        assert_eq!(later.failures, vec![], "{later:?}");
+    }
+
+    #[test]
+    fn hidden_points_and_an_unobserved_silhouette_are_soft_failures() {
+        let mut monitor = tracking();
+        let mut hidden = evidence(2, 1.0, turned(0.0));
+        hidden.fit = Some(PointFit { inlier_share: 1.0, rms_residual: 0.0015, hidden_share: 0.4 });
+        let verdict = monitor.check(1, &hidden);
+        assert!(matches!(verdict.failures[..], [Failure::Hidden { .. }]), "{verdict:?}");
+        assert_eq!(verdict.flags(), flags::UNSURE);
+        let mut uncovered = evidence(3, 1.0, turned(0.0));
+        uncovered.silhouette = Some(Silhouette { covered: 0.3, explained: 1.0 });
+        // Weak: unsure for as long as it lasts, but not lost.
+        for frame in 3..10 {
+            uncovered.frame_id = frame;
+            let verdict = monitor.check(1, &uncovered);
+            assert!(matches!(verdict.failures[..], [Failure::Uncovered { .. }]), "{verdict:?}");
+            assert_eq!((verdict.after, verdict.flags()), (TrackState::Unsure(1), flags::UNSURE));
+        }
+        assert_eq!(monitor.check(1, &evidence(10, 1.0, turned(0.0))).flags(), 0);
+        uncovered.frame_id = 11;
+        assert_eq!(monitor.check(1, &uncovered).after, TrackState::Unsure(0));
+        // A candidate is not confirmed on an uncovered silhouette.
+        let mut monitor = self::monitor();
+        uncovered.frame_id = 0;
+        assert_eq!(monitor.check(1, &uncovered).after, TrackState::Lost);
+    }
+
+    #[test]
+    fn spread_is_not_held_against_an_estimate_from_the_prior() {
         let mut monitor = monitor();
         let mut first = evidence(0, 0.9, turned(0.0));
         first.spread_deg = 120.0;
-        assert_eq!(monitor.check(1, &first).after, TrackState::Tracking);
-        let mut wide = evidence(1, 0.9, turned(0.0));
+        assert_eq!(monitor.check(1, &first).failures, vec![]);
+        let mut second = evidence(1, 0.9, turned(0.0));
+        second.spread_deg = 120.0;
+        assert_eq!(monitor.check(1, &second).after, TrackState::Tracking);
+        let mut wide = evidence(2, 0.9, turned(0.0));
         wide.spread_deg = 120.0;
         assert!(matches!(monitor.check(1, &wide).failures[..], [Failure::Spread { .. }]));
     }
 
     #[test]
     fn objects_and_runs_are_tracked_apart() {
-        let mut monitor = monitor();
-        monitor.check(1, &evidence(5, 0.9, turned(0.0)));
-        assert_eq!(monitor.check(2, &evidence(5, 0.1, turned(0.0))).flags(), flags::LOST);
-        assert_eq!(monitor.check(1, &evidence(6, 0.9, turned(1.0))).flags(), 0);
+        let mut monitor = tracking();
+        assert_eq!(monitor.check(2, &evidence(2, 0.1, turned(0.0))).flags(), flags::LOST);
+        assert_eq!(monitor.check(1, &evidence(2, 0.9, turned(1.0))).flags(), 0);
         // Frame ids from the start again: a new run, acquired afresh.
         let again = monitor.check(1, &evidence(0, 0.9, turned(150.0)));
-        assert_eq!((again.before, again.after), (TrackState::Acquiring, TrackState::Tracking));
-    }
-
-    #[test]
-    fn inlier_share_counts_points_on_the_surface() {
-        // A unit sphere's surface distance; points at radius 1 and 1.5.
-        let sphere = |y: &Point3<f64>| y.coords.norm() - 1.0;
-        let pose = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, 2.0));
-        let points: Vec<Point3<f64>> =
-            [1.0, 1.0, 1.0, 1.5].iter().map(|r| pose.transform_point(&Point3::new(*r, 0.0, 0.0))).collect();
-        assert_eq!(inlier_share(&pose, &points, 0.01, sphere), 0.75);
-        assert_eq!(inlier_share(&pose, &[], 0.01, sphere), 0.0);
-    }
-
-    #[test]
-    fn facing_share_tells_the_near_side_from_the_far_side() {
-        // A unit sphere 3 m in front of the camera: its near cap faces the
-        // camera, its far cap faces away.
-        let sphere = |y: &Point3<f64>| (y.coords.norm() - 1.0, y.coords.normalize());
-        let pose = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, 3.0));
-        let near = [Point3::new(0.0, 0.0, 2.0), Point3::new(0.1, 0.0, 2.005)];
-        let far = [Point3::new(0.0, 0.0, 4.0)];
-        assert_eq!(facing_share(&pose, &near, 0.01, sphere), 1.0);
-        assert_eq!(facing_share(&pose, &far, 0.01, sphere), 0.0);
-        assert_eq!(facing_share(&pose, &[near[0], far[0]], 0.01, sphere), 0.5);
+        assert_eq!((again.before, again.after), (TrackState::Acquiring, TrackState::Confirming { after_loss: false }));
     }
 
     #[test]
@@ -502,33 +715,49 @@ mod tests {
         assert!(err.contains("tracking.min_inlier_share / lost_inlier_share"), "{err}");
         params = TrackCheckParams { lost_after: 0, ..Default::default() };
         assert!(params.validate().unwrap_err().to_string().contains("tracking.lost_after"));
+        params = TrackCheckParams { residual_ratio: 0.5, ..Default::default() };
+        assert!(params.validate().unwrap_err().to_string().contains("tracking.residual_ratio"));
+        params = TrackCheckParams { min_covered: 1.5, ..Default::default() };
+        assert!(params.validate().unwrap_err().to_string().contains("tracking.min_covered"));
     }
 
     proptest! {
         /// Whatever the evidence, the flags are one of the four outcomes and
-        /// agree with the state: LOST exactly when lost, REINITIALISED only
-        /// out of lost, and a hard failure always loses the object.
+        /// agree with the state: LOST exactly when lost, UNSURE for a
+        /// candidate or an unsure track, REINITIALISED only when a candidate
+        /// after a loss is confirmed, and a hard failure always loses the
+        /// object.
         #[test]
         fn flags_follow_the_state(
-            steps in proptest::collection::vec((0usize..600, 0.0f64..1.0, 0.0f64..90.0, -180.0f64..180.0), 1..40),
+            steps in proptest::collection::vec(
+                (0usize..600, 0.0f64..1.0, 0.0f64..0.008, 0.0f64..0.5, 0.0f64..1.0, 0.0f64..90.0, -180.0f64..180.0),
+                1..40,
+            ),
         ) {
             let mut monitor = monitor();
-            for (frame, (points, share, spread, angle)) in steps.into_iter().enumerate() {
+            for (frame, (points, share, rms_residual, hidden_share, covered, spread, angle)) in steps.into_iter().enumerate() {
                 let mut e = evidence(frame as u64, share, turned(angle));
                 e.observed_points = points;
+                e.fit = Some(PointFit { inlier_share: share, rms_residual, hidden_share });
+                e.silhouette = Some(Silhouette { covered, explained: 1.0 });
                 e.spread_deg = spread;
                 let verdict = monitor.check(7, &e);
                 let flags = verdict.flags();
                 prop_assert!([0, flags::LOST, flags::UNSURE, flags::REINITIALISED].contains(&flags));
                 prop_assert_eq!(flags == flags::LOST, verdict.after == TrackState::Lost);
+                prop_assert_eq!(
+                    flags == flags::UNSURE,
+                    matches!(verdict.after, TrackState::Unsure(_) | TrackState::Confirming { .. })
+                );
                 if flags == flags::REINITIALISED {
-                    prop_assert_eq!(verdict.before, TrackState::Lost);
+                    prop_assert_eq!(verdict.before, TrackState::Confirming { after_loss: true });
                 }
                 if verdict.failures.iter().any(Failure::is_hard) {
                     prop_assert_eq!(verdict.after, TrackState::Lost);
                 }
                 if verdict.failures.is_empty() {
-                    prop_assert_eq!(verdict.after, TrackState::Tracking);
+                    let passed = matches!(verdict.after, TrackState::Tracking | TrackState::Confirming { .. });
+                    prop_assert!(passed, "{:?}", verdict);
                 }
             }
         }

@@ -27,6 +27,6 @@ pub mod video;
 
 pub use error::SceneError;
 pub use library::{LibraryObject, ModelLibrary, load_bop_model, model_file_name};
-pub use mesh::{MeshFormat, ObjectMesh, load_mesh, oriented_trimesh, parse_mesh};
+pub use mesh::{MeshFormat, ObjectMesh, load_mesh, oriented_trimesh, parse_mesh, surface_points};
 pub use noise::DepthNoise;
 pub use render::{Camera, Frame, Light, Placed, RenderModel, object_depth, render, silhouettes};

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use poseflow_contracts::{StampSlot, flags};
 use poseflow_geometry::Pose;
 use poseflow_scene::ModelLibrary;
@@ -65,6 +65,8 @@ struct TrackingReport {
     /// Percent of the events after which the estimate was back within
     /// 10°5cm at most 2 images after the object reappeared or moved.
     events_prompt_pct: f64,
+    /// Every estimate: image, object, errors and track flags (CSV).
+    table: PathBuf,
     plot: PathBuf,
 }
 
@@ -92,6 +94,7 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
     // Per object: [LOST, UNSURE, REINITIALISED] counts, and the LOST images.
     let mut track_flags: BTreeMap<u32, [u32; 3]> = BTreeMap::new();
     let mut lost_images: BTreeMap<u32, Vec<u32>> = BTreeMap::new();
+    let mut per_image = String::from("image,object,rotation_error_deg,translation_error_cm,flags\n");
     // Built once per object: a continuous symmetry is hundreds of transforms.
     let mut symmetry_sets = BTreeMap::new();
     for entry in read_recording(recording)? {
@@ -107,6 +110,13 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         };
         let error = symmetries.pose_error(&best, &truth.1);
         by_object.entry(header.object_id).or_default().push((im_id, error.rotation.to_degrees(), error.translation));
+        per_image.push_str(&format!(
+            "{im_id},{},{:.3},{:.3},{}\n",
+            header.object_id,
+            error.rotation.to_degrees(),
+            error.translation * 100.0,
+            flag_names(header.flags)
+        ));
         if let Some(ns) = header.stamps.elapsed_ns(StampSlot::Source, StampSlot::Selector) {
             latencies.entry(header.object_id).or_default().push(Duration::from_nanos(ns));
         }
@@ -156,6 +166,8 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         .flat_map(|(obj_id, errors)| errors.iter().map(move |e| ((e.0, *obj_id), within(LOOSE, (e.1, e.2)))))
         .collect();
     let events = event_outcomes(&args.out.join("scene"), &within_loose, args.frames)?;
+    let table = args.out.join("tracking.csv");
+    std::fs::write(&table, per_image).with_context(|| format!("writing {}", table.display()))?;
     let plot = args.out.join("tracking.png");
     let series: Vec<ErrorSeries> = by_object
         .iter()
@@ -176,6 +188,7 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         objects,
         events_prompt_pct: percent(events.iter().filter(|e| e.prompt()).count(), events.len()),
         events,
+        table,
         plot,
     };
     print_report(&report, args.json, print_table)
@@ -202,6 +215,21 @@ fn event_outcomes(
         })
         .collect();
     Ok(outcomes(&events, &visible, within, frames))
+}
+
+/// The track flags of an Estimate header, `|`-separated (`-` for none).
+fn flag_names(bits: u32) -> String {
+    let names: Vec<&str> = [
+        (flags::TRACKING, "tracking"),
+        (flags::LOST, "lost"),
+        (flags::UNSURE, "unsure"),
+        (flags::REINITIALISED, "reinitialised"),
+    ]
+    .into_iter()
+    .filter(|(bit, _)| bits & bit != 0)
+    .map(|(_, name)| name)
+    .collect();
+    if names.is_empty() { "-".into() } else { names.join("|") }
 }
 
 fn print_table(report: &TrackingReport) {
@@ -250,6 +278,7 @@ fn print_table(report: &TrackingReport) {
             );
         }
     }
+    println!("per image: {}", report.table.display());
     println!(
         "plot: {} (rotation error per image, one colour per object; grey lines at 5° and 10°; crosses: LOST)",
         report.plot.display()
@@ -269,5 +298,12 @@ mod tests {
         assert_eq!(percent(0, 0), 0.0);
         assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
         assert!(median(Vec::new()).is_nan());
+    }
+
+    #[test]
+    fn flags_are_named_in_the_per_image_table() {
+        assert_eq!(flag_names(0), "-");
+        assert_eq!(flag_names(flags::TRACKING | flags::UNSURE), "tracking|unsure");
+        assert_eq!(flag_names(flags::LOST | flags::POINTS_RESAMPLED), "lost");
     }
 }

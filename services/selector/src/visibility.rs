@@ -1,0 +1,261 @@
+//! Whether a pose explains what the camera saw of the object, beyond the
+//! observed points' distances to its surface. A turned pose can fit every
+//! point onto some part of the surface and still be wrong in two ways the
+//! distances miss:
+//! - its silhouette covers image cells where the mask has no point, or
+//!   leaves masked cells unexplained ([`silhouette`]);
+//! - it puts points on surface the object itself would hide from the
+//!   camera ([`PointFit::hidden_share`]).
+//!
+//! Camera frame: x right, y down, z forward (metres); pixels: u right, v
+//! down, from the image's top-left corner.
+
+use nalgebra::Point3;
+use poseflow_geometry::Pose;
+
+/// A pinhole camera, pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pinhole {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+impl Pinhole {
+    /// The pixel a camera-frame point projects to; `None` behind the camera.
+    pub fn project(&self, x: &Point3<f64>) -> Option<(f64, f64)> {
+        (x.z > 1e-6).then(|| (self.fx * x.x / x.z + self.cx, self.fy * x.y / x.z + self.cy))
+    }
+}
+
+/// How the posed object's silhouette and the observed points agree, on a
+/// grid of square cells laid over the silhouette's bounding box.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Silhouette {
+    /// Share of the silhouette's cells holding an observed point. Low when
+    /// the pose puts the object where the mask is empty (or the object is
+    /// occluded there).
+    pub covered: f64,
+    /// Share of the observed points inside the silhouette (grown by one
+    /// cell). Low when the pose leaves masked points unexplained.
+    pub explained: f64,
+}
+
+/// Compares the silhouette of `surface` (model frame, metres: points
+/// spread over the whole surface) at `pose` with the pixels of `observed`
+/// (camera frame: the object's masked depth points, spread over the mask),
+/// on cells `cells_across` to the silhouette's larger side. `None` when
+/// nothing projects.
+pub fn silhouette(
+    pose: &Pose,
+    surface: &[Point3<f64>],
+    observed: &[Point3<f64>],
+    camera: &Pinhole,
+    cells_across: usize,
+) -> Option<Silhouette> {
+    let model: Vec<(f64, f64)> = surface.iter().filter_map(|p| camera.project(&pose.transform_point(p))).collect();
+    let seen: Vec<(f64, f64)> = observed.iter().filter_map(|x| camera.project(x)).collect();
+    if model.is_empty() || seen.is_empty() {
+        return None;
+    }
+    let (mut low, mut high) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
+    for &(u, v) in &model {
+        (low, high) = ((low.0.min(u), low.1.min(v)), (high.0.max(u), high.1.max(v)));
+    }
+    let cell = ((high.0 - low.0).max(high.1 - low.1) / cells_across.max(1) as f64).max(1.0);
+    // A margin of two cells around the silhouette, so that grown cells and
+    // nearby observed points index inside the grid.
+    let side = (cells_across + 5) as i64;
+    let index = |(u, v): (f64, f64)| -> Option<usize> {
+        let (i, j) = (((u - low.0) / cell).floor() as i64 + 2, ((v - low.1) / cell).floor() as i64 + 2);
+        ((0..side).contains(&i) && (0..side).contains(&j)).then(|| (j * side + i) as usize)
+    };
+    let n = (side * side) as usize;
+    let mut inside = vec![false; n];
+    for &pixel in &model {
+        if let Some(k) = index(pixel) {
+            inside[k] = true;
+        }
+    }
+    let mut hit = vec![false; n];
+    for &pixel in &seen {
+        if let Some(k) = index(pixel) {
+            hit[k] = true;
+        }
+    }
+    let silhouette_cells = inside.iter().filter(|&&b| b).count();
+    let covered = inside.iter().zip(&hit).filter(|&(&s, &h)| s && h).count();
+    let grown = |k: usize| -> bool {
+        let (i, j) = ((k as i64) % side, (k as i64) / side);
+        (-1..=1).any(|dj| {
+            (-1..=1).any(|di| {
+                let (a, b) = (i + di, j + dj);
+                (0..side).contains(&a) && (0..side).contains(&b) && inside[(b * side + a) as usize]
+            })
+        })
+    };
+    let explained = seen.iter().filter(|&&pixel| index(pixel).is_some_and(grown)).count();
+    Some(Silhouette {
+        covered: covered as f64 / silhouette_cells as f64,
+        explained: explained as f64 / seen.len() as f64,
+    })
+}
+
+/// How the observed points sit on the surface at a pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PointFit {
+    /// Share of the points within the inlier distance of the surface.
+    pub inlier_share: f64,
+    /// Root mean square of the points' distances to the surface, each
+    /// capped at the inlier distance (metres): the fit's quality where the
+    /// inlier share saturates.
+    pub rms_residual: f64,
+    /// Share of the inliers the object at the pose would hide from the
+    /// camera: the line of sight to them passes through the object.
+    pub hidden_share: f64,
+}
+
+/// How [`point_fit`] measures, metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitSettings {
+    /// A point this close to the surface is an inlier; residuals are capped
+    /// here.
+    pub inlier_distance: f64,
+    /// A line of sight passing this deep inside the object hides its point.
+    pub hidden_depth: f64,
+    /// How far towards the camera a line of sight is followed: the object's
+    /// size.
+    pub reach: f64,
+}
+
+/// Measures how `points` (camera frame) fit the object at `pose`, by
+/// `signed`: the signed distance of model-frame points, negative inside.
+/// `None` without points.
+pub fn point_fit(
+    pose: &Pose,
+    points: &[Point3<f64>],
+    settings: &FitSettings,
+    signed: impl Fn(&Point3<f64>) -> f64,
+) -> Option<PointFit> {
+    if points.is_empty() {
+        return None;
+    }
+    let inverse = pose.inverse();
+    let (mut inliers, mut hidden, mut squares) = (0usize, 0usize, 0.0);
+    for x in points {
+        let residual = signed(&inverse.transform_point(x)).abs().min(settings.inlier_distance);
+        squares += residual * residual;
+        if residual < settings.inlier_distance {
+            inliers += 1;
+            hidden += usize::from(line_of_sight_enters(&inverse, x, settings, &signed));
+        }
+    }
+    Some(PointFit {
+        inlier_share: inliers as f64 / points.len() as f64,
+        rms_residual: (squares / points.len() as f64).sqrt(),
+        hidden_share: if inliers == 0 { 0.0 } else { hidden as f64 / inliers as f64 },
+    })
+}
+
+/// Whether the segment from `x` (camera frame) towards the camera passes
+/// more than `hidden_depth` inside the object. Starts past the point's own
+/// surface band and steps by the distance to the surface where that is
+/// larger than `hidden_depth` (it cannot skip the surface).
+fn line_of_sight_enters(
+    model_from_camera: &Pose,
+    x: &Point3<f64>,
+    settings: &FitSettings,
+    signed: &impl Fn(&Point3<f64>) -> f64,
+) -> bool {
+    let towards_camera = -x.coords.normalize();
+    let mut travelled = settings.inlier_distance;
+    while travelled < settings.reach {
+        let value = signed(&model_from_camera.transform_point(&(x + towards_camera * travelled)));
+        if value < -settings.hidden_depth {
+            return true;
+        }
+        travelled += value.max(settings.hidden_depth);
+    }
+    false
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Vector3;
+
+    use super::*;
+
+    const CAMERA: Pinhole = Pinhole { fx: 600.0, fy: 600.0, cx: 320.0, cy: 240.0 };
+
+    /// A sphere of radius 5 cm about the model origin: signed distance.
+    fn sphere(p: &Point3<f64>) -> f64 {
+        p.coords.norm() - 0.05
+    }
+
+    /// Points on a sphere of radius `r` (model frame), a Fibonacci lattice.
+    fn sphere_points(r: f64, count: usize) -> Vec<Point3<f64>> {
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        (0..count)
+            .map(|i| {
+                let y = 1.0 - 2.0 * (i as f64 + 0.5) / count as f64;
+                let ring = (1.0 - y * y).sqrt();
+                let phi = golden * i as f64;
+                Point3::new(ring * phi.cos(), y, ring * phi.sin()) * r
+            })
+            .collect()
+    }
+
+    fn at(z: f64) -> Pose {
+        Pose::new(nalgebra::Rotation3::identity(), Vector3::new(0.0, 0.0, z))
+    }
+
+    const SETTINGS: FitSettings = FitSettings { inlier_distance: 0.005, hidden_depth: 0.004, reach: 0.1 };
+
+    #[test]
+    fn the_near_half_of_a_sphere_is_seen_and_the_far_half_hidden() {
+        let pose = at(0.5);
+        let on_sphere: Vec<_> = sphere_points(0.05, 400).into_iter().map(|p| pose.transform_point(&p)).collect();
+        let near: Vec<_> = on_sphere.iter().filter(|x| x.z < 0.49).copied().collect();
+        // The far cap, whose lines of sight cross the sphere's middle.
+        let far: Vec<_> = on_sphere.iter().filter(|x| x.z > 0.53).copied().collect();
+        let fit = point_fit(&pose, &near, &SETTINGS, sphere).unwrap();
+        assert_eq!((fit.inlier_share, fit.hidden_share), (1.0, 0.0));
+        assert!(fit.rms_residual < 1e-9, "{fit:?}");
+        assert_eq!(point_fit(&pose, &far, &SETTINGS, sphere).unwrap().hidden_share, 1.0);
+        assert!(point_fit(&pose, &[], &SETTINGS, sphere).is_none());
+    }
+
+    #[test]
+    fn residuals_are_capped_and_only_inliers_can_be_hidden() {
+        let pose = at(0.5);
+        // On the near surface, 2 mm off it, and 30 cm off it (capped at 5 mm).
+        let points = [Point3::new(0.0, 0.0, 0.45), Point3::new(0.0, 0.0, 0.448), Point3::new(0.0, 0.0, 0.15)];
+        let fit = point_fit(&pose, &points, &SETTINGS, sphere).unwrap();
+        assert!((fit.inlier_share - 2.0 / 3.0).abs() < 1e-12, "{fit:?}");
+        let rms = ((0.002f64.powi(2) + 0.005f64.powi(2)) / 3.0).sqrt();
+        assert!((fit.rms_residual - rms).abs() < 1e-9, "{fit:?} {rms}");
+        assert_eq!(fit.hidden_share, 0.0);
+    }
+
+    #[test]
+    fn a_sphere_seen_where_it_is_fills_its_silhouette_and_explains_every_point() {
+        let pose = at(0.5);
+        let surface = sphere_points(0.05, 2000);
+        // The visible cap's points, as a mask would give them.
+        let observed: Vec<_> =
+            sphere_points(0.05, 3000).into_iter().map(|p| pose.transform_point(&p)).filter(|x| x.z < 0.5).collect();
+        let agreement = silhouette(&pose, &surface, &observed, &CAMERA, 12).unwrap();
+        assert!(agreement.covered > 0.95, "{agreement:?}");
+        assert_eq!(agreement.explained, 1.0);
+
+        // Moved by a radius sideways: half the silhouette is empty, and the
+        // points on the far side of the true one are not explained.
+        let shifted = at(0.5);
+        let moved = Pose::new(shifted.rotation, shifted.translation + Vector3::new(0.05, 0.0, 0.0));
+        let agreement = silhouette(&moved, &surface, &observed, &CAMERA, 12).unwrap();
+        assert!((0.3..0.7).contains(&agreement.covered), "{agreement:?}");
+        assert!((0.3..0.8).contains(&agreement.explained), "{agreement:?}");
+        assert!(silhouette(&pose, &surface, &[], &CAMERA, 12).is_none());
+    }
+}
