@@ -33,6 +33,8 @@ pub struct Estimated {
     pub latency: Option<Duration>,
     /// The samples started from an earlier estimate or a prior.
     pub tracked: bool,
+    /// The Estimate header's flags (0 from a results file).
+    pub flags: u32,
 }
 
 /// The graph's estimates in a recording, placed in their images (the frame
@@ -82,6 +84,7 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
                     .elapsed_ns(StampSlot::Source, StampSlot::Selector)
                     .map(Duration::from_nanos),
                 tracked: header.header.has_flag(flags::TRACKING),
+                flags: header.header.flags,
             },
         ));
     }
@@ -130,6 +133,7 @@ pub fn read_results(path: &Path) -> anyhow::Result<Vec<Estimated>> {
                 .map(|s| Duration::from_secs_f64(s / f64::from(per_image[&(row.scene_id, row.im_id)]))),
             latency: row.time_s.map(Duration::from_secs_f64),
             tracked: false,
+            flags: 0,
         })
         .collect())
 }

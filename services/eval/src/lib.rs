@@ -12,6 +12,7 @@ pub(crate) mod estimates;
 pub mod recovery;
 mod score;
 mod summary;
+pub mod tracking;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -158,6 +159,12 @@ struct EvalReport {
     /// lost on the way shows here as well as in the accuracies.
     #[serde(skip_serializing_if = "Option::is_none")]
     stages: Option<serde_json::Value>,
+    /// With a tracking graph: each scene as a video ([`tracking`]), and the
+    /// per-image CSV of them all.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    videos: Vec<tracking::VideoSummary>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    per_image: Option<PathBuf>,
     #[serde(flatten)]
     summary: Summary,
 }
@@ -328,6 +335,7 @@ fn score_images(
                 service_time: estimate.and_then(|e| e.service_time),
                 latency: estimate.and_then(|e| e.latency),
                 tracked: estimate.is_some_and(|e| e.tracked),
+                flags: estimate.map_or(0, |e| e.flags),
                 visib_fract: truth.visib_fract,
             });
         }
@@ -428,6 +436,44 @@ fn check_model_objects(model: &std::path::Path, library: &ModelLibrary) -> anyho
     Ok(())
 }
 
+/// Each scene of a tracking graph's run as a video: its estimated
+/// instances in image order (an image's position in its scene is its
+/// frame), summarised per object, and all of them written to `per_image`.
+fn summarise_videos(
+    split: &Path,
+    images: &[TruthImage],
+    outcomes: &[summary::InstanceOutcome],
+    per_image: &Path,
+) -> anyhow::Result<Vec<tracking::VideoSummary>> {
+    let mut frames: BTreeMap<u32, u32> = BTreeMap::new();
+    for image in images {
+        *frames.entry(image.scene_id).or_default() += 1;
+    }
+    let mut by_scene: BTreeMap<u32, Vec<tracking::TrackedImage>> = BTreeMap::new();
+    for outcome in outcomes {
+        if let Some(score) = &outcome.score {
+            by_scene.entry(outcome.scene_id).or_default().push(tracking::TrackedImage {
+                im_id: outcome.im_id,
+                obj_id: outcome.obj_id,
+                rotation_error_deg: score.rotation_error_deg,
+                translation_error_m: score.translation_error_cm / 100.0,
+                flags: outcome.flags,
+                latency: outcome.latency,
+            });
+        }
+    }
+    let videos: Vec<(u32, &[tracking::TrackedImage])> = by_scene.iter().map(|(s, i)| (*s, i.as_slice())).collect();
+    tracking::write_per_image(per_image, &videos)?;
+    frames
+        .iter()
+        .map(|(&scene_id, &count)| {
+            let estimated = by_scene.get(&scene_id).map_or(&[][..], Vec::as_slice);
+            tracking::summarise_video(split, scene_id, count, estimated)
+                .with_context(|| format!("scene {scene_id} of {}", split.display()))
+        })
+        .collect()
+}
+
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     check(args)?;
     let frames = BopFrames::open(&args.dataset, &args.split, &[], args.targets.as_deref(), Masks::GroundTruth)
@@ -449,6 +495,12 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let stages = args.results.is_none().then(|| stage_counts(&args.out.join("run.json"))).transpose()?;
     let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
     let (outcomes, unmatched_estimates) = evaluate(&images, &estimates, &objects, every_hypothesis)?;
+    let (videos, per_image) = if outcomes.iter().any(|o| o.tracked) {
+        let per_image = args.out.join("tracking.csv");
+        (summarise_videos(&args.dataset.join(&args.split), &images, &outcomes, &per_image)?, Some(per_image))
+    } else {
+        (Vec::new(), None)
+    };
     let report = EvalReport {
         dataset: args.dataset.clone(),
         split: args.split.clone(),
@@ -456,6 +508,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         unmatched_estimates,
         csv,
         stages,
+        videos,
+        per_image,
         summary: summarise(&outcomes),
     };
     let instances_path = args.out.join("instances.csv");
@@ -537,5 +591,15 @@ fn print_table(report: &EvalReport) {
     }
     if let Method::Graph { .. } = report.method {
         println!("BOP19 results: {}", report.csv.display());
+    }
+    for video in &report.videos {
+        println!(
+            "\nscene {} as a video of {} images: 5°5cm {:.1} %, 10°5cm {:.1} % of object-images",
+            video.scene_id, video.frames, video.acc_5deg_5cm, video.acc_10deg_5cm
+        );
+        tracking::print_video(video);
+    }
+    if let Some(per_image) = &report.per_image {
+        println!("per image: {}", per_image.display());
     }
 }

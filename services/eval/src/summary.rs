@@ -24,6 +24,8 @@ pub struct InstanceOutcome {
     pub latency: Option<Duration>,
     /// The estimate's samples started from an earlier estimate or a prior.
     pub tracked: bool,
+    /// The estimate's header flags (0 without an estimate).
+    pub flags: u32,
     /// The instance's visible fraction (`scene_gt_info.json`), when known.
     pub visib_fract: Option<f64>,
 }
@@ -281,6 +283,7 @@ mod tests {
             service_time: Some(Duration::from_millis(u64::from(obj_id) * 10)),
             latency: Some(Duration::from_millis(500)),
             tracked: obj_id == 10,
+            flags: 0,
             visib_fract: None,
         }
     }
@@ -297,6 +300,7 @@ mod tests {
                 service_time: None,
                 latency: None,
                 tracked: false,
+                flags: 0,
                 visib_fract: Some(0.25),
             },
             outcome(10, [0.0, 0.0, 1.0, 1.0], 8.0, 3.0),

@@ -17,7 +17,7 @@
 
 use std::path::PathBuf;
 
-use poseflow_contracts::{FrameHeader, MessageHeader, ObservationHeader, StampSlot};
+use poseflow_contracts::{FrameHeader, MessageHeader, ObservationHeader, StampSlot, flags};
 use poseflow_geometry::sampling::{SeededRng, seeded_rng};
 use poseflow_runtime::{Emitter, Input, Source, SourceStep, Transform};
 use poseflow_scene::camera_path::CameraPath;
@@ -162,11 +162,13 @@ fn source_from(value: serde_json::Value) -> Result<Box<dyn FrameSource>, IngestE
 pub struct FrameSourceStage {
     frames: Box<dyn FrameSource>,
     rejected: u64,
+    /// The scene of the previous frame, to flag the first of each sequence.
+    scene: Option<u32>,
 }
 
 impl FrameSourceStage {
     pub fn new(frames: Box<dyn FrameSource>) -> Self {
-        Self { frames, rejected: 0 }
+        Self { frames, rejected: 0, scene: None }
     }
 }
 
@@ -187,7 +189,10 @@ impl Source for FrameSourceStage {
             tracing::warn!(%err, "object skipped");
         }
         self.rejected += loaded.skipped.len() as u64;
-        let layout = FrameLayout::of(&loaded);
+        let mut layout = FrameLayout::of(&loaded);
+        if self.scene.replace(loaded.scene_id) != Some(loaded.scene_id) {
+            layout.header.header.flags |= flags::SEQUENCE_START;
+        }
         output.emit(layout.header, layout.payload_len(), &mut |out| layout.write(&loaded, out))?;
         Ok(SourceStep::Continue)
     }
@@ -277,6 +282,31 @@ mod tests {
         assert!(err.contains("datset"), "{err}");
         let err = frame_source(&serde_json::json!({ "source": "bop", "preload": "yes" })).unwrap_err().to_string();
         assert!(err.contains("preload") && err.contains("\"yes\"") && err.contains("true or false"), "{err}");
+    }
+
+    #[test]
+    fn the_first_frame_of_each_scene_starts_a_sequence() {
+        struct Flags(Vec<u32>);
+        impl Emitter<FrameHeader> for Flags {
+            fn emit(
+                &mut self,
+                header: FrameHeader,
+                len: usize,
+                fill: &mut dyn FnMut(&mut [f32]),
+            ) -> Result<(), poseflow_runtime::EmitError> {
+                fill(&mut vec![0.0; len]);
+                self.0.push(header.header.flags);
+                Ok(())
+            }
+        }
+        let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../../objects/lmo");
+        let params = serde_json::json!({ "source": "synthetic", "models": models, "objects": [1], "scenes": 2,
+            "frames_per_scene": 2, "width": 64, "height": 48, "orbit_step_deg": 5.0 });
+        let mut stage = FrameSourceStage::new(frame_source(&params).expect("valid params"));
+        let mut emitted = Flags(Vec::new());
+        while let SourceStep::Continue = stage.next(&mut emitted).expect("rendered") {}
+        let starts: Vec<bool> = emitted.0.iter().map(|f| f & flags::SEQUENCE_START != 0).collect();
+        assert_eq!(starts, [true, false, true, false]);
     }
 
     #[test]

@@ -73,6 +73,10 @@ pub struct SamplerStage<F> {
     sampler: FlowSampler,
     field: F,
     previous: HashMap<u32, BTreeMap<u64, Remembered>>,
+    /// Per object, the first frame of its current sequence
+    /// ([`flags::SEQUENCE_START`]): estimates of earlier frames still on
+    /// their way belong to another scene.
+    sequence_start: HashMap<u32, u64>,
 }
 
 /// An object's estimate as the sampler keeps it.
@@ -85,7 +89,7 @@ struct Remembered {
 
 impl<F: VelocityField> SamplerStage<F> {
     pub fn new(params: SamplerParams, field: F) -> Self {
-        Self { sampler: FlowSampler::new(params), field, previous: HashMap::new() }
+        Self { sampler: FlowSampler::new(params), field, previous: HashMap::new(), sequence_start: HashMap::new() }
     }
 
     /// Records an estimate (camera frame) that later frames of the object
@@ -94,6 +98,9 @@ impl<F: VelocityField> SamplerStage<F> {
     /// means the source restarted its numbering: the later ids are another
     /// run's.
     pub fn remember(&mut self, frame_id: u64, object_id: u32, pose: Pose, estimate_flags: u32) {
+        if self.sequence_start.get(&object_id).is_some_and(|&start| frame_id < start) {
+            return;
+        }
         let estimates = self.previous.entry(object_id).or_default();
         estimates.split_off(&frame_id);
         let track_flags = estimate_flags & (flags::LOST | flags::UNSURE);
@@ -158,6 +165,11 @@ impl<F: VelocityField> Transform for SamplerStage<F> {
             // A restarted source may show another scene under the same ids.
             tracing::info!("an upstream stage restarted: tracks start again from the prior");
             self.previous.clear();
+        }
+        if handle.header.has_flag(flags::SEQUENCE_START) {
+            let (frame, object) = (handle.header.frame_id, handle.header.object_id);
+            self.previous.remove(&object);
+            self.sequence_start.insert(object, frame);
         }
         let (header, poses) = self.hypotheses(handle)?;
         output.emit(header, poses.len() * POSE_LEN, &mut |buffer| write_poses(poses, buffer))?;

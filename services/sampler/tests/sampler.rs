@@ -197,6 +197,34 @@ fn an_upstream_restart_drops_the_tracks() {
     assert_eq!(stage.start_for(&handle(503)), Start::Prior);
 }
 
+/// The first frame of a new sequence (another scene) starts its object
+/// from the prior, and an estimate of the old scene still on its way
+/// afterwards does not seed the new one.
+#[test]
+fn a_sequence_start_drops_the_object_track_and_late_estimates_of_the_old_scene() {
+    let params = SamplerParams {
+        samples: 2,
+        tracking: TrackingParams { enabled: true, ..Default::default() },
+        ..Default::default()
+    };
+    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), FieldError> {
+        out.fill(0.0);
+        Ok(())
+    };
+    let mut stage = SamplerStage::new(params, zero);
+    let mut out = Collect(Vec::new());
+    stage.remember(39, 5, target(), 0);
+    let mut first = handle(40);
+    first.header.flags |= flags::SEQUENCE_START;
+    stage.process(Input { header: &first, payload: &[] }, &mut out).unwrap();
+    assert!(!out.0[0].0.header.has_flag(flags::TRACKING), "started from the prior");
+    stage.remember(39, 5, target(), 0);
+    assert_eq!(stage.start_for(&handle(41)), Start::Prior, "the old scene's estimate is ignored");
+    let other = Pose::new(target().rotation, target().translation + Vector3::new(0.0, 0.1, 0.0));
+    stage.remember(40, 5, other, 0);
+    assert_eq!(stage.start_for(&handle(41)), Start::Track(other));
+}
+
 struct Collect(Vec<(poseflow_contracts::HypothesesHeader, Vec<f32>)>);
 
 impl Emitter<poseflow_contracts::HypothesesHeader> for Collect {

@@ -118,6 +118,9 @@ impl SelectorStage {
             monitor.reset();
         }
         let (frame, object) = (header.header.frame_id, header.header.object_id);
+        if header.header.has_flag(flags::SEQUENCE_START) {
+            monitor.forget(object);
+        }
         let points = observed.as_ref().map_or(&[][..], |o| o.scored(self.params.score_points));
         let model = self.library.as_ref().and_then(|library| library.get(object));
         let settings = FitSettings {
@@ -127,6 +130,7 @@ impl SelectorStage {
         };
         let evidence = Evidence {
             frame_id: frame,
+            continued: header.header.has_flag(flags::TRACKING),
             observed_points: observed.as_ref().map_or(0, |o| o.valid_points),
             fit: model.and_then(|model| point_fit(&selection.best, points, &settings, |y| model.grid().value(y))),
             silhouette: match (model, &observed) {

@@ -3,6 +3,10 @@
 //! sampler knows when to start an object afresh from the prior.
 //!
 //! Evidence per estimate (all from what the selector already has):
+//! - whether the samples continued the track (the Hypotheses' `TRACKING`
+//!   flag): a tracked object whose samples came from the prior was out of
+//!   sight longer than the sampler keeps estimates, or the sampler
+//!   restarted, and its track is broken (hard);
 //! - the valid depth points the Observation had;
 //! - how the scored points sit on the surface at the selected pose (needs
 //!   the object model, [`PointFit`]): the share within `inlier_distance`,
@@ -211,6 +215,10 @@ impl TrackCheckParams {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Evidence {
     pub frame_id: u64,
+    /// Whether the samples continued this object's track (the sampler
+    /// started them from its previous estimate: the Hypotheses'
+    /// `TRACKING` flag).
+    pub continued: bool,
     /// Valid depth points of the Observation.
     pub observed_points: usize,
     /// How the scored points fit the surface at `pose`; `None` without an
@@ -228,21 +236,47 @@ pub struct Evidence {
 /// Why an estimate failed the check.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Failure {
-    TooFewPoints { points: usize },
-    LostFit { inlier_share: f64 },
-    PoorFit { inlier_share: f64 },
-    Residual { metres: f64 },
-    ResidualGrew { metres: f64, usual: f64 },
-    Hidden { share: f64 },
-    Uncovered { covered: f64 },
-    Spread { degrees: f64 },
-    Jump { degrees: f64, metres: f64 },
+    TooFewPoints {
+        points: usize,
+    },
+    /// A tracked object's samples did not continue its track: it was out
+    /// of sight longer than the sampler keeps estimates, or the sampler
+    /// restarted.
+    Broken {
+        unseen_frames: u64,
+    },
+    LostFit {
+        inlier_share: f64,
+    },
+    PoorFit {
+        inlier_share: f64,
+    },
+    Residual {
+        metres: f64,
+    },
+    ResidualGrew {
+        metres: f64,
+        usual: f64,
+    },
+    Hidden {
+        share: f64,
+    },
+    Uncovered {
+        covered: f64,
+    },
+    Spread {
+        degrees: f64,
+    },
+    Jump {
+        degrees: f64,
+        metres: f64,
+    },
 }
 
 impl Failure {
     /// A hard failure declares the object lost at once.
     pub fn is_hard(&self) -> bool {
-        matches!(self, Self::TooFewPoints { .. } | Self::LostFit { .. })
+        matches!(self, Self::TooFewPoints { .. } | Self::LostFit { .. } | Self::Broken { .. })
     }
 
     /// A weak failure makes a tracked object unsure but never lost on its
@@ -258,6 +292,10 @@ impl std::fmt::Display for Failure {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             Self::TooFewPoints { points } => write!(f, "{points} valid points (below tracking.min_points)"),
+            Self::Broken { unseen_frames } => write!(
+                f,
+                "samples from the prior, not the track (unseen for {unseen_frames} frames, or the sampler restarted)"
+            ),
             Self::LostFit { inlier_share } => {
                 write!(f, "{:.0} % of points on the surface (below tracking.lost_inlier_share)", inlier_share * 100.0)
             }
@@ -343,6 +381,9 @@ struct Track {
     /// is a matter of its shape and the sensor, not of the track.
     residuals: VecDeque<(u64, f64)>,
     last_frame: u64,
+    /// Whether any of this object's samples continued its track: only then
+    /// does the sampler track, and a sample set from the prior breaks it.
+    ever_continued: bool,
 }
 
 /// The per-object state machine (module docs).
@@ -367,6 +408,11 @@ impl TrackMonitor {
         self.tracks.clear();
     }
 
+    /// Forgets one object's track (its first frame of a new sequence).
+    pub fn forget(&mut self, object: u32) {
+        self.tracks.remove(&object);
+    }
+
     /// Judges one estimate of `object` and moves its track on.
     pub fn check(&mut self, object: u32, evidence: &Evidence) -> Verdict {
         let fresh = Track {
@@ -374,16 +420,25 @@ impl TrackMonitor {
             accepted: VecDeque::new(),
             residuals: VecDeque::new(),
             last_frame: evidence.frame_id,
+            ever_continued: false,
         };
         let track = self.tracks.entry(object).or_insert_with(|| fresh.clone());
         if evidence.frame_id < track.last_frame {
             // The source numbered from the start again: another run.
             *track = fresh;
         }
+        let unseen_frames = evidence.frame_id.saturating_sub(track.last_frame + 1);
         track.last_frame = evidence.frame_id;
+        track.ever_continued |= evidence.continued;
         let before = track.state;
         let params = &self.params;
         let mut failures = Vec::new();
+        // A candidate's samples may come from the prior while its estimate
+        // is still on the way to the sampler; a track's may not.
+        if !evidence.continued && track.ever_continued && matches!(before, TrackState::Tracking | TrackState::Unsure(_))
+        {
+            failures.push(Failure::Broken { unseen_frames });
+        }
         if evidence.observed_points < params.min_points {
             failures.push(Failure::TooFewPoints { points: evidence.observed_points });
         }
@@ -518,6 +573,7 @@ mod tests {
     fn evidence(frame_id: u64, inlier_share: f64, pose: Pose) -> Evidence {
         Evidence {
             frame_id,
+            continued: frame_id > 0,
             observed_points: 500,
             fit: Some(PointFit { inlier_share, rms_residual: 0.0015, hidden_share: 0.0 }),
             silhouette: Some(Silhouette { covered: 0.9, explained: 1.0 }),
@@ -596,6 +652,29 @@ mod tests {
         monitor.check(1, &evidence(3, 0.9, turned(0.0)));
         let verdict = monitor.check(1, &evidence(4, 0.5, turned(0.0)));
         assert_eq!((verdict.before, verdict.after), (TrackState::Confirming { after_loss: true }, TrackState::Lost));
+    }
+
+    #[test]
+    fn samples_from_the_prior_break_a_track_but_not_a_candidate() {
+        let mut monitor = tracking();
+        // Out of sight for four frames, then estimated from the prior.
+        let mut back = evidence(6, 1.0, turned(0.0));
+        back.continued = false;
+        let verdict = monitor.check(1, &back);
+        assert_eq!(verdict.failures, vec![Failure::Broken { unseen_frames: 4 }]);
+        assert_eq!(verdict.flags(), flags::LOST);
+        back.frame_id = 7;
+        assert_eq!(monitor.check(1, &back).after, TrackState::Confirming { after_loss: true });
+        // The candidate's estimate had not reached the sampler: prior again.
+        back.frame_id = 8;
+        assert_eq!(monitor.check(1, &back).flags(), flags::REINITIALISED);
+        // A sampler that never tracks breaks nothing.
+        let mut monitor = self::monitor();
+        for frame in 0..5 {
+            let mut fresh = evidence(frame, 1.0, turned(0.0));
+            fresh.continued = false;
+            assert!(monitor.check(1, &fresh).failures.is_empty());
+        }
     }
 
     #[test]

@@ -109,6 +109,10 @@ pub mod flags {
     /// Estimate: the first that passed the track check after the object
     /// was lost; tracking resumes from it.
     pub const REINITIALISED: u32 = 1 << 5;
+    /// Set by the frame source on the first frame of a sequence (a scene
+    /// other than the previous frame's) and forwarded downstream: earlier
+    /// frames' estimates belong to another scene, so trackers start afresh.
+    pub const SEQUENCE_START: u32 = 1 << 6;
 }
 
 /// The first 80 bytes of every message header.
