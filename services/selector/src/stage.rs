@@ -134,7 +134,7 @@ impl SelectorStage {
             observed_points: observed.as_ref().map_or(0, |o| o.valid_points),
             fit: model.and_then(|model| point_fit(&selection.best, points, &settings, |y| model.grid().value(y))),
             silhouette: match (model, &observed) {
-                (Some(model), Some(o)) => {
+                (Some(model), Some(o)) if monitor.params().min_covered > 0.0 => {
                     silhouette(&selection.best, model.surface(), &o.points, &o.camera, SILHOUETTE_CELLS)
                 }
                 _ => None,

@@ -46,9 +46,9 @@
 //! | unsure (n)   | tracking                    | unsure (n+1), lost at `lost_after` | same    | lost         |
 //!
 //! A silhouette the observed points do not cover is a weak failure: it
-//! makes a tracked object unsure (n unchanged) but never lost by itself,
-//! since an occluder hides part of a correct track for many frames. Out
-//! of tracking it counts as a soft failure.
+//! makes a tracked object unsure (n unchanged) and is otherwise ignored,
+//! since an occluder hides part of a correct track for many frames and
+//! sensors lose the depth of surfaces seen at grazing angles.
 //! | lost         | confirming                  | –                       | lost               | lost         |
 
 use std::collections::{HashMap, VecDeque};
@@ -72,7 +72,7 @@ use crate::visibility::{PointFit, Silhouette};
 /// | `max_residual` | a larger RMS distance of the points to the surface is a poor fit (soft), metres | 0.004 |
 /// | `residual_ratio` | an RMS residual this many times the track's usual one is a poor fit (soft) | 1.5 |
 /// | `max_hidden_share` | a larger share of the points hidden by the object's own body at the pose is a poor fit (soft) | 0.25 |
-/// | `min_covered` | a smaller share of the pose's silhouette holding observed points is unexplained (soft) | 0.5 |
+/// | `min_covered` | a smaller share of the pose's silhouette interior holding observed points makes a tracked object unsure (weak); 0 switches the test off | 0.5 |
 /// | `max_spread_deg` | tracking: a wider rotational spread of the kept hypotheses is unsure (soft) | 45 |
 /// | `max_jump_deg` | tracking: a larger turn away from the predicted pose is a jump (soft) | 30 |
 /// | `max_jump_m` | tracking: a larger shift away from the predicted position is a jump (soft) | 0.05 |
@@ -279,10 +279,11 @@ impl Failure {
         matches!(self, Self::TooFewPoints { .. } | Self::LostFit { .. } | Self::Broken { .. })
     }
 
-    /// A weak failure makes a tracked object unsure but never lost on its
-    /// own: an occluder hides part of a correctly tracked object's
-    /// silhouette for many frames, and estimating it afresh from the prior
-    /// while half hidden does worse than tracking it.
+    /// A weak failure makes a tracked object unsure (so the next frame
+    /// mixes in prior samples) but never loses it, and does not stop a
+    /// candidate's confirmation: an occluder hides part of a correct
+    /// track's silhouette for many frames, and a sensor loses the depth of
+    /// surfaces seen at grazing angles.
     pub fn is_weak(&self) -> bool {
         matches!(self, Self::Uncovered { .. })
     }
@@ -482,20 +483,21 @@ impl TrackMonitor {
             }
         }
         let only_jumped = matches!(failures[..], [Failure::Jump { .. }]);
-        let only_weak = failures.iter().all(Failure::is_weak);
+        let weak = failures.iter().any(Failure::is_weak);
+        let counted = failures.iter().filter(|f| !f.is_weak()).count();
         let after = if failures.iter().any(Failure::is_hard) {
             TrackState::Lost
-        } else if failures.is_empty() {
+        } else if counted == 0 {
             match before {
                 TrackState::Acquiring => TrackState::Confirming { after_loss: false },
                 TrackState::Lost => TrackState::Confirming { after_loss: true },
+                TrackState::Tracking if weak => TrackState::Unsure(0),
+                TrackState::Unsure(n) if weak => TrackState::Unsure(n),
                 _ => TrackState::Tracking,
             }
         } else {
             match before {
                 TrackState::Confirming { after_loss } if only_jumped => TrackState::Confirming { after_loss },
-                TrackState::Tracking if only_weak => TrackState::Unsure(0),
-                TrackState::Unsure(n) if only_weak => TrackState::Unsure(n),
                 TrackState::Tracking => TrackState::Unsure(1),
                 TrackState::Unsure(n) if n + 1 < params.lost_after => TrackState::Unsure(n + 1),
                 _ => TrackState::Lost,
@@ -757,10 +759,12 @@ mod tests {
         assert_eq!(monitor.check(1, &evidence(10, 1.0, turned(0.0))).flags(), 0);
         uncovered.frame_id = 11;
         assert_eq!(monitor.check(1, &uncovered).after, TrackState::Unsure(0));
-        // A candidate is not confirmed on an uncovered silhouette.
+        // Nor does it stop a candidate's confirmation.
         let mut monitor = self::monitor();
         uncovered.frame_id = 0;
-        assert_eq!(monitor.check(1, &uncovered).after, TrackState::Lost);
+        assert_eq!(monitor.check(1, &uncovered).after, TrackState::Confirming { after_loss: false });
+        uncovered.frame_id = 1;
+        assert_eq!(monitor.check(1, &uncovered).after, TrackState::Tracking);
     }
 
     #[test]

@@ -33,20 +33,24 @@ impl Pinhole {
 /// grid of square cells laid over the silhouette's bounding box.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Silhouette {
-    /// Share of the silhouette's cells holding an observed point. Low when
-    /// the pose puts the object where the mask is empty (or the object is
-    /// occluded there).
+    /// Share of the silhouette's interior cells (not on its edge) holding an
+    /// observed point. Low when the pose puts the object where the mask is
+    /// empty (or the object is occluded there).
     pub covered: f64,
     /// Share of the observed points inside the silhouette (grown by one
     /// cell). Low when the pose leaves masked points unexplained.
     pub explained: f64,
 }
 
+/// Fewer interior cells than this (a thin object seen edge-on) are too few
+/// to judge the silhouette by.
+const MIN_INTERIOR_CELLS: usize = 8;
+
 /// Compares the silhouette of `surface` (model frame, metres: points
 /// spread over the whole surface) at `pose` with the pixels of `observed`
 /// (camera frame: the object's masked depth points, spread over the mask),
 /// on cells `cells_across` to the silhouette's larger side. `None` when
-/// nothing projects.
+/// nothing projects, or the silhouette has too few interior cells.
 pub fn silhouette(
     pose: &Pose,
     surface: &[Point3<f64>],
@@ -84,8 +88,23 @@ pub fn silhouette(
             hit[k] = true;
         }
     }
-    let silhouette_cells = inside.iter().filter(|&&b| b).count();
-    let covered = inside.iter().zip(&hit).filter(|&(&s, &h)| s && h).count();
+    // Only the silhouette's interior is judged: a cell on its edge may hold
+    // a sliver of the mask, and the sensor loses depth at object edges, so
+    // an edge cell without points says nothing.
+    let interior: Vec<usize> = (0..n)
+        .filter(|&k| {
+            let (i, j) = ((k as i64) % side, (k as i64) / side);
+            inside[k]
+                && [(-1, 0), (1, 0), (0, -1), (0, 1)].iter().all(|(di, dj)| {
+                    let (a, b) = (i + di, j + dj);
+                    (0..side).contains(&a) && (0..side).contains(&b) && inside[(b * side + a) as usize]
+                })
+        })
+        .collect();
+    if interior.len() < MIN_INTERIOR_CELLS {
+        return None;
+    }
+    let covered = interior.iter().filter(|&&k| hit[k]).count();
     let grown = |k: usize| -> bool {
         let (i, j) = ((k as i64) % side, (k as i64) / side);
         (-1..=1).any(|dj| {
@@ -97,7 +116,7 @@ pub fn silhouette(
     };
     let explained = seen.iter().filter(|&&pixel| index(pixel).is_some_and(grown)).count();
     Some(Silhouette {
-        covered: covered as f64 / silhouette_cells as f64,
+        covered: covered as f64 / interior.len() as f64,
         explained: explained as f64 / seen.len() as f64,
     })
 }
@@ -257,5 +276,8 @@ mod tests {
         assert!((0.3..0.7).contains(&agreement.covered), "{agreement:?}");
         assert!((0.3..0.8).contains(&agreement.explained), "{agreement:?}");
         assert!(silhouette(&pose, &surface, &[], &CAMERA, 12).is_none());
+        // A rod seen side-on has no interior to judge.
+        let rod: Vec<_> = (0..200).map(|i| Point3::new(-0.05 + i as f64 * 5e-4, 0.0, 0.0)).collect();
+        assert!(silhouette(&pose, &rod, &observed, &CAMERA, 12).is_none());
     }
 }
