@@ -320,3 +320,42 @@ fn every_deploy_graph_gives_the_same_messages_as_processes_and_in_process() {
     drop(scratch);
     assert_nothing_leaked(&before);
 }
+
+/// The tracking demo's graph (deploy/tracking.toml, the default model, real
+/// processes) over a video in which an occluder hides one object for longer
+/// than the sampler keeps estimates (development seed 5: object 10, 20
+/// images). Its estimates carry `LOST` when it is seen again (the samples
+/// came from the prior: the track was broken), then `REINITIALISED` once a
+/// second estimate confirms the new one, and the last estimate is within
+/// 10°5cm again.
+#[test]
+fn an_occluded_object_is_flagged_lost_then_reinitialised_and_recovered() {
+    let _serial = serial();
+    let scratch = Scratch::new("track-occlusion");
+    let out = scratch.dir.join("demo");
+    let output = poseflow()
+        .args(["demo", "--track", "--json", "--frames", "60", "--occlusions", "1", "--seed", "5"])
+        .args(["--out", out.to_str().unwrap()])
+        .current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let event = &report["events"][0];
+    assert_eq!(event["kind"], "occlusion", "{report}");
+    let occluded = event["obj_id"].as_u64().unwrap();
+    // scene,image,object,rotation_error_deg,translation_error_cm,flags
+    let table = std::fs::read_to_string(out.join("tracking.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = table.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    let of_object: Vec<&Vec<&str>> = rows.iter().filter(|r| r[2].parse::<u64>().unwrap() == occluded).collect();
+    let flagged = |flag: &str| of_object.iter().position(|r| r[5].split('|').any(|f| f == flag));
+    let lost = flagged("lost").unwrap_or_else(|| panic!("object {occluded} never flagged lost:\n{table}"));
+    let reinitialised =
+        of_object[lost..].iter().position(|r| r[5].split('|').any(|f| f == "reinitialised")).unwrap_or_else(|| {
+            panic!("object {occluded} never reinitialised after image {}:\n{table}", of_object[lost][1])
+        });
+    assert!(reinitialised > 0, "{table}");
+    let last = of_object.last().unwrap();
+    let (rotation, translation_cm): (f64, f64) = (last[3].parse().unwrap(), last[4].parse().unwrap());
+    assert!(rotation < 10.0 && translation_cm < 5.0, "last estimate {last:?}\n{table}");
+}
