@@ -161,11 +161,8 @@ fn lost_and_unsure_estimates_start_from_the_prior_wholly_or_in_part() {
     assert_eq!(times, vec![0.0, 0.25, 0.5, 0.75, 0.8]);
 }
 
-/// A restarted source numbers its frames from 0 again and may show another
-/// scene: its restart notice drops every track, and estimates of the old
-/// numbering never seed the new frames.
-#[test]
-fn an_upstream_restart_drops_the_tracks() {
+/// A tracking sampler of 2 samples whose field never moves them.
+fn tracking_stage_without_flow() -> SamplerStage<impl poseflow_sampler::VelocityField> {
     let params = SamplerParams {
         samples: 2,
         tracking: TrackingParams { enabled: true, ..Default::default() },
@@ -175,7 +172,15 @@ fn an_upstream_restart_drops_the_tracks() {
         out.fill(0.0);
         Ok(())
     };
-    let mut stage = SamplerStage::new(params, zero);
+    SamplerStage::new(params, zero)
+}
+
+/// A restarted source numbers its frames from 0 again and may show another
+/// scene: its restart notice drops every track, and estimates of the old
+/// numbering never seed the new frames.
+#[test]
+fn an_upstream_restart_drops_the_tracks() {
+    let mut stage = tracking_stage_without_flow();
     let mut out = Collect(Vec::new());
     stage.remember(500, 5, target(), 0);
     assert_eq!(stage.start_for(&handle(501)), Start::Track(target()));
@@ -202,16 +207,7 @@ fn an_upstream_restart_drops_the_tracks() {
 /// afterwards does not seed the new one.
 #[test]
 fn a_sequence_start_drops_the_object_track_and_late_estimates_of_the_old_scene() {
-    let params = SamplerParams {
-        samples: 2,
-        tracking: TrackingParams { enabled: true, ..Default::default() },
-        ..Default::default()
-    };
-    let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), FieldError> {
-        out.fill(0.0);
-        Ok(())
-    };
-    let mut stage = SamplerStage::new(params, zero);
+    let mut stage = tracking_stage_without_flow();
     let mut out = Collect(Vec::new());
     stage.remember(39, 5, target(), 0);
     let mut first = handle(40);

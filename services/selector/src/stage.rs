@@ -12,8 +12,9 @@ use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
 
 use crate::track::{Evidence, TrackMonitor, Verdict};
-use crate::visibility::{FitSettings, Pinhole, point_fit, silhouette};
+use crate::visibility::{FitSettings, point_fit, silhouette};
 use crate::{Method, ObjectGeometry, ObjectLibrary, Selection, SelectorError, SelectorParams, select};
+use poseflow_geometry::metrics::Pinhole;
 
 /// One Observation's points (camera frame, metres), kept until its
 /// Hypotheses come.

@@ -45,10 +45,12 @@
 //! | tracking     | tracking                    | unsure (1)              | unsure (1)         | lost         |
 //! | unsure (n)   | tracking                    | unsure (n+1), lost at `lost_after` | same    | lost         |
 //!
-//! A silhouette the observed points do not cover is a weak failure: it
-//! makes a tracked object unsure (n unchanged) and is otherwise ignored,
-//! since an occluder hides part of a correct track for many frames and
-//! sensors lose the depth of surfaces seen at grazing angles.
+//! A residual grown against the track's usual one, and a silhouette the
+//! observed points do not cover, are weak failures: they make a tracked
+//! object unsure (n unchanged), so prior samples are mixed in, and are
+//! otherwise ignored. A correct track's residual drifts as the object
+//! turns, an occluder hides part of a correct track's silhouette for many
+//! frames, and sensors lose the depth of surfaces seen at grazing angles.
 //! | lost         | confirming                  | –                       | lost               | lost         |
 
 use std::collections::{HashMap, VecDeque};
@@ -70,7 +72,7 @@ use crate::visibility::{PointFit, Silhouette};
 /// | `min_inlier_share` | a smaller share of inliers is a poor fit (soft) | 0.6 |
 /// | `lost_inlier_share` | a smaller share is a lost fit (hard) | 0.3 |
 /// | `max_residual` | a larger RMS distance of the points to the surface is a poor fit (soft), metres | 0.004 |
-/// | `residual_ratio` | an RMS residual this many times the track's usual one is a poor fit (soft) | 1.5 |
+/// | `residual_ratio` | an RMS residual this many times the track's usual one makes a tracked object unsure (weak) | 1.5 |
 /// | `max_hidden_share` | a larger share of the points hidden by the object's own body at the pose is a poor fit (soft) | 0.25 |
 /// | `min_covered` | a smaller share of the pose's silhouette interior holding observed points makes a tracked object unsure (weak); 0 switches the test off | 0.5 |
 /// | `max_spread_deg` | tracking: a wider rotational spread of the kept hypotheses is unsure (soft) | 45 |
@@ -282,10 +284,11 @@ impl Failure {
     /// A weak failure makes a tracked object unsure (so the next frame
     /// mixes in prior samples) but never loses it, and does not stop a
     /// candidate's confirmation: an occluder hides part of a correct
-    /// track's silhouette for many frames, and a sensor loses the depth of
-    /// surfaces seen at grazing angles.
+    /// track's silhouette for many frames, a sensor loses the depth of
+    /// surfaces seen at grazing angles, and a correct track's residual
+    /// drifts as the object turns (1.3 to 2.1 mm over a few frames).
     pub fn is_weak(&self) -> bool {
-        matches!(self, Self::Uncovered { .. })
+        matches!(self, Self::Uncovered { .. } | Self::ResidualGrew { .. })
     }
 }
 
@@ -721,21 +724,22 @@ mod tests {
         // the surface as the track's usual 1.5 mm: over the absolute limit.
         let verdict = monitor.check(1, &with_residual(6, 0.0045));
         assert!(matches!(verdict.failures[..], [Failure::Residual { .. }]), "{verdict:?}");
-        // Under the absolute limit, but twice the usual.
-        let verdict = monitor.check(1, &with_residual(7, 0.003));
-        assert!(matches!(verdict.failures[..], [Failure::ResidualGrew { .. }]), "{verdict:?}");
-        assert_eq!(verdict.flags(), flags::LOST, "the second soft failure in a row");
-        // The usual residual outlasts the loss: a candidate that fits as
-        // poorly is not taken, one that fits as the track did is.
-        let candidate = monitor.check(1, &with_residual(8, 0.003));
-        assert!(matches!(candidate.failures[..], [Failure::ResidualGrew { .. }]), "{candidate:?}");
-        assert_eq!(candidate.after, TrackState::Lost);
-        assert_eq!(monitor.check(1, &with_residual(9, 0.0016)).after, TrackState::Confirming { after_loss: true });
-        let back = monitor.check(1, &with_residual(10, 0.0016));
+        // Under the absolute limit, but twice the usual: unsure, never lost.
+        for frame in 7..10 {
+            let verdict = monitor.check(1, &with_residual(frame, 0.003));
+            assert!(matches!(verdict.failures[..], [Failure::ResidualGrew { .. }]), "{verdict:?}");
+            assert_eq!((verdict.after, verdict.flags()), (TrackState::Unsure(1), flags::UNSURE));
+        }
+        // After a loss the usual residual is remembered: a candidate that
+        // fits as poorly is confirmed but stays unsure.
+        monitor.check(1, &evidence(10, 0.1, turned(0.0)));
+        assert_eq!(monitor.check(1, &with_residual(11, 0.003)).after, TrackState::Confirming { after_loss: true });
+        let back = monitor.check(1, &with_residual(12, 0.003));
         assert_eq!((back.after, back.flags()), (TrackState::Tracking, flags::REINITIALISED));
+        assert_eq!(monitor.check(1, &with_residual(13, 0.003)).after, TrackState::Unsure(0));
         // Long after, the old residuals are forgotten (the object may be
         // further away, its depth noisier).
-        let later = monitor.check(1, &with_residual(10 + RESIDUAL_MEMORY_FRAMES + 1, 0.003));
+        let later = monitor.check(1, &with_residual(13 + RESIDUAL_MEMORY_FRAMES + 1, 0.003));
         assert_eq!(later.failures, vec![], "{later:?}");
     }
 

@@ -12,22 +12,7 @@
 
 use nalgebra::Point3;
 use poseflow_geometry::Pose;
-
-/// A pinhole camera, pixels.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Pinhole {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-}
-
-impl Pinhole {
-    /// The pixel a camera-frame point projects to; `None` behind the camera.
-    pub fn project(&self, x: &Point3<f64>) -> Option<(f64, f64)> {
-        (x.z > 1e-6).then(|| (self.fx * x.x / x.z + self.cx, self.fy * x.y / x.z + self.cy))
-    }
-}
+use poseflow_geometry::metrics::Pinhole;
 
 /// How the posed object's silhouette and the observed points agree, on a
 /// grid of square cells laid over the silhouette's bounding box.
@@ -58,8 +43,8 @@ pub fn silhouette(
     camera: &Pinhole,
     cells_across: usize,
 ) -> Option<Silhouette> {
-    let model: Vec<(f64, f64)> = surface.iter().filter_map(|p| camera.project(&pose.transform_point(p))).collect();
-    let seen: Vec<(f64, f64)> = observed.iter().filter_map(|x| camera.project(x)).collect();
+    let model: Vec<(f64, f64)> = surface.iter().filter_map(|p| camera.pixel(&pose.transform_point(p))).collect();
+    let seen: Vec<(f64, f64)> = observed.iter().filter_map(|x| camera.pixel(x)).collect();
     if model.is_empty() || seen.is_empty() {
         return None;
     }

@@ -11,7 +11,8 @@ use nalgebra::Point3;
 
 use crate::{Pose, SymmetrySet};
 
-/// Pinhole intrinsics for [`mspd`] (pixels; OpenCV convention).
+/// Pinhole intrinsics (pixels; OpenCV convention: camera frame x right,
+/// y down, z forward; pixel u right, v down from the top-left corner).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Pinhole {
     pub fx: f64,
@@ -23,6 +24,14 @@ pub struct Pinhole {
 impl Pinhole {
     fn project(&self, p: &Point3<f64>) -> [f64; 2] {
         [self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy]
+    }
+
+    /// The pixel a camera-frame point projects to; `None` behind the camera.
+    pub fn pixel(&self, p: &Point3<f64>) -> Option<(f64, f64)> {
+        (p.z > 1e-6).then(|| {
+            let [u, v] = self.project(p);
+            (u, v)
+        })
     }
 }
 
