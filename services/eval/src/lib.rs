@@ -45,6 +45,11 @@ use poseflow_runtime::progress::Progress;
     <out>/poseflow_<dataset>-<split>.csv (BOP19 results: scene_id,im_id,obj_id,score,R,t,time; t in mm, time = \
     seconds the graph spent on the image), <out>/instances.csv (per scored instance: the selected pose's errors and \
     reported spread) and <out>/summary.json.\n\n\
+    With a tracking graph (its sampler starting from earlier estimates, e.g. deploy/tracking.toml) each scene is \
+    also reported as a video: per object the images estimated, tracked, flagged lost, unsure and reinitialised, \
+    5°5cm and 10°5cm (a hidden image is a miss), and for each event of video_events.json the images from the \
+    object reappearing (≥ 30 % visible) or moving to its estimate being back within 10°5cm; every estimate with its \
+    errors and flags in <out>/tracking.csv.\n\n\
     Scored instances: the targets of test_targets_bop19.json (or --targets) with at least 10 % of their silhouette \
     visible (scene_gt_info.json), as BOP19; an instance without an estimate counts as a miss. Symmetric objects \
     (models_info.json) are scored against the closest symmetric twin, continuous symmetries discretised as the \

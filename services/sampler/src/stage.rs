@@ -168,7 +168,11 @@ impl<F: VelocityField> Transform for SamplerStage<F> {
         }
         if handle.header.has_flag(flags::SEQUENCE_START) {
             let (frame, object) = (handle.header.frame_id, handle.header.object_id);
-            self.previous.remove(&object);
+            // An estimate of this frame or later (a prior fed ahead of its
+            // frame) belongs to the new sequence.
+            if let Some(estimates) = self.previous.get_mut(&object) {
+                *estimates = estimates.split_off(&frame);
+            }
             self.sequence_start.insert(object, frame);
         }
         let (header, poses) = self.hypotheses(handle)?;

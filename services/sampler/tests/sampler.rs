@@ -210,15 +210,18 @@ fn a_sequence_start_drops_the_object_track_and_late_estimates_of_the_old_scene()
     let mut stage = tracking_stage_without_flow();
     let mut out = Collect(Vec::new());
     stage.remember(39, 5, target(), 0);
+    // A prior for the new sequence's first frame, fed ahead of it, stays.
+    let fed_ahead = Pose::new(target().rotation, target().translation + Vector3::new(0.0, 0.0, 0.1));
+    stage.remember(41, 5, fed_ahead, 0);
     let mut first = handle(40);
     first.header.flags |= flags::SEQUENCE_START;
     stage.process(Input { header: &first, payload: &[] }, &mut out).unwrap();
     assert!(!out.0[0].0.header.has_flag(flags::TRACKING), "started from the prior");
     stage.remember(39, 5, target(), 0);
-    assert_eq!(stage.start_for(&handle(41)), Start::Prior, "the old scene's estimate is ignored");
+    assert_eq!(stage.start_for(&handle(41)), Start::Track(fed_ahead), "the old scene's estimate is ignored");
     let other = Pose::new(target().rotation, target().translation + Vector3::new(0.0, 0.1, 0.0));
-    stage.remember(40, 5, other, 0);
-    assert_eq!(stage.start_for(&handle(41)), Start::Track(other));
+    stage.remember(42, 5, other, 0);
+    assert_eq!(stage.start_for(&handle(42)), Start::Track(other));
 }
 
 struct Collect(Vec<(poseflow_contracts::HypothesesHeader, Vec<f32>)>);

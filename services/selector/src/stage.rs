@@ -67,7 +67,8 @@ impl SelectorStage {
         &self.params
     }
 
-    /// Keeps an Observation's valid points in the camera frame.
+    /// Keeps an Observation's valid points in the camera frame: the first
+    /// `score_points`, or all of them for the track check's silhouette.
     pub fn keep_observation(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<(), SelectorError> {
         let view = header.view(payload).map_err(|e| SelectorError::Frame {
             frame: header.header.frame_id,
@@ -77,10 +78,12 @@ impl SelectorStage {
         let scale = f64::from(header.point_scale);
         let centroid = Vector3::from(header.centroid.map(f64::from));
         let valid = (header.valid_point_count as usize).clamp(1, header.point_count as usize);
+        let silhouette = self.monitor.as_ref().is_some_and(|m| m.params().min_covered > 0.0);
+        let kept = if silhouette { valid } else { valid.min(self.params.score_points) };
         let points = view
             .points
             .chunks_exact(3)
-            .take(valid)
+            .take(kept)
             .map(|p| Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) * scale + centroid)
             .collect();
         if self.observations.len() == self.params.observations {
@@ -187,8 +190,8 @@ impl SelectorStage {
 }
 
 /// A line of sight passing this deep inside the object hides its point
-/// (metres): a few grid cells of the signed distance, past its
-/// interpolation error at thin parts.
+/// (metres): beyond the signed-distance grid's interpolation error at thin
+/// parts.
 const HIDDEN_DEPTH: f64 = 0.004;
 
 /// Cells across the silhouette's larger side: with 1,024 points spread
