@@ -22,14 +22,15 @@
 //! A wrong pose can fit every point to within a centimetre: a turned object
 //! puts the points on another part of its surface. It shows as a larger RMS
 //! residual (absolute, and relative to the track's own), as points its own
-//! body would hide, or as a silhouette the mask does not fill.
+//! body would hide, or as a silhouette the observed points do not fill.
 //!
 //! Spread and jump are only meaningful while tracking: an estimate from the
 //! prior of a symmetric object spreads over its symmetric poses, and an
-//! object being re-acquired has no motion to compare with. The relative
-//! residual needs a fit history, which a lost object starts afresh. An
-//! estimate made while the object is unsure or lost is judged by its
-//! points, its fit and its silhouette.
+//! object being re-acquired has no motion to compare with. The track's
+//! usual residual outlasts a loss (for 30 frames): how well an object fits
+//! is a matter of its shape and the sensor. An estimate made while the
+//! object is unsure or lost is judged by its points, its fit and its
+//! silhouette.
 //!
 //! One estimate from the prior is not yet a track: the model's prior can
 //! put a turned object on a pose that fits its points nearly as well. So a
@@ -44,6 +45,7 @@
 //! | confirming   | tracking (`REINITIALISED` after a loss) | confirming (new candidate) | lost | lost         |
 //! | tracking     | tracking                    | unsure (1)              | unsure (1)         | lost         |
 //! | unsure (n)   | tracking                    | unsure (n+1), lost at `lost_after` | same    | lost         |
+//! | lost         | confirming                  | –                       | lost               | lost         |
 //!
 //! A residual grown against the track's usual one, and a silhouette the
 //! observed points do not cover, are weak failures: they make a tracked
@@ -51,7 +53,6 @@
 //! otherwise ignored. A correct track's residual drifts as the object
 //! turns, an occluder hides part of a correct track's silhouette for many
 //! frames, and sensors lose the depth of surfaces seen at grazing angles.
-//! | lost         | confirming                  | –                       | lost               | lost         |
 
 use std::collections::{HashMap, VecDeque};
 
