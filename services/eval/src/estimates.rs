@@ -6,7 +6,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use anyhow::Context;
-use poseflow_contracts::{EstimateHeader, StampSlot, WEIGHTED_POSE_LEN, flags};
+use poseflow_contracts::{EstimateHeader, StampSlot, WEIGHTED_POSE_LEN};
 use poseflow_geometry::Pose;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
@@ -31,9 +31,8 @@ pub struct Estimated {
     pub service_time: Option<Duration>,
     /// From reading the image to the estimate.
     pub latency: Option<Duration>,
-    /// The samples started from an earlier estimate or a prior.
-    pub tracked: bool,
-    /// The Estimate header's flags (0 from a results file).
+    /// The Estimate header's flags (0 from a results file; `TRACKING`: the
+    /// samples started from an earlier estimate or a prior).
     pub flags: u32,
 }
 
@@ -83,7 +82,6 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
                     .stamps
                     .elapsed_ns(StampSlot::Source, StampSlot::Selector)
                     .map(Duration::from_nanos),
-                tracked: header.header.has_flag(flags::TRACKING),
                 flags: header.header.flags,
             },
         ));
@@ -132,7 +130,6 @@ pub fn read_results(path: &Path) -> anyhow::Result<Vec<Estimated>> {
                 .time_s
                 .map(|s| Duration::from_secs_f64(s / f64::from(per_image[&(row.scene_id, row.im_id)]))),
             latency: row.time_s.map(Duration::from_secs_f64),
-            tracked: false,
             flags: 0,
         })
         .collect())

@@ -339,7 +339,6 @@ fn score_images(
                 score,
                 service_time: estimate.and_then(|e| e.service_time),
                 latency: estimate.and_then(|e| e.latency),
-                tracked: estimate.is_some_and(|e| e.tracked),
                 flags: estimate.map_or(0, |e| e.flags),
                 visib_fract: truth.visib_fract,
             });
@@ -500,7 +499,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let stages = args.results.is_none().then(|| stage_counts(&args.out.join("run.json"))).transpose()?;
     let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
     let (outcomes, unmatched_estimates) = evaluate(&images, &estimates, &objects, every_hypothesis)?;
-    let (videos, per_image) = if outcomes.iter().any(|o| o.tracked) {
+    let (videos, per_image) = if outcomes.iter().any(InstanceOutcome::tracked) {
         let per_image = args.out.join("tracking.csv");
         (summarise_videos(&args.dataset.join(&args.split), &images, &outcomes, &per_image)?, Some(per_image))
     } else {

@@ -4,6 +4,7 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
+use poseflow_contracts::flags;
 use serde::Serialize;
 
 use super::score::InstanceScore;
@@ -22,12 +23,17 @@ pub struct InstanceOutcome {
     pub service_time: Option<Duration>,
     /// From the frame source reading the image to the selector's estimate.
     pub latency: Option<Duration>,
-    /// The estimate's samples started from an earlier estimate or a prior.
-    pub tracked: bool,
     /// The estimate's header flags (0 without an estimate).
     pub flags: u32,
     /// The instance's visible fraction (`scene_gt_info.json`), when known.
     pub visib_fract: Option<f64>,
+}
+
+impl InstanceOutcome {
+    /// The estimate's samples started from an earlier estimate or a prior.
+    pub fn tracked(&self) -> bool {
+        self.flags & flags::TRACKING != 0
+    }
 }
 
 /// Accuracies in percent over a set of instances.
@@ -127,7 +133,7 @@ fn accuracies<'a>(outcomes: impl Iterator<Item = &'a InstanceOutcome>) -> Accura
     Accuracies {
         instances: n,
         estimated: scores.len(),
-        tracked: outcomes.iter().filter(|o| o.tracked).count(),
+        tracked: outcomes.iter().filter(|o| o.tracked()).count(),
         acc_5deg_2cm: percent(sum(&|s| s.accuracy[0]), n),
         acc_5deg_5cm: percent(sum(&|s| s.accuracy[1]), n),
         acc_10deg_2cm: percent(sum(&|s| s.accuracy[2]), n),
@@ -282,8 +288,7 @@ mod tests {
             }),
             service_time: Some(Duration::from_millis(u64::from(obj_id) * 10)),
             latency: Some(Duration::from_millis(500)),
-            tracked: obj_id == 10,
-            flags: 0,
+            flags: if obj_id == 10 { flags::TRACKING } else { 0 },
             visib_fract: None,
         }
     }
@@ -299,7 +304,6 @@ mod tests {
                 score: None,
                 service_time: None,
                 latency: None,
-                tracked: false,
                 flags: 0,
                 visib_fract: Some(0.25),
             },

@@ -138,7 +138,7 @@ pub fn summarise_video(
         });
     }
     let within: BTreeMap<(u32, u32), bool> = images.iter().map(|e| ((e.im_id, e.obj_id), e.within(LOOSE))).collect();
-    let events = event_outcomes(scene, &within, frames)?;
+    let events = event_outcomes(scene, &gt, &within, frames)?;
     Ok(VideoSummary {
         scene_id,
         frames,
@@ -153,6 +153,7 @@ pub fn summarise_video(
 /// The outcomes of the video's events, if it has any.
 fn event_outcomes(
     scene: &SceneDir,
+    gt: &BTreeMap<u32, Vec<GtEntry>>,
     within: &BTreeMap<(u32, u32), bool>,
     frames: u32,
 ) -> anyhow::Result<Vec<EventOutcome>> {
@@ -160,7 +161,6 @@ fn event_outcomes(
         return Ok(Vec::new());
     }
     let events: Vec<EventRecord> = read_json(&scene.video_events())?;
-    let gt: BTreeMap<u32, Vec<GtEntry>> = read_json(&scene.scene_gt())?;
     let info: BTreeMap<u32, Vec<GtInfoEntry>> = read_json(&scene.scene_gt_info())?;
     let visible = gt
         .iter()
