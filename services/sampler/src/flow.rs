@@ -191,8 +191,21 @@ impl FlowSampler {
                 let shift = gaussian3(&mut rng, tracking.translation_noise / scale);
                 Pose::new(previous.rotation * so3::exp(&turn), centred + shift)
             }));
-            if from_prior < n {
-                groups.push(Group { samples: from_prior..n, start_time: tracking.start_time, steps: tracking.steps });
+            // The previous estimate itself stays where it was: the last
+            // tracked sample, outside the integrated group, and only beside
+            // at least one sample of the flow.
+            let integrated_end = if tracking.keep_previous && n - from_prior >= 2 {
+                self.poses[n - 1] = Pose::new(previous.rotation, centred);
+                n - 1
+            } else {
+                n
+            };
+            if from_prior < integrated_end {
+                groups.push(Group {
+                    samples: from_prior..integrated_end,
+                    start_time: tracking.start_time,
+                    steps: tracking.steps,
+                });
             }
         }
         groups

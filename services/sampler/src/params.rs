@@ -42,6 +42,7 @@ pub struct SamplerParams {
 /// | `translation_noise` | σ per axis of the perturbation of the previous translation, metres | 0.01 |
 /// | `max_age_frames` | an estimate older than this many frames is not used | 5 |
 /// | `prior_share` | after an estimate flagged `UNSURE`: share of the samples drawn from the prior (K = `steps` from t = 0) beside the tracked ones | 0.5 |
+/// | `keep_previous` | one tracked sample is the previous estimate itself, neither perturbed nor integrated | true |
 ///
 /// After an estimate flagged `LOST` (the selector's track check) the object's
 /// next frame starts from the prior, every sample.
@@ -62,6 +63,13 @@ pub struct TrackingParams {
     pub max_age_frames: u64,
     #[serde(default = "default_prior_share")]
     pub prior_share: f64,
+    /// The perturbed samples after one Euler step land several degrees
+    /// from a pose that still fits, and where the flow prefers another
+    /// mode of a near-symmetric view, all of them do; the previous
+    /// estimate itself lets the selector keep a track that still explains
+    /// the observation.
+    #[serde(default = "default_keep_previous")]
+    pub keep_previous: bool,
 }
 
 impl Default for TrackingParams {
@@ -74,6 +82,7 @@ impl Default for TrackingParams {
             translation_noise: default_translation_noise(),
             max_age_frames: default_max_age(),
             prior_share: default_prior_share(),
+            keep_previous: default_keep_previous(),
         }
     }
 }
@@ -107,6 +116,9 @@ fn default_max_age() -> u64 {
 }
 fn default_prior_share() -> f64 {
     0.5
+}
+fn default_keep_previous() -> bool {
+    true
 }
 
 impl Default for SamplerParams {

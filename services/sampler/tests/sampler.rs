@@ -121,6 +121,50 @@ fn tracking_starts_from_the_previous_estimate_late_in_the_flow() {
     assert!((times[0] - 0.8).abs() < 1e-6 && (times[1] - 0.9).abs() < 1e-6, "{times:?}");
 }
 
+/// The previous estimate itself is one of the tracked samples: neither
+/// perturbed nor integrated, so the selector can keep a track that still
+/// fits even where the flow pulls every sample elsewhere.
+#[test]
+fn tracking_keeps_the_previous_estimate_itself_beside_the_flows_samples() {
+    let handle = handle(8);
+    let previous = Pose::new(so3::exp(&Vector3::new(0.1, 2.3, -0.2)), Vector3::new(0.1, -0.02, 0.7));
+    let sample = |keep_previous: bool, samples: usize| {
+        let params = SamplerParams {
+            samples,
+            tracking: TrackingParams { enabled: true, keep_previous, ..Default::default() },
+            ..Default::default()
+        };
+        let mut asked = Vec::new();
+        let mut times = Vec::new();
+        let mut exact = toward_target(&handle, &mut times);
+        let mut field = |request: &VelocityRequest, poses: &[f32], out: &mut [f32]| {
+            asked.push(request.sample_count);
+            exact(request, poses, out)
+        };
+        let poses =
+            FlowSampler::new(params).sample(&handle, &Start::Track(previous), &mut field).unwrap().poses.to_vec();
+        (poses, asked)
+    };
+    let same = |a: &Pose, b: &Pose| {
+        so3::geodesic_angle(&a.rotation, &b.rotation) < 1e-9 && (a.translation - b.translation).norm() < 1e-9
+    };
+
+    let (kept, asked) = sample(true, 8);
+    assert_eq!(asked, vec![7], "the previous estimate is not integrated");
+    assert!(same(&kept[7], &previous));
+    assert!(kept[..7].iter().all(|pose| !same(pose, &previous)));
+    assert_near_target(&kept[..7], 1e-3, 1e-5);
+
+    let (flowed, asked) = sample(false, 8);
+    assert_eq!(asked, vec![8]);
+    assert!(flowed.iter().all(|pose| !same(pose, &previous)));
+
+    // One sample is the flow's: a tracker must still track.
+    let (single, asked) = sample(true, 1);
+    assert_eq!(asked, vec![1]);
+    assert_near_target(&single, 1e-3, 1e-5);
+}
+
 /// The selector's track check steers the next frame: after `LOST` every
 /// sample starts from the prior (K steps from t = 0); after `UNSURE`
 /// `prior_share` of them do and the rest are tracked (late in the flow), each
@@ -155,9 +199,9 @@ fn lost_and_unsure_estimates_start_from_the_prior_wholly_or_in_part() {
         stage.remember(10, 5, target(), flags::REINITIALISED);
         assert_eq!(stage.start_for(&next), Start::Track(target()));
     }
-    // 3 of 10 from the prior in 4 steps from t = 0, then 7 tracked in one
-    // step from t = 0.8.
-    assert_eq!(counts, vec![3, 3, 3, 3, 7]);
+    // 3 of 10 from the prior in 4 steps from t = 0, then 6 tracked in one
+    // step from t = 0.8 beside the previous estimate itself.
+    assert_eq!(counts, vec![3, 3, 3, 3, 6]);
     assert_eq!(times, vec![0.0, 0.25, 0.5, 0.75, 0.8]);
 }
 

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use std::time::Instant;
 
-use nalgebra::Point3;
+use nalgebra::{Matrix3, Point3, Rotation3, Unit, Vector3};
 use parry3d::shape::{TriMesh, TriMeshBuilderError};
 use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_geometry::sampling::seeded_rng;
@@ -55,6 +55,24 @@ impl ObjectGeometry {
     }
 
     /// The largest side of the model's bounding box, metres.
+    /// Half turns about the principal axes of the surface (through its
+    /// centroid), as rigid motions of the model frame `y ↦ F y + s`: the
+    /// poses a depth fit confuses most, a box or a figure seen from one
+    /// side turned over.
+    pub fn half_turns(&self) -> [(Rotation3<f64>, Vector3<f64>); 3] {
+        let surface = self.surface();
+        let centroid = surface.iter().fold(Vector3::zeros(), |sum, p| sum + p.coords) / surface.len().max(1) as f64;
+        let scatter = surface
+            .iter()
+            .fold(Matrix3::zeros(), |sum, p| sum + (p.coords - centroid) * (p.coords - centroid).transpose());
+        let axes = scatter.symmetric_eigen().eigenvectors;
+        std::array::from_fn(|i| {
+            let turn =
+                Rotation3::from_axis_angle(&Unit::new_normalize(axes.column(i).into_owned()), std::f64::consts::PI);
+            (turn, centroid - turn * centroid)
+        })
+    }
+
     pub fn extent(&self) -> f64 {
         f64::from(self.mesh.local_aabb().extents().max())
     }

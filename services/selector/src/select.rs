@@ -29,6 +29,55 @@ pub struct Selection {
     pub scored: Vec<(Pose, f64)>,
     pub kept: usize,
     pub refined: bool,
+    /// The poses `best` was chosen among, with their scores, best first:
+    /// the refined ones with refinement, otherwise the best sample alone.
+    pub candidates: Vec<(Pose, f64)>,
+}
+
+impl Selection {
+    /// Adds to the candidates the `count` best ones turned half a turn
+    /// about each of the object's principal axes ([`ObjectGeometry::half_turns`]),
+    /// refined and scored, and selects the best-scored candidate. For
+    /// re-acquiring an object: on a partial view the flow's samples can all
+    /// land on the turned-over pose, and a local refinement does not turn
+    /// them back. Returns whether `best` changed; a model-free selection is
+    /// left as it is.
+    pub fn search_half_turns(
+        &mut self,
+        object: &ObjectGeometry,
+        points: &[Point3<f64>],
+        params: &SelectorParams,
+        count: usize,
+    ) -> bool {
+        let residuals = match params.method {
+            Method::Chamfer => Residuals::Chamfer(object),
+            Method::Sdf => Residuals::Sdf(object),
+            Method::None | Method::ModelFree => return false,
+        };
+        if points.is_empty() {
+            return false;
+        }
+        let likelihood = Likelihood { noise_std: params.noise_std, outlier_distance: params.outlier_distance };
+        let turns = object.half_turns();
+        let turned: Vec<(Pose, f64)> = self
+            .candidates
+            .iter()
+            .take(count)
+            .flat_map(|(pose, _)| {
+                turns
+                    .iter()
+                    .map(|(turn, shift)| Pose::new(pose.rotation * turn, pose.translation + pose.rotation * shift))
+            })
+            .map(|start| {
+                let pose = refine(object.grid(), &start, points, &likelihood, params.refine_iterations).pose;
+                (pose, residuals.score(&pose, points, &likelihood))
+            })
+            .collect();
+        self.candidates.extend(turned);
+        self.candidates.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let best = self.candidates[0].0;
+        std::mem::replace(&mut self.best, best) != best
+    }
 }
 
 fn failed(detail: impl std::fmt::Display) -> SelectorError {
@@ -107,7 +156,7 @@ pub fn select(
         _ => kept,
     };
 
-    let mut refined_kept: Option<Vec<Pose>> = None;
+    let mut refined_kept: Option<Vec<(Pose, f64)>> = None;
     if let (true, Some(object)) = (params.refine, object) {
         let grid = object.grid();
         // (refined pose, its score, the sample it came from), best first.
@@ -122,7 +171,7 @@ pub fn select(
         if residuals.is_some() {
             refined.sort_by(|a, b| b.1.total_cmp(&a.1));
         }
-        refined_kept = Some(refined.iter().map(|r| r.0).collect());
+        refined_kept = Some(refined.iter().map(|r| (r.0, r.1)).collect());
         for (entry, (pose, score, sample)) in scored[..refined_count].iter_mut().zip(refined) {
             *entry = match params.distribution {
                 Distribution::Refined => (pose, score),
@@ -133,15 +182,21 @@ pub fn select(
 
     let kept_poses: Vec<Pose> = scored[..kept].iter().map(|(p, _)| *p).collect();
     let statistics = PoseStatistics::compute(&kept_poses, None, &karcher).map_err(failed)?;
-    let best = match (params.method, refined_kept) {
+    let best = match (params.method, &refined_kept) {
         (Method::None | Method::ModelFree, None) => statistics.mean.mean,
         (Method::None | Method::ModelFree, Some(refined)) => {
-            karcher_mean_poses(&refined, None, &karcher).map_err(failed)?.mean
+            let poses: Vec<Pose> = refined.iter().map(|r| r.0).collect();
+            karcher_mean_poses(&poses, None, &karcher).map_err(failed)?.mean
         }
-        (Method::Chamfer | Method::Sdf, Some(refined)) => refined[0],
+        (Method::Chamfer | Method::Sdf, Some(refined)) => refined[0].0,
         (Method::Chamfer | Method::Sdf, None) => scored[0].0,
     };
-    Ok(Selection { method: params.method, best, statistics, modes, scored, kept, refined: params.refine })
+    let candidates = match (params.method, refined_kept) {
+        (Method::Chamfer | Method::Sdf, Some(refined)) => refined,
+        (Method::Chamfer | Method::Sdf, None) => vec![scored[0]],
+        _ => vec![(best, 0.0)],
+    };
+    Ok(Selection { method: params.method, best, statistics, modes, scored, kept, refined: params.refine, candidates })
 }
 
 /// Karcher mean and share of samples of each cluster (at most the

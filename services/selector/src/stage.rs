@@ -116,7 +116,7 @@ impl SelectorStage {
         header: &HypothesesHeader,
         payload: &[f32],
     ) -> Result<(Selection, u32), SelectorError> {
-        let (selection, observed) = self.select_for(header, payload)?;
+        let (mut selection, observed) = self.select_for(header, payload)?;
         let Some(monitor) = &mut self.monitor else { return Ok((selection, 0)) };
         if header.header.has_flag(flags::UPSTREAM_RESTARTED) {
             monitor.reset();
@@ -127,6 +127,11 @@ impl SelectorStage {
         }
         let points = observed.as_ref().map_or(&[][..], |o| o.scored(self.params.score_points));
         let model = self.library.as_ref().and_then(|library| library.get(object));
+        if let Some(model) = model.filter(|_| monitor.params().half_turns && !monitor.is_tracking(object))
+            && selection.search_half_turns(model, points, &self.params, HALF_TURN_CANDIDATES)
+        {
+            tracing::debug!(frame, object, "a candidate turned half a turn fits better: selected");
+        }
         let settings = FitSettings {
             inlier_distance: monitor.params().inlier_distance,
             hidden_depth: HIDDEN_DEPTH,
@@ -193,6 +198,10 @@ impl SelectorStage {
 /// (metres): beyond the signed-distance grid's interpolation error at thin
 /// parts.
 const HIDDEN_DEPTH: f64 = 0.004;
+
+/// Candidates turned over while re-acquiring an object: the best two, so
+/// that a second mode near the best is tried as well (six refinements).
+const HALF_TURN_CANDIDATES: usize = 2;
 
 /// Cells across the silhouette's larger side: with 1,024 points spread
 /// over a fully visible mask, several points per cell.

@@ -80,6 +80,7 @@ use crate::visibility::{PointFit, Silhouette};
 /// | `max_jump_deg` | tracking: a larger turn away from the predicted pose is a jump (soft) | 30 |
 /// | `max_jump_m` | tracking: a larger shift away from the predicted position is a jump (soft) | 0.05 |
 /// | `lost_after` | consecutive soft failures that declare the object lost | 2 |
+/// | `half_turns` | while not tracking: also try the best candidates turned half a turn about the object's principal axes (refined and scored) | true |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrackCheckParams {
@@ -109,6 +110,8 @@ pub struct TrackCheckParams {
     pub max_jump_m: f64,
     #[serde(default = "default_lost_after")]
     pub lost_after: u32,
+    #[serde(default = "default_half_turns")]
+    pub half_turns: bool,
 }
 
 fn default_min_points() -> usize {
@@ -143,6 +146,9 @@ fn default_max_jump_deg() -> f64 {
 }
 fn default_max_jump_m() -> f64 {
     0.05
+}
+fn default_half_turns() -> bool {
+    true
 }
 fn default_lost_after() -> u32 {
     2
@@ -416,6 +422,11 @@ impl TrackMonitor {
     /// Forgets one object's track (its first frame of a new sequence).
     pub fn forget(&mut self, object: u32) {
         self.tracks.remove(&object);
+    }
+
+    /// Whether `object`'s track stands (neither unsure nor being acquired).
+    pub fn is_tracking(&self, object: u32) -> bool {
+        self.tracks.get(&object).is_some_and(|t| t.state == TrackState::Tracking)
     }
 
     /// Judges one estimate of `object` and moves its track on.

@@ -168,6 +168,71 @@ fn model_free_selection_takes_the_largest_cluster_and_model_based_the_best_fit()
     assert!(err.contains("Chamfer") && err.contains("points"), "{err}");
 }
 
+/// A box with a cube above one end of its top (apart from it): no half
+/// turn maps it onto itself.
+fn box_with_a_cube() -> ObjectGeometry {
+    let (mut vertices, mut triangles) = Cuboid::new(Vector3::new(0.03, 0.02, 0.01)).to_trimesh();
+    let (cube, cube_triangles) = Cuboid::new(Vector3::new(0.008, 0.008, 0.008)).to_trimesh();
+    let offset = vertices.len() as u32;
+    vertices.extend(cube.iter().map(|p| p + Vector3::new(0.02, 0.0, 0.025)));
+    triangles.extend(cube_triangles.iter().map(|t| t.map(|i| i + offset)));
+    ObjectGeometry::from_mesh(3, vertices, triangles, 48).unwrap()
+}
+
+#[test]
+fn half_turns_are_about_the_principal_axes_through_the_centroid() {
+    // The box's principal axes are the model axes (distinct side lengths),
+    // its centroid the origin, up to the sampling of its surface points
+    // (about 2°).
+    let turns = box_object().half_turns();
+    for (turn, shift) in &turns {
+        assert!((turn.angle() - std::f64::consts::PI).abs() < 1e-6, "{}", turn.angle());
+        assert!(shift.norm() < 1e-3, "{shift}");
+    }
+    for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
+        let about = |turn: &nalgebra::Rotation3<f64>| (turn * axis - axis).norm() < 0.1;
+        assert_eq!(
+            turns.iter().filter(|(turn, _)| about(turn)).count(),
+            1,
+            "{axis} {:?}",
+            turns.iter().map(|t| t.0.axis()).collect::<Vec<_>>()
+        );
+    }
+    // Off the centroid, the shift keeps the centroid in place.
+    let object = box_with_a_cube();
+    let centroid =
+        object.surface().iter().fold(Vector3::zeros(), |sum, p| sum + p.coords) / object.surface().len() as f64;
+    for (turn, shift) in object.half_turns() {
+        assert!((turn * centroid + shift - centroid).norm() < 1e-12);
+    }
+}
+
+#[test]
+fn a_half_turn_search_finds_the_pose_every_sample_turned_over() {
+    let object = box_with_a_cube();
+    let points: Vec<Point3<f64>> = object.surface().iter().step_by(4).map(|p| truth().transform_point(p)).collect();
+    // Every sample near the truth turned over about the model's x axis.
+    let over = turned(&truth(), Vector3::x(), 180.0, Vector3::zeros());
+    let hypotheses: Vec<Pose> =
+        (0..10).map(|i| turned(&over, Vector3::new(1.0, i as f64, 0.5), 3.0, Vector3::zeros())).collect();
+    let params = SelectorParams { method: Method::Sdf, refine: true, ..Default::default() };
+    let mut selection = select(&hypotheses, Some(&points), Some(&object), &params).unwrap();
+    assert!(angle_deg(&selection.best, &truth()) > 90.0, "refinement alone does not turn it back");
+    let before = selection.candidates.len();
+
+    assert!(selection.search_half_turns(&object, &points, &params, 2));
+    let (rot, trans) =
+        (angle_deg(&selection.best, &truth()), (selection.best.translation - truth().translation).norm());
+    assert!(rot < 1.0 && trans < 0.001, "{rot:.2} deg, {:.2} mm", trans * 1e3);
+    assert_eq!(selection.candidates.len(), before + 6, "two candidates, three turns each");
+    assert!(selection.candidates.windows(2).all(|w| w[0].1 >= w[1].1), "best first");
+    assert_eq!(selection.candidates[0].0, selection.best);
+    // Nothing to fit without a model-based score.
+    let model_free = SelectorParams::default();
+    let mut by_clusters = select(&hypotheses, None, None, &model_free).unwrap();
+    assert!(!by_clusters.search_half_turns(&object, &points, &model_free, 2));
+}
+
 #[test]
 fn a_score_margin_keeps_every_hypothesis_the_points_cannot_tell_apart() {
     // A 4 cm-radius cylinder about model y: every turn about y fits the
