@@ -40,8 +40,7 @@ impl Selection {
     /// refined and scored, and selects the best-scored candidate. For
     /// re-acquiring an object: on a partial view the flow's samples can all
     /// land on the turned-over pose, and a local refinement does not turn
-    /// them back. Returns whether `best` changed; a model-free selection is
-    /// left as it is.
+    /// them back. Returns whether `best` changed.
     pub fn search_half_turns(
         &mut self,
         object: &ObjectGeometry,
@@ -49,17 +48,8 @@ impl Selection {
         params: &SelectorParams,
         count: usize,
     ) -> bool {
-        let residuals = match params.method {
-            Method::Chamfer => Residuals::Chamfer(object),
-            Method::Sdf => Residuals::Sdf(object),
-            Method::None | Method::ModelFree => return false,
-        };
-        if points.is_empty() {
-            return false;
-        }
-        let likelihood = Likelihood { noise_std: params.noise_std, outlier_distance: params.outlier_distance };
         let turns = object.half_turns();
-        let turned: Vec<(Pose, f64)> = self
+        let starts: Vec<Pose> = self
             .candidates
             .iter()
             .take(count)
@@ -68,12 +58,35 @@ impl Selection {
                     .iter()
                     .map(|(turn, shift)| Pose::new(pose.rotation * turn, pose.translation + pose.rotation * shift))
             })
-            .map(|start| {
-                let pose = refine(object.grid(), &start, points, &likelihood, params.refine_iterations).pose;
-                (pose, residuals.score(&pose, points, &likelihood))
-            })
             .collect();
-        self.candidates.extend(turned);
+        self.consider(&starts, object, points, params)
+    }
+
+    /// Refines and scores `starts` (camera frame) as further candidates,
+    /// and selects the best-scored candidate: poses the samples may have
+    /// missed, such as where the motion so far predicts the object. Returns
+    /// whether `best` changed; a selection without a model-based score, or
+    /// without points, is left as it is.
+    pub fn consider(
+        &mut self,
+        starts: &[Pose],
+        object: &ObjectGeometry,
+        points: &[Point3<f64>],
+        params: &SelectorParams,
+    ) -> bool {
+        let residuals = match params.method {
+            Method::Chamfer => Residuals::Chamfer(object),
+            Method::Sdf => Residuals::Sdf(object),
+            Method::None | Method::ModelFree => return false,
+        };
+        if points.is_empty() || starts.is_empty() {
+            return false;
+        }
+        let likelihood = Likelihood { noise_std: params.noise_std, outlier_distance: params.outlier_distance };
+        self.candidates.extend(starts.iter().map(|start| {
+            let pose = refine(object.grid(), start, points, &likelihood, params.refine_iterations).pose;
+            (pose, residuals.score(&pose, points, &likelihood))
+        }));
         self.candidates.sort_by(|a, b| b.1.total_cmp(&a.1));
         let best = self.candidates[0].0;
         std::mem::replace(&mut self.best, best) != best

@@ -132,6 +132,12 @@ impl SelectorStage {
         {
             tracing::debug!(frame, object, "a candidate turned half a turn fits better: selected");
         }
+        if let Some(model) = model.filter(|_| monitor.params().motion_candidate)
+            && let Some(predicted) = monitor.predicted(object, frame)
+            && selection.consider(&[predicted], model, points, &self.params)
+        {
+            tracing::debug!(frame, object, "the pose the motion predicts fits better: selected");
+        }
         let settings = FitSettings {
             inlier_distance: monitor.params().inlier_distance,
             hidden_depth: HIDDEN_DEPTH,

@@ -44,8 +44,14 @@
 //! | acquiring    | confirming                  | –                       | lost               | lost         |
 //! | confirming   | tracking (`REINITIALISED` after a loss) | confirming (new candidate) | lost | lost         |
 //! | tracking     | tracking                    | unsure (1)              | unsure (1)         | lost         |
-//! | unsure (n)   | tracking                    | unsure (n+1), lost at `lost_after` | same    | lost         |
+//! | unsure (n)   | tracking                    | – (measured, not held against it) | unsure (n+1), lost at `lost_after` | lost |
 //! | lost         | confirming                  | –                       | lost               | lost         |
+//!
+//! The track's motion (constant velocity over its last two estimates that
+//! passed) goes on through weak failures, and leaves out an unsure
+//! object's estimates away from it. The selector tries the pose it
+//! predicts as a candidate ([`TrackMonitor::predicted`]): the samples of an
+//! unsure object may all have left a track that still fits.
 //!
 //! A residual grown against the track's usual one, and a silhouette the
 //! observed points do not cover, are weak failures: they make a tracked
@@ -81,6 +87,7 @@ use crate::visibility::{PointFit, Silhouette};
 /// | `max_jump_m` | tracking: a larger shift away from the predicted position is a jump (soft) | 0.05 |
 /// | `lost_after` | consecutive soft failures that declare the object lost | 2 |
 /// | `half_turns` | while not tracking: also try the best candidates turned half a turn about the object's principal axes (refined and scored) | true |
+/// | `motion_candidate` | tracking or unsure: also try where the track's motion predicts the object (refined and scored) | true |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrackCheckParams {
@@ -110,8 +117,10 @@ pub struct TrackCheckParams {
     pub max_jump_m: f64,
     #[serde(default = "default_lost_after")]
     pub lost_after: u32,
-    #[serde(default = "default_half_turns")]
+    #[serde(default = "default_true")]
     pub half_turns: bool,
+    #[serde(default = "default_true")]
+    pub motion_candidate: bool,
 }
 
 fn default_min_points() -> usize {
@@ -147,7 +156,7 @@ fn default_max_jump_deg() -> f64 {
 fn default_max_jump_m() -> f64 {
     0.05
 }
-fn default_half_turns() -> bool {
+fn default_true() -> bool {
     true
 }
 fn default_lost_after() -> u32 {
@@ -429,6 +438,17 @@ impl TrackMonitor {
         self.tracks.get(&object).is_some_and(|t| t.state == TrackState::Tracking)
     }
 
+    /// Where the motion of `object`'s track puts it at `frame` (constant
+    /// velocity over its last two estimates that passed); `None` unless the
+    /// object is tracking or unsure. For the selector to try as a
+    /// candidate: the samples of an unsure object may all have left a track
+    /// that still fits.
+    pub fn predicted(&self, object: u32, frame: u64) -> Option<Pose> {
+        let track =
+            self.tracks.get(&object).filter(|t| matches!(t.state, TrackState::Tracking | TrackState::Unsure(_)))?;
+        predict(&track.accepted, frame)
+    }
+
     /// Judges one estimate of `object` and moves its track on.
     pub fn check(&mut self, object: u32, evidence: &Evidence) -> Verdict {
         let fresh = Track {
@@ -487,13 +507,18 @@ impl TrackMonitor {
         if before == TrackState::Tracking && evidence.spread_deg > params.max_spread_deg {
             failures.push(Failure::Spread { degrees: evidence.spread_deg });
         }
-        if matches!(before, TrackState::Tracking | TrackState::Confirming { .. })
+        // An unsure track's jump is measured but not held against it: the
+        // prior's samples may be correcting it. It decides whether the
+        // estimate continues the track's motion.
+        let mut jumped = false;
+        if matches!(before, TrackState::Tracking | TrackState::Confirming { .. } | TrackState::Unsure(_))
             && let Some(predicted) = predict(&track.accepted, evidence.frame_id)
         {
             let degrees = so3::geodesic_angle(&predicted.rotation, &evidence.pose.rotation).to_degrees();
             let metres = (predicted.translation - evidence.pose.translation).norm();
             jump = Some((degrees, metres));
-            if degrees > params.max_jump_deg || metres > params.max_jump_m {
+            jumped = degrees > params.max_jump_deg || metres > params.max_jump_m;
+            if jumped && !matches!(before, TrackState::Unsure(_)) {
                 failures.push(Failure::Jump { degrees, metres });
             }
         }
@@ -527,19 +552,26 @@ impl TrackMonitor {
             track.accepted.clear();
             track.accepted.push_back((evidence.frame_id, evidence.pose));
         }
-        if after == TrackState::Tracking {
-            if matches!(before, TrackState::Unsure(_)) {
+        // The motion goes on with every estimate that passed near it, weak
+        // failures aside. One away from it starts the motion afresh if it
+        // passed outright (an unsure track corrected), and is otherwise
+        // left out.
+        let continues = !jumped || after == TrackState::Tracking;
+        if matches!(after, TrackState::Tracking | TrackState::Unsure(_)) && counted == 0 && continues {
+            if jumped {
                 track.accepted.clear();
             }
             track.accepted.push_back((evidence.frame_id, evidence.pose));
             if track.accepted.len() > 2 {
                 track.accepted.pop_front();
             }
-            if let Some(fit) = evidence.fit {
-                track.residuals.push_back((evidence.frame_id, fit.rms_residual));
-                if track.residuals.len() > USUAL_RESIDUAL_FRAMES {
-                    track.residuals.pop_front();
-                }
+        }
+        if after == TrackState::Tracking
+            && let Some(fit) = evidence.fit
+        {
+            track.residuals.push_back((evidence.frame_id, fit.rms_residual));
+            if track.residuals.len() > USUAL_RESIDUAL_FRAMES {
+                track.residuals.pop_front();
             }
         }
         track.state = after;
@@ -724,6 +756,55 @@ mod tests {
         let flipped = monitor.check(1, &evidence(7, 0.95, turned(70.0 + 117.0)));
         assert!(matches!(flipped.failures[..], [Failure::Jump { .. }]), "{flipped:?}");
         assert_eq!(flipped.flags(), flags::UNSURE);
+    }
+
+    /// The dev seed 6 case: a track unsure for a weak reason, then an
+    /// estimate that fits worse and turned 118°, then weak passes at that
+    /// pose. The prediction stays on the track's motion.
+    #[test]
+    fn the_motion_goes_on_through_weak_passes_and_not_with_a_pose_that_left_it() {
+        let mut monitor = monitor();
+        let uncovered = |frame: u64, degrees: f64| Evidence {
+            silhouette: Some(Silhouette { covered: 0.3, explained: 1.0 }),
+            ..evidence(frame, 1.0, turned(degrees))
+        };
+        for frame in 0..4 {
+            monitor.check(1, &evidence(frame, 1.0, turned(frame as f64 * 3.0)));
+        }
+        assert_eq!(
+            monitor.predicted(1, 4).map(|p| so3::geodesic_angle(&p.rotation, &turned(12.0).rotation) < 1e-9),
+            Some(true)
+        );
+        // Weak passes continue the motion.
+        for frame in 4..6 {
+            assert_eq!(monitor.check(1, &uncovered(frame, frame as f64 * 3.0)).after, TrackState::Unsure(0));
+        }
+        let on_track = |monitor: &TrackMonitor, frame: u64| {
+            let predicted = monitor.predicted(1, frame).unwrap();
+            so3::geodesic_angle(&predicted.rotation, &turned(frame as f64 * 3.0).rotation).to_degrees()
+        };
+        assert!(on_track(&monitor, 6) < 1e-6);
+        // A turned estimate fitting worse: counted, so not the motion.
+        let worse = Evidence {
+            fit: Some(PointFit { inlier_share: 1.0, rms_residual: 0.0045, hidden_share: 0.0 }),
+            ..uncovered(6, 18.0 + 118.0)
+        };
+        let verdict = monitor.check(1, &worse);
+        assert_eq!(verdict.after, TrackState::Unsure(1));
+        assert!(verdict.jump.unwrap().0 > 100.0, "the jump is measured while unsure: {verdict:?}");
+        // Weak passes at the turned pose: away from the motion, not part of it.
+        for frame in 7..10 {
+            let verdict = monitor.check(1, &uncovered(frame, frame as f64 * 3.0 + 118.0));
+            assert_eq!(verdict.after, TrackState::Unsure(1));
+            assert!(!verdict.failures.iter().any(|f| matches!(f, Failure::Jump { .. })), "{verdict:?}");
+            assert!(on_track(&monitor, frame + 1) < 1e-6);
+        }
+        // A pass back on the motion tracks again and carries the motion on.
+        assert_eq!(monitor.check(1, &evidence(10, 1.0, turned(30.0))).after, TrackState::Tracking);
+        assert!(on_track(&monitor, 11) < 1e-6);
+        // A lost object has no motion to predict.
+        monitor.check(1, &evidence(11, 0.1, turned(33.0)));
+        assert_eq!(monitor.predicted(1, 12), None);
     }
 
     #[test]
