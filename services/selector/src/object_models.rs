@@ -7,10 +7,11 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Point3, Rotation3, Unit, Vector3};
+use nalgebra::{Point3, Rotation3, Vector3};
 use parry3d::shape::{TriMesh, TriMeshBuilderError};
 use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_geometry::sampling::seeded_rng;
+use poseflow_scene::symmetry::principal_axes;
 use poseflow_scene::{SceneError, load_bop_model, model_file_name, oriented_trimesh, surface_points};
 
 use crate::SelectorError;
@@ -28,6 +29,7 @@ pub struct ObjectGeometry {
     resolution: usize,
     grid: OnceLock<SignedDistanceGrid>,
     surface: OnceLock<Vec<Point3<f64>>>,
+    half_turns: OnceLock<[(Rotation3<f64>, Vector3<f64>); 3]>,
 }
 
 impl ObjectGeometry {
@@ -40,7 +42,14 @@ impl ObjectGeometry {
         resolution: usize,
     ) -> Result<Self, TriMeshBuilderError> {
         let mesh = oriented_trimesh(vertices, triangles)?;
-        Ok(Self { obj_id, mesh, resolution, grid: OnceLock::new(), surface: OnceLock::new() })
+        Ok(Self {
+            obj_id,
+            mesh,
+            resolution,
+            grid: OnceLock::new(),
+            surface: OnceLock::new(),
+            half_turns: OnceLock::new(),
+        })
     }
 
     /// Points spread over the whole surface (model frame), uniform by area
@@ -59,17 +68,16 @@ impl ObjectGeometry {
     /// centroid), as rigid motions of the model frame `y ↦ F y + s`: the
     /// poses a depth fit confuses most, a box or a figure seen from one
     /// side turned over.
-    pub fn half_turns(&self) -> [(Rotation3<f64>, Vector3<f64>); 3] {
-        let surface = self.surface();
-        let centroid = surface.iter().fold(Vector3::zeros(), |sum, p| sum + p.coords) / surface.len().max(1) as f64;
-        let scatter = surface
-            .iter()
-            .fold(Matrix3::zeros(), |sum, p| sum + (p.coords - centroid) * (p.coords - centroid).transpose());
-        let axes = scatter.symmetric_eigen().eigenvectors;
-        std::array::from_fn(|i| {
-            let turn =
-                Rotation3::from_axis_angle(&Unit::new_normalize(axes.column(i).into_owned()), std::f64::consts::PI);
-            (turn, centroid - turn * centroid)
+    pub fn half_turns(&self) -> &[(Rotation3<f64>, Vector3<f64>); 3] {
+        self.half_turns.get_or_init(|| {
+            let surface = self.surface();
+            let centroid = Point3::from(
+                surface.iter().fold(Vector3::zeros(), |sum, p| sum + p.coords) / surface.len().max(1) as f64,
+            );
+            principal_axes(surface, &centroid).map(|axis| {
+                let turn = Rotation3::from_axis_angle(&axis, std::f64::consts::PI);
+                (turn, centroid.coords - turn * centroid.coords)
+            })
         })
     }
 

@@ -184,8 +184,9 @@ fn half_turns_are_about_the_principal_axes_through_the_centroid() {
     // The box's principal axes are the model axes (distinct side lengths),
     // its centroid the origin, up to the sampling of its surface points
     // (about 2°).
-    let turns = box_object().half_turns();
-    for (turn, shift) in &turns {
+    let boxed = box_object();
+    let turns = boxed.half_turns();
+    for (turn, shift) in turns {
         assert!((turn.angle() - std::f64::consts::PI).abs() < 1e-6, "{}", turn.angle());
         assert!(shift.norm() < 1e-3, "{shift}");
     }

@@ -211,8 +211,9 @@ fn surface_centroid(mesh: &ObjectMesh) -> Point3<f64> {
     Point3::from(weighted / area.max(f64::MIN_POSITIVE))
 }
 
-/// The eigenvectors of the covariance of `points` about `centroid`.
-fn principal_axes(points: &[Point3<f64>], centroid: &Point3<f64>) -> [Unit<Vector3<f64>>; 3] {
+/// The eigenvectors of the covariance of `points` about `centroid`: the
+/// principal axes (arbitrary where principal moments are equal).
+pub fn principal_axes(points: &[Point3<f64>], centroid: &Point3<f64>) -> [Unit<Vector3<f64>>; 3] {
     let covariance = points.iter().fold(Matrix3::zeros(), |acc, p| {
         let d = p - centroid;
         acc + d * d.transpose()
