@@ -146,7 +146,9 @@ class ObservationHeader(ctypes.Structure):
     """One object's network input (shared/contracts/src/observation.rs).
 
     Payload: image 3·S·S (CHW, normalised) ‖ token mask P·P ‖ points N·3
-    (centred on `centroid`, divided by `point_scale`)."""
+    (centred on `centroid`, divided by `point_scale`) ‖ depth G·G (metres,
+    0 = none) ‖ mask G·G, G = `depth_grid` (0: no such sections), over the
+    crop scaled by `depth_span` about its centre."""
 
     _fields_ = [
         ("header", Header),
@@ -158,14 +160,16 @@ class ObservationHeader(ctypes.Structure):
         ("patch_grid", ctypes.c_uint32),
         ("point_count", ctypes.c_uint32),
         ("valid_point_count", ctypes.c_uint32),
+        ("depth_grid", ctypes.c_uint32),
+        ("depth_span", ctypes.c_float),
     ]
 
     @staticmethod
     def type_name():
-        return "poseflow/Observation/v1"
+        return "poseflow/Observation/v2"
 
     def payload_len(self):
-        return 3 * self.image_size**2 + self.patch_grid**2 + 3 * self.point_count
+        return 3 * self.image_size**2 + self.patch_grid**2 + 3 * self.point_count + 2 * self.depth_grid**2
 
 
 class ConditionHandle(ctypes.Structure):

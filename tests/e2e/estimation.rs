@@ -52,7 +52,7 @@ fn the_ingest_stage_survives_the_bad_input_corpus() {
 /// thread), with the `conditions` edge and the `velocities` request-response
 /// edge (up to 50 samples) for the stages a test adds.
 fn encoding_graph(name: &str, model: &Path) -> String {
-    graph_head(name, 41_000)
+    graph_head(name, 43_000)
         + &format!(
             r#"
 [edges.conditions]

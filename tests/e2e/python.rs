@@ -70,7 +70,9 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
             image_size,
             patch_grid,
             point_count,
-            valid_point_count
+            valid_point_count,
+            depth_grid,
+            depth_span
         }),
         rust_layout!(ConditionHandle {
             header,

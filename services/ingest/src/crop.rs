@@ -29,6 +29,13 @@ impl CropBox {
         Self { x_min: cu - side / 2.0, y_min: cv - side / 2.0, side }
     }
 
+    /// The square scaled by `factor` about its centre.
+    pub fn scaled(&self, factor: f64) -> Self {
+        let side = self.side * factor;
+        let grow = (side - self.side) / 2.0;
+        Self { x_min: self.x_min - grow, y_min: self.y_min - grow, side }
+    }
+
     /// `[x_min, y_min, x_max, y_max]`, as the Observation header carries it.
     pub fn corners(&self) -> [f32; 4] {
         [self.x_min as f32, self.y_min as f32, (self.x_min + self.side) as f32, (self.y_min + self.side) as f32]
@@ -125,6 +132,36 @@ pub fn write_token_mask(mask: &[bool], width: u32, crop: &CropBox, grid: usize, 
     }
 }
 
+/// Writes the G×G depth and mask grids of the square `crop` (`depth_out`, `mask_out`,
+/// G·G values each, row-major over grid rows): each cell takes the image
+/// pixel nearest to its centre. Depth is in metres, 0 where it is missing,
+/// beyond `max_depth` or outside the image; the mask is 1 or 0.
+#[allow(clippy::too_many_arguments)]
+pub fn write_depth_and_mask(
+    depth: &[f32],
+    mask: &[bool],
+    width: u32,
+    height: u32,
+    crop: &CropBox,
+    grid: usize,
+    max_depth: f32,
+    depth_out: &mut [f32],
+    mask_out: &mut [f32],
+) {
+    let (w, h) = (i64::from(width), i64::from(height));
+    let cell = crop.side / grid as f64;
+    for i in 0..grid {
+        for j in 0..grid {
+            let u = (crop.x_min + (j as f64 + 0.5) * cell).round() as i64;
+            let v = (crop.y_min + (i as f64 + 0.5) * cell).round() as i64;
+            let pixel = ((0..w).contains(&u) && (0..h).contains(&v)).then(|| (v * w + u) as usize);
+            let z = pixel.map_or(0.0, |k| depth[k]);
+            depth_out[i * grid + j] = if z.is_finite() && z > 0.0 && z <= max_depth { z } else { 0.0 };
+            mask_out[i * grid + j] = if pixel.is_some_and(|k| mask[k]) { 1.0 } else { 0.0 };
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -133,6 +170,7 @@ mod tests {
     fn tight_box_with_padding_is_centred_and_square() {
         let crop = CropBox::around(10, 20, 29, 29, 0.0);
         assert_eq!(crop, CropBox { x_min: 9.5, y_min: 14.5, side: 20.0 });
+        assert_eq!(crop.scaled(2.0), CropBox { x_min: -0.5, y_min: 4.5, side: 40.0 });
         let padded = CropBox::around(10, 20, 29, 29, 0.25);
         assert_eq!(padded.side, 30.0);
         assert_eq!(padded.corners(), [4.5, 9.5, 34.5, 39.5]);
@@ -161,6 +199,28 @@ mod tests {
         let mut out = vec![0.0; 12];
         write_crop(&rgb, 2, 2, &crop, 2, &norm, &mut out);
         assert!((out[0] + norm.mean[0] / norm.std[0]).abs() < 1e-6);
+    }
+
+    #[test]
+    fn depth_and_mask_grids_take_the_pixel_nearest_each_cell_centre() {
+        // A 4×4 image, depth = 1 + pixel index / 100 with one missing and one
+        // too far, the mask its two left columns.
+        let mut depth: Vec<f32> = (0..16).map(|i| 1.0 + i as f32 / 100.0).collect();
+        depth[5] = 0.0;
+        depth[13] = 9.0;
+        let mask: Vec<bool> = (0..16).map(|i| i % 4 < 2).collect();
+        let (mut d, mut m) = (vec![-1.0; 4], vec![-1.0; 4]);
+        // The image on a 2×2 grid: cell centres at 0.5 and 2.5, nearest
+        // pixels 1 and 3 (halves round away from zero).
+        let whole = CropBox { x_min: -0.5, y_min: -0.5, side: 4.0 };
+        write_depth_and_mask(&depth, &mask, 4, 4, &whole, 2, 6.0, &mut d, &mut m);
+        assert_eq!(d, [0.0, 1.07, 0.0, 1.15]);
+        assert_eq!(m, [1.0, 0.0, 1.0, 0.0]);
+        // Shifted two pixels right: the right column of cells is outside.
+        let shifted = CropBox { x_min: 1.5, ..whole };
+        write_depth_and_mask(&depth, &mask, 4, 4, &shifted, 2, 6.0, &mut d, &mut m);
+        assert_eq!(d, [1.07, 0.0, 1.15, 0.0]);
+        assert_eq!(m, [0.0; 4]);
     }
 
     #[test]

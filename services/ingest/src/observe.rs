@@ -7,7 +7,7 @@ use poseflow_scene::Camera;
 use poseflow_scene::bop::Raster;
 use rand::Rng;
 
-use crate::crop::{CropBox, write_crop, write_token_mask};
+use crate::crop::{CropBox, write_crop, write_depth_and_mask, write_token_mask};
 use crate::points::{back_project, centre, remove_outliers, sample_fixed, thin};
 use crate::{IngestError, IngestParams};
 
@@ -180,15 +180,30 @@ impl Prepared {
             patch_grid: params.patch_grid,
             point_count: self.points.len() as u32,
             valid_point_count: self.valid_point_count as u32,
+            depth_grid: params.depth_grid,
+            depth_span: params.depth_span,
         }
     }
 
-    /// Writes the payload (image ‖ token mask ‖ points) into `out`, which
-    /// holds exactly `header(..).payload_len()` values.
+    /// Writes the payload (image ‖ token mask ‖ points ‖ depth ‖ mask) into
+    /// `out`, which holds exactly `header(..).payload_len()` values.
     pub fn write_payload(&self, frame: &RgbdFrame, object: &ObjectMask, params: &IngestParams, out: &mut [f32]) {
-        let (s, p) = (params.image_size as usize, params.patch_grid as usize);
+        let (s, p, g) = (params.image_size as usize, params.patch_grid as usize, params.depth_grid as usize);
         let (image, rest) = out.split_at_mut(3 * s * s);
-        let (token_mask, points) = rest.split_at_mut(p * p);
+        let (token_mask, rest) = rest.split_at_mut(p * p);
+        let (points, rest) = rest.split_at_mut(3 * self.points.len());
+        let (depth, mask) = rest.split_at_mut(g * g);
+        write_depth_and_mask(
+            &frame.depth.pixels,
+            &object.mask.pixels,
+            frame.depth.width,
+            frame.depth.height,
+            &self.crop.scaled(f64::from(params.depth_span)),
+            g,
+            params.max_depth,
+            depth,
+            mask,
+        );
         if params.rgb {
             write_crop(
                 &frame.rgb.pixels,

@@ -35,6 +35,13 @@ pub struct IngestParams {
     pub min_points: usize,
     /// Depths beyond this (metres) are treated as missing.
     pub max_depth: f32,
+    /// G: the Observation carries the depth and the object's mask on a G×G
+    /// grid, for the selector's free-space test; 0 leaves them out.
+    pub depth_grid: u32,
+    /// The depth grid covers the crop scaled by this about its centre:
+    /// wider than the crop, so that a pose putting the object well beyond
+    /// its mask is seen there.
+    pub depth_span: f32,
     /// `false`: the network gets no image (a blank crop, every image token
     /// masked out): the depth-only ablation, or a camera without colour.
     pub rgb: bool,
@@ -56,6 +63,8 @@ impl Default for IngestParams {
             min_mask_pixels: 16,
             min_points: 16,
             max_depth: 6.0,
+            depth_grid: 32,
+            depth_span: 2.0,
             rgb: true,
         }
     }
@@ -92,6 +101,12 @@ impl IngestParams {
         }
         if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
             return bad("max_depth", format!("expected a positive number of metres, got {}", self.max_depth));
+        }
+        if self.depth_grid > 256 {
+            return bad("depth_grid", format!("expected 0 (off) to 256 cells, got {}", self.depth_grid));
+        }
+        if !(self.depth_span.is_finite() && (1.0..=8.0).contains(&self.depth_span)) {
+            return bad("depth_span", format!("expected 1 to 8 (times the crop's side), got {}", self.depth_span));
         }
         let edges = &self.behind_edges;
         if edges.radius > 64 {

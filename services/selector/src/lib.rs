@@ -28,7 +28,7 @@ pub mod visibility;
 pub use error::SelectorError;
 pub use object_models::{ObjectGeometry, ObjectLibrary};
 pub use params::{Distribution, Method, SelectorParams};
-pub use select::{Selection, select};
+pub use select::{Observed, Selection, select};
 
 /// The stage of this crate: `selector` (Hypotheses in, Estimate out; the
 /// model-based methods and refinement read the Observations as a side

@@ -81,6 +81,13 @@ impl ObjectGeometry {
         })
     }
 
+    /// A sphere holding the whole object (model frame): the box's centre
+    /// and half diagonal.
+    pub fn bounding_sphere(&self) -> (Point3<f64>, f64) {
+        let aabb = self.mesh.local_aabb();
+        (aabb.center().cast::<f64>(), f64::from(aabb.half_extents().norm()))
+    }
+
     pub fn extent(&self) -> f64 {
         f64::from(self.mesh.local_aabb().extents().max())
     }

@@ -57,6 +57,8 @@ impl Method {
 /// | `refine_iterations` | iterations per hypothesis | 10 |
 /// | `distribution` | with `refine`: the kept hypotheses reported are the `samples` or the `refined` ones | `samples` |
 /// | `observations` | Observations kept while their Hypotheses are awaited | 64 |
+/// | `free_space_weight` | refined candidates lose this times an outlier point's log-likelihood per share of lines of sight on which the camera saw past the posed object (the Observation's depth grid; none: no term); 0: off | 1 |
+/// | `free_space_margin` | such a line of sight passes through the posed object at least this far in front of the observed depth, metres | 0.01 |
 /// | `tracking` | the track check of a tracking graph ([`crate::track::TrackCheckParams`]) | off |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -94,6 +96,16 @@ pub struct SelectorParams {
     pub distribution: Distribution,
     #[serde(default = "default_observations")]
     pub observations: usize,
+    /// How much a refined candidate loses for putting the object where the
+    /// camera saw past it (1: each such line of sight costs like an outlier
+    /// point); 0 switches the free-space term off.
+    #[serde(default = "default_free_space_weight")]
+    pub free_space_weight: f64,
+    /// The free-space test's allowance: a line of sight counts only where it
+    /// passes through the posed object this far (metres) in front of the
+    /// observed depth.
+    #[serde(default = "default_free_space_margin")]
+    pub free_space_margin: f64,
     #[serde(default)]
     pub tracking: crate::track::TrackCheckParams,
 }
@@ -137,6 +149,12 @@ fn default_refine_iterations() -> usize {
 fn default_observations() -> usize {
     64
 }
+fn default_free_space_weight() -> f64 {
+    1.0
+}
+fn default_free_space_margin() -> f64 {
+    0.01
+}
 
 impl Default for SelectorParams {
     fn default() -> Self {
@@ -160,7 +178,7 @@ impl SelectorParams {
 
     pub fn validate(&self) -> Result<(), SelectorError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
-        let checks: [(&'static str, bool, String); 10] = [
+        let checks: [(&'static str, bool, String); 12] = [
             (
                 "epsilon_rotation_deg",
                 positive(self.epsilon_rotation_deg) && self.epsilon_rotation_deg <= 180.0,
@@ -199,6 +217,16 @@ impl SelectorParams {
                 format!("{}: expected 1 to 100", self.refine_iterations),
             ),
             ("observations", self.observations >= 1, format!("{}: expected at least 1", self.observations)),
+            (
+                "free_space_weight",
+                self.free_space_weight.is_finite() && self.free_space_weight >= 0.0,
+                format!("{}: expected a weight ≥ 0 (0: off)", self.free_space_weight),
+            ),
+            (
+                "free_space_margin",
+                self.free_space_margin.is_finite() && self.free_space_margin >= 0.0,
+                format!("{}: expected metres ≥ 0", self.free_space_margin),
+            ),
         ];
         if let Some((key, _, detail)) = checks.into_iter().find(|(_, ok, _)| !ok) {
             return Err(SelectorError::Params { key, detail });

@@ -5,12 +5,54 @@
 use nalgebra::Point3;
 use poseflow_contracts::limits;
 use poseflow_geometry::mean::karcher_mean_poses;
+use poseflow_geometry::metrics::Pinhole;
 use poseflow_geometry::{KarcherOptions, Pose, PoseStatistics};
 
 use crate::cluster::{Clusters, Neighbourhood, dbscan};
 use crate::refine::refine;
-use crate::score::{Likelihood, Residuals};
+use crate::score::{FreeSpaceTerm, Likelihood, Residuals, Scorer};
+use crate::visibility::{DepthGrid, FreeSpaceSettings, INSIDE_DEPTH};
 use crate::{Distribution, Method, ObjectGeometry, SelectorError, SelectorParams};
+
+/// What the model-based scores compare poses with, camera frame.
+#[derive(Debug, Clone, Copy)]
+pub struct Observed<'a> {
+    /// The object's observed points, metres.
+    pub points: &'a [Point3<f64>],
+    /// The crop's depth grid and the camera, for the free-space term.
+    pub depth: Option<(&'a DepthGrid, &'a Pinhole)>,
+}
+
+impl<'a> Observed<'a> {
+    /// Points alone: no free-space term.
+    pub fn points(points: &'a [Point3<f64>]) -> Self {
+        Self { points, depth: None }
+    }
+}
+
+/// The scorer of `params`' model-based method, or `None` for the others.
+pub(crate) fn scorer<'a>(
+    params: &SelectorParams,
+    object: &'a ObjectGeometry,
+    observed: Observed<'a>,
+) -> Option<Scorer<'a>> {
+    let residuals = match params.method {
+        Method::Chamfer => Residuals::Chamfer(object),
+        Method::Sdf => Residuals::Sdf(object),
+        Method::None | Method::ModelFree => return None,
+    };
+    let free_space = observed.depth.map(|(grid, camera)| FreeSpaceTerm {
+        grid,
+        camera,
+        settings: FreeSpaceSettings { inside: INSIDE_DEPTH, margin: params.free_space_margin },
+        weight: params.free_space_weight,
+    });
+    Some(Scorer { residuals, points: observed.points, likelihood: likelihood(params), free_space })
+}
+
+fn likelihood(params: &SelectorParams) -> Likelihood {
+    Likelihood { noise_std: params.noise_std, outlier_distance: params.outlier_distance }
+}
 
 /// The outcome for one object in one frame. Poses are camera-frame.
 #[derive(Debug, Clone)]
@@ -44,7 +86,7 @@ impl Selection {
     pub fn search_half_turns(
         &mut self,
         object: &ObjectGeometry,
-        points: &[Point3<f64>],
+        observed: Observed<'_>,
         params: &SelectorParams,
         count: usize,
     ) -> bool {
@@ -59,7 +101,7 @@ impl Selection {
                     .map(|(turn, shift)| Pose::new(pose.rotation * turn, pose.translation + pose.rotation * shift))
             })
             .collect();
-        self.consider(&starts, object, points, params)
+        self.consider(&starts, object, observed, params)
     }
 
     /// Refines and scores `starts` (camera frame) as further candidates,
@@ -71,22 +113,23 @@ impl Selection {
         &mut self,
         starts: &[Pose],
         object: &ObjectGeometry,
-        points: &[Point3<f64>],
+        observed: Observed<'_>,
         params: &SelectorParams,
     ) -> bool {
-        let residuals = match params.method {
-            Method::Chamfer => Residuals::Chamfer(object),
-            Method::Sdf => Residuals::Sdf(object),
-            Method::None | Method::ModelFree => return false,
-        };
-        if points.is_empty() || starts.is_empty() {
+        let Some(scorer) = scorer(params, object, observed) else { return false };
+        if observed.points.is_empty() || starts.is_empty() {
             return false;
         }
-        let likelihood = Likelihood { noise_std: params.noise_std, outlier_distance: params.outlier_distance };
-        self.candidates.extend(starts.iter().map(|start| {
-            let pose = refine(object.grid(), start, points, &likelihood, params.refine_iterations).pose;
-            (pose, residuals.score(&pose, points, &likelihood))
-        }));
+        let poses: Vec<Pose> = starts
+            .iter()
+            .map(|start| {
+                refine(object.grid(), start, observed.points, &scorer.likelihood, params.refine_iterations).pose
+            })
+            .collect();
+        let fits: Vec<f64> = poses.iter().map(|pose| scorer.fit(pose)).collect();
+        let floor = self.candidates.first().map_or(f64::NEG_INFINITY, |c| c.1);
+        let scores = scorer.scores(&poses, &fits, floor);
+        self.candidates.extend(poses.into_iter().zip(scores));
         self.candidates.sort_by(|a, b| b.1.total_cmp(&a.1));
         let best = self.candidates[0].0;
         std::mem::replace(&mut self.best, best) != best
@@ -97,11 +140,11 @@ fn failed(detail: impl std::fmt::Display) -> SelectorError {
     SelectorError::Selection { detail: detail.to_string() }
 }
 
-/// Selects a pose from `hypotheses`. `points` (camera frame, metres) and
-/// `object` are needed by the model-based methods and by refinement.
+/// Selects a pose from `hypotheses`. `observed` and `object` are needed by
+/// the model-based methods and by refinement.
 pub fn select(
     hypotheses: &[Pose],
-    points: Option<&[Point3<f64>]>,
+    observed: Option<Observed<'_>>,
     object: Option<&ObjectGeometry>,
     params: &SelectorParams,
 ) -> Result<Selection, SelectorError> {
@@ -117,32 +160,31 @@ pub fn select(
     };
     let clusters = dbscan(hypotheses, &neighbourhood);
     let modes = modes(hypotheses, &clusters, &karcher)?;
-    let likelihood = Likelihood { noise_std: params.noise_std, outlier_distance: params.outlier_distance };
+    let likelihood = likelihood(params);
     let needs_points = params.method.needs_model() || params.refine;
-    let (points, object) = match (points, object) {
+    let (observed, object) = match (observed, object) {
         (Some(p), Some(o)) => (p, Some(o)),
         _ if needs_points => {
             return Err(failed(format!(
                 "method {:?}{} needs the observed points and the object model, and {} missing",
                 params.method,
                 if params.refine { " with refine" } else { "" },
-                if points.is_none() { "the points are" } else { "the model is" }
+                if observed.is_none() { "the points are" } else { "the model is" }
             )));
         }
-        _ => (&[][..], None),
+        _ => (Observed::points(&[]), None),
     };
-    let residuals = match (params.method, object) {
-        (Method::Chamfer, Some(o)) => Some(Residuals::Chamfer(o)),
-        (Method::Sdf, Some(o)) => Some(Residuals::Sdf(o)),
-        _ => None,
-    };
+    let points = observed.points;
+    let scorer = object.and_then(|o| scorer(params, o, observed));
 
     // Score, then order: best score first; model-free ties go to the larger
-    // cluster, then to sample order (a stable, seed-independent order).
+    // cluster, then to sample order (a stable, seed-independent order). The
+    // samples are scored by their points alone: the free-space term is for
+    // the few refined candidates, whose outline it judges.
     let score = |i: usize| -> f64 {
-        match (params.method, residuals) {
+        match (params.method, scorer) {
             (Method::ModelFree, _) => clusters.labels[i].map_or(0.0, |c| clusters.sizes[c] as f64 / n as f64),
-            (_, Some(r)) => r.score(&hypotheses[i], points, &likelihood),
+            (_, Some(s)) => s.residuals.score(&hypotheses[i], points, &likelihood),
             _ => 0.0,
         }
     };
@@ -173,15 +215,21 @@ pub fn select(
     if let (true, Some(object)) = (params.refine, object) {
         let grid = object.grid();
         // (refined pose, its score, the sample it came from), best first.
-        let mut refined: Vec<(Pose, f64, (Pose, f64))> = scored[..refined_count]
+        let poses: Vec<Pose> = scored[..refined_count]
             .iter()
-            .map(|&sample| {
-                let pose = refine(grid, &sample.0, points, &likelihood, params.refine_iterations).pose;
-                let score = residuals.map_or(sample.1, |r| r.score(&pose, points, &likelihood));
-                (pose, score, sample)
-            })
+            .map(|sample| refine(grid, &sample.0, points, &likelihood, params.refine_iterations).pose)
             .collect();
-        if residuals.is_some() {
+        let scores = match scorer {
+            Some(s) => s.scores(&poses, &poses.iter().map(|pose| s.fit(pose)).collect::<Vec<_>>(), f64::NEG_INFINITY),
+            None => scored[..refined_count].iter().map(|sample| sample.1).collect(),
+        };
+        let mut refined: Vec<(Pose, f64, (Pose, f64))> = poses
+            .into_iter()
+            .zip(scores)
+            .zip(&scored[..refined_count])
+            .map(|((p, s), &sample)| (p, s, sample))
+            .collect();
+        if scorer.is_some() {
             refined.sort_by(|a, b| b.1.total_cmp(&a.1));
         }
         refined_kept = Some(refined.iter().map(|r| (r.0, r.1)).collect());

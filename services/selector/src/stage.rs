@@ -11,15 +11,16 @@ use poseflow_contracts::{
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
 
+use crate::select::{Observed, scorer};
 use crate::track::{Evidence, TrackMonitor, Verdict};
-use crate::visibility::{FitSettings, point_fit, silhouette};
+use crate::visibility::{DepthGrid, FitSettings, INSIDE_DEPTH, point_fit, silhouette};
 use crate::{Method, ObjectGeometry, ObjectLibrary, Selection, SelectorError, SelectorParams, select};
 use poseflow_geometry::metrics::Pinhole;
 
-/// One Observation's points (camera frame, metres), kept until its
-/// Hypotheses come.
+/// One Observation's points (camera frame, metres) and depth grid, kept
+/// until its Hypotheses come.
 #[derive(Debug)]
-struct Observed {
+struct Kept {
     frame_id: u64,
     object_id: u32,
     /// Valid depth points the Observation had (before subsampling).
@@ -28,12 +29,19 @@ struct Observed {
     /// prefix is an even subsample).
     points: Vec<Point3<f64>>,
     camera: Pinhole,
+    depth: Option<DepthGrid>,
 }
 
-impl Observed {
+impl Kept {
     /// The points the scores use: the first `count`.
     fn scored(&self, count: usize) -> &[Point3<f64>] {
         &self.points[..count.min(self.points.len())]
+    }
+
+    /// What the scores compare poses with: the first `count` points, and
+    /// the depth grid.
+    fn observed(&self, count: usize) -> Observed<'_> {
+        Observed { points: self.scored(count), depth: self.depth.as_ref().map(|grid| (grid, &self.camera)) }
     }
 }
 
@@ -41,7 +49,7 @@ impl Observed {
 pub struct SelectorStage {
     params: SelectorParams,
     library: Option<ObjectLibrary>,
-    observations: VecDeque<Observed>,
+    observations: VecDeque<Kept>,
     /// With `tracking.check`.
     monitor: Option<TrackMonitor>,
 }
@@ -67,8 +75,9 @@ impl SelectorStage {
         &self.params
     }
 
-    /// Keeps an Observation's valid points in the camera frame: the first
-    /// `score_points`, or all of them for the track check's silhouette.
+    /// Keeps an Observation's valid points in the camera frame (the first
+    /// `score_points`, or all of them for the track check's silhouette), and
+    /// its depth grid when it has one.
     pub fn keep_observation(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<(), SelectorError> {
         let view = header.view(payload).map_err(|e| SelectorError::Frame {
             frame: header.header.frame_id,
@@ -94,11 +103,16 @@ impl SelectorStage {
                 "observation evicted before its hypotheses came"
             );
         }
-        self.observations.push_back(Observed {
+        let depth = match header.depth_grid {
+            0 => None,
+            cells => Some(depth_grid(header, cells as usize, view.depth, view.mask)?),
+        };
+        self.observations.push_back(Kept {
             frame_id: header.header.frame_id,
             object_id: header.header.object_id,
             valid_points: header.valid_point_count as usize,
             points,
+            depth,
             camera: Pinhole {
                 fx: f64::from(header.intrinsics.fx),
                 fy: f64::from(header.intrinsics.fy),
@@ -125,22 +139,23 @@ impl SelectorStage {
         if header.header.has_flag(flags::SEQUENCE_START) {
             monitor.forget(object);
         }
-        let points = observed.as_ref().map_or(&[][..], |o| o.scored(self.params.score_points));
+        let seen = observed.as_ref().map_or(Observed::points(&[]), |o| o.observed(self.params.score_points));
+        let points = seen.points;
         let model = self.library.as_ref().and_then(|library| library.get(object));
         if let Some(model) = model.filter(|_| monitor.params().half_turns && !monitor.is_tracking(object))
-            && selection.search_half_turns(model, points, &self.params, HALF_TURN_CANDIDATES)
+            && selection.search_half_turns(model, seen, &self.params, HALF_TURN_CANDIDATES)
         {
             tracing::debug!(frame, object, "a candidate turned half a turn fits better: selected");
         }
         if let Some(model) = model.filter(|_| monitor.params().motion_candidate)
             && let Some(predicted) = monitor.predicted(object, frame)
-            && selection.consider(&[predicted], model, points, &self.params)
+            && selection.consider(&[predicted], model, seen, &self.params)
         {
             tracing::debug!(frame, object, "the pose the motion predicts fits better: selected");
         }
         let settings = FitSettings {
             inlier_distance: monitor.params().inlier_distance,
-            hidden_depth: HIDDEN_DEPTH,
+            hidden_depth: INSIDE_DEPTH,
             reach: model.map_or(0.0, ObjectGeometry::extent),
         };
         let evidence = Evidence {
@@ -154,6 +169,9 @@ impl SelectorStage {
                 }
                 _ => None,
             },
+            free_space: model
+                .and_then(|model| scorer(&self.params, model, seen))
+                .and_then(|s| s.free_space(&selection.best)),
             spread_deg: selection.statistics.rotation_covariance().trace().max(0.0).sqrt().to_degrees(),
             pose: selection.best,
         };
@@ -167,7 +185,7 @@ impl SelectorStage {
         &mut self,
         header: &HypothesesHeader,
         payload: &[f32],
-    ) -> Result<(Selection, Option<Observed>), SelectorError> {
+    ) -> Result<(Selection, Option<Kept>), SelectorError> {
         let (frame, object) = (header.header.frame_id, header.header.object_id);
         let in_frame = |detail: String| SelectorError::Frame { frame, object, detail };
         let hypotheses = payload
@@ -194,16 +212,44 @@ impl SelectorStage {
             None => None,
         };
         let selection =
-            select(&hypotheses, observed.as_ref().map(|o| o.scored(self.params.score_points)), model, &self.params)
+            select(&hypotheses, observed.as_ref().map(|o| o.observed(self.params.score_points)), model, &self.params)
                 .map_err(|e| in_frame(e.to_string()))?;
         Ok((selection, observed))
     }
 }
 
-/// A line of sight passing this deep inside the object hides its point
-/// (metres): beyond the signed-distance grid's interpolation error at thin
-/// parts.
-const HIDDEN_DEPTH: f64 = 0.004;
+/// The depth grid of an Observation: the crop scaled by `depth_span` about
+/// its centre. A span or crop that is not a finite positive square is
+/// refused, naming the field.
+fn depth_grid(
+    header: &ObservationHeader,
+    cells: usize,
+    depth: &[f32],
+    mask: &[f32],
+) -> Result<DepthGrid, SelectorError> {
+    let bad = |detail: String| SelectorError::Frame {
+        frame: header.header.frame_id,
+        object: header.header.object_id,
+        detail,
+    };
+    let [x0, y0, x1, _] = header.crop.map(f64::from);
+    let (span, side) = (f64::from(header.depth_span), x1 - x0);
+    if !(span.is_finite() && span > 0.0) {
+        return Err(bad(format!("Observation depth_span {span}: expected a positive factor")));
+    }
+    if !(x0.is_finite() && y0.is_finite() && side.is_finite() && side > 0.0) {
+        return Err(bad(format!("Observation crop {:?}: expected a square of positive side", header.crop)));
+    }
+    let grow = side * (span - 1.0) / 2.0;
+    Ok(DepthGrid {
+        x_min: x0 - grow,
+        y_min: y0 - grow,
+        side: side * span,
+        cells,
+        depth: depth.to_vec(),
+        mask: mask.iter().map(|&m| m > 0.5).collect(),
+    })
+}
 
 /// Candidates turned over while re-acquiring an object: the best two, so
 /// that a second mode near the best is tried as well (six refinements).
@@ -226,16 +272,17 @@ fn log_verdict(frame: u64, object: u32, evidence: &Evidence, verdict: &Verdict) 
     let rms_mm = fit.map_or(f64::NAN, |f| round(f.rms_residual * 1e3));
     let hidden = fit.map_or(f64::NAN, |f| round(f.hidden_share));
     let covered = evidence.silhouette.map_or(f64::NAN, |s| round(s.covered));
+    let seen_past = evidence.free_space.map_or(f64::NAN, |found| round(found.share()));
     let spread_deg = round(evidence.spread_deg);
     let jump_deg = verdict.jump.map_or(f64::NAN, |(degrees, _)| (degrees * 10.0).round() / 10.0);
     let failures = verdict.failures.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ");
     let points = evidence.observed_points;
     if changed {
         tracing::info!(frame, object, from = ?verdict.before, to = ?verdict.after, points, inlier_share, rms_mm, hidden,
-            covered, spread_deg, jump_deg, failures, "track state changed");
+            covered, seen_past, spread_deg, jump_deg, failures, "track state changed");
     } else {
         tracing::debug!(frame, object, state = ?verdict.after, points, inlier_share, rms_mm, hidden, covered,
-            spread_deg, jump_deg, failures, "track check");
+            seen_past, spread_deg, jump_deg, failures, "track check");
     }
 }
 

@@ -67,7 +67,7 @@ use poseflow_geometry::{Pose, so3};
 use serde::Deserialize;
 
 use crate::SelectorError;
-use crate::visibility::{PointFit, Silhouette};
+use crate::visibility::{FreeSpace, PointFit, Silhouette};
 
 /// The selector's `tracking` parameters.
 ///
@@ -82,6 +82,7 @@ use crate::visibility::{PointFit, Silhouette};
 /// | `residual_ratio` | an RMS residual this many times the track's usual one makes a tracked object unsure (weak) | 1.5 |
 /// | `max_hidden_share` | a larger share of the points hidden by the object's own body at the pose is a poor fit (soft) | 0.25 |
 /// | `min_covered` | a smaller share of the pose's silhouette interior holding observed points makes a tracked object unsure (weak); 0 switches the test off | 0.5 |
+/// | `max_seen_past` | a larger share of lines of sight on which the camera saw past the object at the pose (outside the mask, depth behind it: [`crate::visibility::free_space`]) is a poor fit (soft); needs the Observation's depth grid | 0.1 |
 /// | `max_spread_deg` | tracking: a wider rotational spread of the kept hypotheses is unsure (soft) | 45 |
 /// | `max_jump_deg` | tracking: a larger turn away from the predicted pose is a jump (soft) | 30 |
 /// | `max_jump_m` | tracking: a larger shift away from the predicted position is a jump (soft) | 0.05 |
@@ -109,6 +110,8 @@ pub struct TrackCheckParams {
     pub max_hidden_share: f64,
     #[serde(default = "default_min_covered")]
     pub min_covered: f64,
+    #[serde(default = "default_max_seen_past")]
+    pub max_seen_past: f64,
     #[serde(default = "default_max_spread_deg")]
     pub max_spread_deg: f64,
     #[serde(default = "default_max_jump_deg")]
@@ -147,6 +150,9 @@ fn default_max_hidden_share() -> f64 {
 fn default_min_covered() -> f64 {
     0.5
 }
+fn default_max_seen_past() -> f64 {
+    0.1
+}
 fn default_max_spread_deg() -> f64 {
     45.0
 }
@@ -173,7 +179,7 @@ impl TrackCheckParams {
     pub fn validate(&self) -> Result<(), SelectorError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
         let share = |x: f64| (0.0..=1.0).contains(&x);
-        let checks: [(&'static str, bool, String); 10] = [
+        let checks: [(&'static str, bool, String); 11] = [
             (
                 "tracking.inlier_distance",
                 positive(self.inlier_distance),
@@ -208,6 +214,11 @@ impl TrackCheckParams {
                 "tracking.min_covered",
                 share(self.min_covered),
                 format!("{}: expected a share in [0, 1]", self.min_covered),
+            ),
+            (
+                "tracking.max_seen_past",
+                share(self.max_seen_past),
+                format!("{}: expected a share in [0, 1]", self.max_seen_past),
             ),
             (
                 "tracking.max_spread_deg",
@@ -245,6 +256,9 @@ pub struct Evidence {
     /// How the silhouette at `pose` agrees with the observed points; `None`
     /// without an object model or points.
     pub silhouette: Option<Silhouette>,
+    /// The free-space test at `pose`; `None` without an object model or a
+    /// depth grid.
+    pub free_space: Option<FreeSpace>,
     /// √trace of the kept hypotheses' rotational covariance, degrees.
     pub spread_deg: f64,
     /// The selected pose (camera frame).
@@ -281,6 +295,9 @@ pub enum Failure {
     },
     Uncovered {
         covered: f64,
+    },
+    SeenPast {
+        share: f64,
     },
     Spread {
         degrees: f64,
@@ -335,6 +352,11 @@ impl std::fmt::Display for Failure {
             Self::Hidden { share } => write!(
                 f,
                 "{:.0} % of the points on surface the object would hide (over tracking.max_hidden_share)",
+                share * 100.0
+            ),
+            Self::SeenPast { share } => write!(
+                f,
+                "the camera saw past the object on {:.0} % of the lines of sight (over tracking.max_seen_past)",
                 share * 100.0
             ),
             Self::Uncovered { covered } => {
@@ -503,6 +525,11 @@ impl TrackMonitor {
         {
             failures.push(Failure::Uncovered { covered: silhouette.covered });
         }
+        if let Some(found) = evidence.free_space
+            && found.share() > params.max_seen_past
+        {
+            failures.push(Failure::SeenPast { share: found.share() });
+        }
         let mut jump = None;
         if before == TrackState::Tracking && evidence.spread_deg > params.max_spread_deg {
             failures.push(Failure::Spread { degrees: evidence.spread_deg });
@@ -626,6 +653,7 @@ mod tests {
             observed_points: 500,
             fit: Some(PointFit { inlier_share, rms_residual: 0.0015, hidden_share: 0.0 }),
             silhouette: Some(Silhouette { covered: 0.9, explained: 1.0 }),
+            free_space: Some(FreeSpace { violated: 2, masked: 200 }),
             spread_deg: 3.0,
             pose,
         }
@@ -864,6 +892,32 @@ mod tests {
         assert_eq!(monitor.check(1, &uncovered).after, TrackState::Tracking);
     }
 
+    /// The reporting-seed-50 ape's pattern: a first estimate turned over
+    /// that fits every point, whose outline covers background the camera
+    /// saw past. It is not confirmed however well its next frame agrees.
+    #[test]
+    fn a_pose_the_camera_saw_past_is_a_soft_failure_and_confirms_nothing() {
+        let mut monitor = self::monitor();
+        let seen_past = |frame: u64| Evidence {
+            free_space: Some(FreeSpace { violated: 30, masked: 170 }),
+            ..evidence(frame, 1.0, turned(frame as f64))
+        };
+        let first = monitor.check(1, &seen_past(0));
+        assert!(matches!(first.failures[..], [Failure::SeenPast { share }] if (share - 0.15).abs() < 1e-12));
+        assert_eq!(first.after, TrackState::Lost);
+        assert_eq!(monitor.check(1, &seen_past(1)).after, TrackState::Lost);
+        // At the threshold it passes.
+        let mut monitor = self::monitor();
+        let edge = |frame: u64| Evidence {
+            free_space: Some(FreeSpace { violated: 20, masked: 180 }),
+            ..evidence(frame, 1.0, turned(frame as f64))
+        };
+        monitor.check(1, &edge(0));
+        assert_eq!(monitor.check(1, &edge(1)).after, TrackState::Tracking);
+        // A track that starts being seen past is unsure.
+        assert_eq!(monitor.check(1, &seen_past(2)).flags(), flags::UNSURE);
+    }
+
     #[test]
     fn spread_is_not_held_against_an_estimate_from_the_prior() {
         let mut monitor = monitor();
@@ -899,6 +953,8 @@ mod tests {
         assert!(params.validate().unwrap_err().to_string().contains("tracking.residual_ratio"));
         params = TrackCheckParams { min_covered: 1.5, ..Default::default() };
         assert!(params.validate().unwrap_err().to_string().contains("tracking.min_covered"));
+        params = TrackCheckParams { max_seen_past: -0.1, ..Default::default() };
+        assert!(params.validate().unwrap_err().to_string().contains("tracking.max_seen_past"));
     }
 
     proptest! {

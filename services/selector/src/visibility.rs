@@ -5,14 +5,128 @@
 //! - its silhouette covers image cells where the mask has no point, or
 //!   leaves masked cells unexplained ([`silhouette`]);
 //! - it puts points on surface the object itself would hide from the
-//!   camera ([`PointFit::hidden_share`]).
+//!   camera ([`PointFit::hidden_share`]);
+//! - it puts the object where the camera saw past it: outside the mask,
+//!   the depth lies behind the posed object ([`free_space`]). Unlike an
+//!   empty silhouette cell, this cannot be an occluder, which would lie in
+//!   front.
 //!
 //! Camera frame: x right, y down, z forward (metres); pixels: u right, v
 //! down, from the image's top-left corner.
 
-use nalgebra::Point3;
+use nalgebra::{Point3, Vector3};
 use poseflow_geometry::Pose;
 use poseflow_geometry::metrics::Pinhole;
+
+/// A line of sight passing this deep inside the object (metres) passes
+/// through it: beyond the signed-distance grid's interpolation error at thin
+/// parts.
+pub const INSIDE_DEPTH: f64 = 0.004;
+
+/// The crop's depth and the object's mask on a G×G grid, as an Observation
+/// carries them: row-major over grid rows, cell `(j, i)` sampled at the
+/// image pixel nearest to `(x_min + (j + ½)·side/G, y_min + (i + ½)·side/G)`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthGrid {
+    /// The square crop: top-left corner and side, full-image pixels.
+    pub x_min: f64,
+    pub y_min: f64,
+    pub side: f64,
+    /// G.
+    pub cells: usize,
+    /// Camera z, metres; 0 = no depth.
+    pub depth: Vec<f32>,
+    /// Whether the cell's pixel is the object's.
+    pub mask: Vec<bool>,
+}
+
+impl DepthGrid {
+    /// The image pixel cell `k` sampled (as ingest chose it).
+    fn pixel(&self, k: usize) -> (f64, f64) {
+        let cell = self.side / self.cells as f64;
+        let (j, i) = ((k % self.cells) as f64, (k / self.cells) as f64);
+        ((self.x_min + (j + 0.5) * cell).round(), (self.y_min + (i + 0.5) * cell).round())
+    }
+}
+
+/// What [`free_space`] found on the lines of sight of a [`DepthGrid`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct FreeSpace {
+    /// Cells outside the mask where the camera saw past the posed object:
+    /// their line of sight passes through it in front of the observed depth.
+    pub violated: usize,
+    /// Cells in the mask with a depth: the object's observed extent.
+    pub masked: usize,
+}
+
+impl FreeSpace {
+    /// Violations per cell of object the pose claims or the camera saw
+    /// (`violated / (violated + masked)`); 0 with nothing to judge.
+    pub fn share(&self) -> f64 {
+        let judged = self.violated + self.masked;
+        if judged == 0 { 0.0 } else { self.violated as f64 / judged as f64 }
+    }
+}
+
+/// How [`free_space`] tests a line of sight, metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FreeSpaceSettings {
+    /// The line of sight must pass this deep inside the object …
+    pub inside: f64,
+    /// … at least this far in front of the observed depth (depth noise,
+    /// and mixed pixels at the object's outline).
+    pub margin: f64,
+}
+
+/// Tests the lines of sight of `grid`'s cells outside the mask against the
+/// object at `pose`, by `signed` (model-frame signed distance, negative
+/// inside) within the bounding sphere `(centre, radius)` (model frame).
+/// Sphere tracing from where the line enters the sphere: each step is the
+/// distance to the surface, at least `settings.inside`, so it cannot step
+/// over a region deeper than that.
+pub fn free_space(
+    pose: &Pose,
+    grid: &DepthGrid,
+    camera: &Pinhole,
+    sphere: (Point3<f64>, f64),
+    settings: &FreeSpaceSettings,
+    signed: impl Fn(&Point3<f64>) -> f64,
+) -> FreeSpace {
+    let model_from_camera = pose.inverse();
+    let centre = pose.transform_point(&sphere.0).coords;
+    let mut found = FreeSpace::default();
+    for k in 0..grid.cells * grid.cells {
+        let observed = f64::from(grid.depth[k]);
+        if observed <= 0.0 {
+            continue;
+        }
+        if grid.mask[k] {
+            found.masked += 1;
+            continue;
+        }
+        // The line of sight x(z) = z·ray, z the camera depth.
+        let (u, v) = grid.pixel(k);
+        let ray = Vector3::new((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0);
+        let (a, b, c) = (ray.norm_squared(), ray.dot(&centre), centre.norm_squared() - sphere.1 * sphere.1);
+        let discriminant = b * b - a * c;
+        if discriminant <= 0.0 {
+            continue;
+        }
+        let (enter, leave) = ((b - discriminant.sqrt()) / a, (b + discriminant.sqrt()) / a);
+        let end = leave.min(observed - settings.margin);
+        let mut z = enter.max(0.0);
+        let length = ray.norm();
+        while z < end {
+            let value = signed(&model_from_camera.transform_point(&Point3::from(ray * z)));
+            if value < -settings.inside {
+                found.violated += 1;
+                break;
+            }
+            z += value.max(settings.inside) / length;
+        }
+    }
+    found
+}
 
 /// How the posed object's silhouette and the observed points agree, on a
 /// grid of square cells laid over the silhouette's bounding box.
@@ -264,5 +378,75 @@ mod tests {
         // A rod seen side-on has no interior to judge.
         let rod: Vec<_> = (0..200).map(|i| Point3::new(-0.05 + i as f64 * 5e-4, 0.0, 0.0)).collect();
         assert!(silhouette(&pose, &rod, &observed, &CAMERA, 12).is_none());
+    }
+
+    /// The depth grid of the sphere at `pose` in front of a wall at depth
+    /// `wall`, on 32 cells over a 240-pixel crop around the image centre;
+    /// `occluder` puts a plate at that depth over the crop's right third.
+    fn sphere_depth(pose: &Pose, wall: f32, occluder: Option<f32>) -> DepthGrid {
+        let (cells, side) = (32, 240.0);
+        let mut grid = DepthGrid {
+            x_min: CAMERA.cx - side / 2.0,
+            y_min: CAMERA.cy - side / 2.0,
+            side,
+            cells,
+            depth: vec![wall; cells * cells],
+            mask: vec![false; cells * cells],
+        };
+        let centre = pose.translation;
+        for k in 0..cells * cells {
+            let (u, v) = grid.pixel(k);
+            let ray = Vector3::new((u - CAMERA.cx) / CAMERA.fx, (v - CAMERA.cy) / CAMERA.fy, 1.0);
+            let (a, b, c) = (ray.norm_squared(), ray.dot(&centre), centre.norm_squared() - 0.05 * 0.05);
+            if b * b - a * c > 0.0 {
+                grid.depth[k] = ((b - (b * b - a * c).sqrt()) / a) as f32;
+                grid.mask[k] = true;
+            }
+            if let Some(z) = occluder.filter(|_| k % cells >= 2 * cells / 3) {
+                grid.depth[k] = z;
+                grid.mask[k] = false;
+            }
+        }
+        grid
+    }
+
+    const FREE: FreeSpaceSettings = FreeSpaceSettings { inside: 0.004, margin: 0.01 };
+
+    #[test]
+    fn a_pose_where_the_camera_saw_past_the_object_violates_free_space_and_an_occluded_one_does_not() {
+        let truth = at(0.5);
+        let sphere_bound = (Point3::origin(), 0.05);
+        let grid = sphere_depth(&truth, 0.8, None);
+        let seen = free_space(&truth, &grid, &CAMERA, sphere_bound, &FREE, sphere);
+        // The sphere (radius 600·0.05/0.5 = 60 pixels) spans half the crop:
+        // about π/4·16² cells.
+        assert!((150..250).contains(&seen.masked), "{seen:?}");
+        assert_eq!(seen.violated, 0);
+
+        // 3 cm to the right: the lines of sight past the true outline's
+        // right side cross the moved sphere in front of the wall.
+        let moved = Pose::new(truth.rotation, truth.translation + Vector3::new(0.03, 0.0, 0.0));
+        let found = free_space(&moved, &grid, &CAMERA, sphere_bound, &FREE, sphere);
+        assert!((0.2..0.6).contains(&found.share()), "{found:?}");
+
+        // With a plate in front over the right third, the camera cannot have
+        // seen past the moved sphere there: fewer violations, none of them
+        // under the plate.
+        let plated = sphere_depth(&truth, 0.8, Some(0.3));
+        let occluded = free_space(&moved, &plated, &CAMERA, sphere_bound, &FREE, sphere);
+        assert!(occluded.violated < found.violated, "{occluded:?} {found:?}");
+        let uncovered = DepthGrid {
+            depth: plated.depth.iter().enumerate().map(|(k, &z)| if k % 32 >= 21 { 0.0 } else { z }).collect(),
+            ..plated.clone()
+        };
+        assert_eq!(free_space(&moved, &uncovered, &CAMERA, sphere_bound, &FREE, sphere).violated, occluded.violated);
+
+        // Behind the wall (the wall hides it): nothing seen past it.
+        let behind = at(0.9);
+        assert_eq!(free_space(&behind, &grid, &CAMERA, sphere_bound, &FREE, sphere).violated, 0);
+        // Nothing to judge: no depth at all.
+        let blind = DepthGrid { depth: vec![0.0; 32 * 32], ..grid };
+        assert_eq!(free_space(&moved, &blind, &CAMERA, sphere_bound, &FREE, sphere), FreeSpace::default());
+        assert_eq!(FreeSpace::default().share(), 0.0);
     }
 }

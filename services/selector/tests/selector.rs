@@ -4,12 +4,14 @@
 use nalgebra::{Point3, Vector3};
 use parry3d::shape::Cuboid;
 use poseflow_contracts::{Header, MessageHeader, SelectionMethod};
+use poseflow_geometry::metrics::Pinhole;
 use poseflow_geometry::{Pose, so3};
 use poseflow_selector::cluster::{Neighbourhood, dbscan};
 use poseflow_selector::refine::refine;
 use poseflow_selector::score::{Likelihood, Residuals};
 use poseflow_selector::stage::{estimate_header, estimate_payload_len, write_estimate_payload};
-use poseflow_selector::{Distribution, Method, ObjectGeometry, SelectorParams, select};
+use poseflow_selector::visibility::DepthGrid;
+use poseflow_selector::{Distribution, Method, ObjectGeometry, Observed, SelectorParams, select};
 
 /// A 6 × 4 × 2 cm box (distinct side lengths: no symmetry but the box's own
 /// half turns), model frame centred.
@@ -135,7 +137,7 @@ fn model_free_selection_takes_the_largest_cluster_and_model_based_the_best_fit()
 
     let chamfer =
         SelectorParams { method: Method::Chamfer, keep_fraction: 0.3, keep_margin: 0.0, ..Default::default() };
-    let chosen = select(&hypotheses, Some(&points), Some(&object), &chamfer).unwrap();
+    let chosen = select(&hypotheses, Some(Observed::points(&points)), Some(&object), &chamfer).unwrap();
     assert!(angle_deg(&chosen.best, &t) < 1.6, "{}", angle_deg(&chosen.best, &t));
     assert_eq!(chosen.kept, 3);
     assert!(chosen.scored.windows(2).all(|w| w[0].1 >= w[1].1), "scores best first");
@@ -147,7 +149,7 @@ fn model_free_selection_takes_the_largest_cluster_and_model_based_the_best_fit()
         keep_margin: 0.0,
         ..Default::default()
     };
-    let chosen = select(&hypotheses, Some(&points), Some(&object), &refined).unwrap();
+    let chosen = select(&hypotheses, Some(Observed::points(&points)), Some(&object), &refined).unwrap();
     assert!(chosen.refined && angle_deg(&chosen.best, &t) < 0.5, "{}", angle_deg(&chosen.best, &t));
     // The kept hypotheses reported are the samples (up to 1.5° apart), not
     // their refinements (all at the truth), unless asked for.
@@ -155,7 +157,7 @@ fn model_free_selection_takes_the_largest_cluster_and_model_based_the_best_fit()
     assert!(kept.iter().all(|p| hypotheses.contains(p)), "{kept:?}");
     let spread = chosen.statistics.rotation_covariance().trace();
     let as_refined = SelectorParams { distribution: Distribution::Refined, ..refined.clone() };
-    let collapsed = select(&hypotheses, Some(&points), Some(&object), &as_refined).unwrap();
+    let collapsed = select(&hypotheses, Some(Observed::points(&points)), Some(&object), &as_refined).unwrap();
     assert_eq!(collapsed.best, chosen.best);
     assert!(!collapsed.scored[..collapsed.kept].iter().any(|(p, _)| hypotheses.contains(p)));
     assert!(collapsed.statistics.rotation_covariance().trace() < 0.1 * spread, "{spread}");
@@ -217,11 +219,11 @@ fn a_half_turn_search_finds_the_pose_every_sample_turned_over() {
     let hypotheses: Vec<Pose> =
         (0..10).map(|i| turned(&over, Vector3::new(1.0, i as f64, 0.5), 3.0, Vector3::zeros())).collect();
     let params = SelectorParams { method: Method::Sdf, refine: true, ..Default::default() };
-    let mut selection = select(&hypotheses, Some(&points), Some(&object), &params).unwrap();
+    let mut selection = select(&hypotheses, Some(Observed::points(&points)), Some(&object), &params).unwrap();
     assert!(angle_deg(&selection.best, &truth()) > 90.0, "refinement alone does not turn it back");
     let before = selection.candidates.len();
 
-    assert!(selection.search_half_turns(&object, &points, &params, 2));
+    assert!(selection.search_half_turns(&object, Observed::points(&points), &params, 2));
     let (rot, trans) =
         (angle_deg(&selection.best, &truth()), (selection.best.translation - truth().translation).norm());
     assert!(rot < 1.0 && trans < 0.001, "{rot:.2} deg, {:.2} mm", trans * 1e3);
@@ -231,7 +233,7 @@ fn a_half_turn_search_finds_the_pose_every_sample_turned_over() {
     // Nothing to fit without a model-based score.
     let model_free = SelectorParams::default();
     let mut by_clusters = select(&hypotheses, None, None, &model_free).unwrap();
-    assert!(!by_clusters.search_half_turns(&object, &points, &model_free, 2));
+    assert!(!by_clusters.search_half_turns(&object, Observed::points(&points), &model_free, 2));
 }
 
 #[test]
@@ -252,10 +254,10 @@ fn a_score_margin_keeps_every_hypothesis_the_points_cannot_tell_apart() {
         (0..12).map(|i| turned(&t, Vector3::y(), i as f64 * 30.0, Vector3::zeros())).collect();
     hypotheses.extend((0..8).map(|i| turned(&t, Vector3::x(), 25.0 + i as f64, Vector3::zeros())));
     let fraction = SelectorParams { method: Method::Sdf, keep_fraction: 0.1, keep_margin: 0.0, ..Default::default() };
-    let by_fraction = select(&hypotheses, Some(&points), Some(&object), &fraction).unwrap();
+    let by_fraction = select(&hypotheses, Some(Observed::points(&points)), Some(&object), &fraction).unwrap();
     assert_eq!(by_fraction.kept, 2);
     let margin = SelectorParams { keep_margin: 0.25, ..fraction.clone() };
-    let chosen = select(&hypotheses, Some(&points), Some(&object), &margin).unwrap();
+    let chosen = select(&hypotheses, Some(Observed::points(&points)), Some(&object), &margin).unwrap();
     assert_eq!(chosen.kept, 12, "scores {:?}", chosen.scored.iter().map(|(_, s)| *s).collect::<Vec<_>>());
     let kept = &chosen.scored[..chosen.kept];
     assert!(kept.iter().all(|(p, _)| hypotheses[..12].contains(p)));
@@ -265,7 +267,7 @@ fn a_score_margin_keeps_every_hypothesis_the_points_cannot_tell_apart() {
     // the margin widens what is reported, not what is selected.
     let refined = |p: &SelectorParams| {
         let p = SelectorParams { refine: true, ..p.clone() };
-        select(&hypotheses, Some(&points), Some(&object), &p).unwrap()
+        select(&hypotheses, Some(Observed::points(&points)), Some(&object), &p).unwrap()
     };
     let (narrow, wide) = (refined(&fraction), refined(&margin));
     assert_eq!((narrow.best, narrow.kept, wide.kept), (wide.best, 2, 12));
@@ -303,4 +305,72 @@ fn bad_parameters_are_named() {
         let err = SelectorParams::from_json(&json).unwrap_err().to_string();
         assert!(err.contains(expected), "{json}: {err}");
     }
+}
+
+/// A 4 × 4 × 20 cm bar seen end-on, and the same bar lying across the
+/// view with the same 4 × 4 cm patch of its side in front: the observed
+/// points fit both, but the camera saw the wall where the lying bar would
+/// be. The free-space term tells them apart; the points alone do not.
+#[test]
+fn the_free_space_term_rejects_a_pose_the_camera_saw_past() {
+    let (vertices, triangles) = Cuboid::new(Vector3::new(0.02, 0.02, 0.10)).to_trimesh();
+    let object = ObjectGeometry::from_mesh(1, vertices, triangles, 48).unwrap();
+    let camera = Pinhole { fx: 600.0, fy: 600.0, cx: 320.0, cy: 240.0 };
+    let end_on = Pose::new(nalgebra::Rotation3::identity(), Vector3::new(0.0, 0.0, 0.6));
+    let lying = Pose::new(
+        nalgebra::Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2),
+        Vector3::new(0.08, 0.0, 0.52),
+    );
+    // The end face, z = 0.5 m.
+    let points: Vec<Point3<f64>> = (0..256)
+        .map(|k| Point3::new(-0.02 + 0.04 * (k % 16) as f64 / 15.0, -0.02 + 0.04 * (k / 16) as f64 / 15.0, 0.5))
+        .collect();
+    // What ingest sends: the mask's box (pixels 296–344) padded by 10 %,
+    // twice that around it, on 32 cells; the wall is at 1 m.
+    let side = 49.0 * 1.2 * 2.0;
+    let mut grid = DepthGrid {
+        x_min: 320.0 - side / 2.0,
+        y_min: 240.0 - side / 2.0,
+        side,
+        cells: 32,
+        depth: vec![1.0; 32 * 32],
+        mask: vec![false; 32 * 32],
+    };
+    for k in 0..32 * 32 {
+        let cell = side / 32.0;
+        let u = (grid.x_min + ((k % 32) as f64 + 0.5) * cell).round();
+        let v = (grid.y_min + ((k / 32) as f64 + 0.5) * cell).round();
+        let (x, y) = ((u - camera.cx) / camera.fx * 0.5, (v - camera.cy) / camera.fy * 0.5);
+        if x.abs() <= 0.02 && y.abs() <= 0.02 {
+            (grid.depth[k], grid.mask[k]) = (0.5, true);
+        }
+    }
+    let hypotheses = vec![lying, end_on];
+    let params = SelectorParams { method: Method::Sdf, refine: true, keep_fraction: 1.0, ..Default::default() };
+    let score_of = |selection: &poseflow_selector::Selection, pose: &Pose| {
+        selection.candidates.iter().find(|(p, _)| angle_deg(p, pose) < 2.0).map(|c| c.1).unwrap()
+    };
+
+    let blind = select(&hypotheses, Some(Observed::points(&points)), Some(&object), &params).unwrap();
+    assert!((score_of(&blind, &lying) - score_of(&blind, &end_on)).abs() < 0.05, "{:?}", blind.candidates);
+
+    let observed = Observed { points: &points, depth: Some((&grid, &camera)) };
+    let seeing = select(&hypotheses, Some(observed), Some(&object), &params).unwrap();
+    assert!(angle_deg(&seeing.best, &end_on) < 1.0, "{:?}", seeing.candidates);
+    // The lying bar alone: its score takes the penalty. The grid reaches
+    // 3.4 cm right of the end face's outline: about nine columns of cells
+    // on the lying bar beside the end face's thirteen, a share near 0.3,
+    // times the outlier score (−8).
+    let only_lying = select(&[lying], Some(observed), Some(&object), &params).unwrap();
+    let penalty = score_of(&blind, &lying) - score_of(&only_lying, &lying);
+    assert!((1.5..3.5).contains(&penalty), "{penalty} {:?}", only_lying.candidates);
+    // Offered the end-on pose (as the track's motion or a half turn is),
+    // the selection takes it.
+    let mut offered = only_lying;
+    assert!(offered.consider(&[end_on], &object, observed, &params));
+    assert!(angle_deg(&offered.best, &end_on) < 1.0, "{:?}", offered.candidates);
+    // Weight 0 switches it off.
+    let off = SelectorParams { free_space_weight: 0.0, ..params };
+    let ignored = select(&hypotheses, Some(observed), Some(&object), &off).unwrap();
+    assert!((score_of(&ignored, &lying) - score_of(&ignored, &end_on)).abs() < 0.05);
 }

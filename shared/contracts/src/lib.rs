@@ -15,7 +15,7 @@
 //!
 //! Each header's documentation has its byte-by-byte table; compile-time
 //! assertions in this crate keep the tables true. The iceoryx2 type name of
-//! each header (`type_name`, e.g. `poseflow/Observation/v1`) is stable and
+//! each header (`type_name`, e.g. `poseflow/Observation/v2`) is stable and
 //! versioned: a layout change gets a new version suffix. A Python or C++
 //! stage reproduces a header as a C struct with the same fields in the same
 //! order and registers it with the same type name.
@@ -32,7 +32,7 @@
 //! | message | header | payload (`f32`) | from → to |
 //! |---|---|---|---|
 //! | Frame | [`FrameHeader`] | rgb 3·W·H ‖ depth W·H ‖ detections M·8 ‖ masks L | camera → detector → ingest |
-//! | Observation | [`ObservationHeader`] | image 3·S·S ‖ token mask P·P ‖ points N·3 | ingest → inference |
+//! | Observation | [`ObservationHeader`] | image 3·S·S ‖ token mask P·P ‖ points N·3 ‖ depth G·G ‖ mask G·G | ingest → inference, selector |
 //! | Condition | [`ConditionHandle`] | none | inference → sampler |
 //! | VelocityRequest | [`VelocityRequest`] | poses N·12 | sampler → inference |
 //! | VelocityResponse | [`VelocityResponse`] | velocities N·6 | inference → sampler |
@@ -94,9 +94,10 @@ mod layout {
     assert_layout!(CameraIntrinsics, size 24, align 4, fx @ 0, fy @ 4, cx @ 8, cy @ 12, width @ 16, height @ 20);
     assert_layout!(FrameHeader, size 120, align 8,
         header @ 0, intrinsics @ 80, scene_id @ 104, image_id @ 108, detection_count @ 112, mask_len @ 116);
-    assert_layout!(ObservationHeader, size 152, align 8,
+    assert_layout!(ObservationHeader, size 160, align 8,
         header @ 0, intrinsics @ 80, centroid @ 104, point_scale @ 116, crop @ 120,
-        image_size @ 136, patch_grid @ 140, point_count @ 144, valid_point_count @ 148);
+        image_size @ 136, patch_grid @ 140, point_count @ 144, valid_point_count @ 148, depth_grid @ 152,
+        depth_span @ 156);
     assert_layout!(ConditionHandle, size 120, align 8,
         header @ 0, condition_id @ 80, image_tokens @ 88, point_tokens @ 92,
         active_image_tokens @ 96, model_width @ 100, centroid @ 104, point_scale @ 116);

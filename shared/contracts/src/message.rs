@@ -14,6 +14,7 @@ pub const VELOCITY_LEN: usize = 6;
 pub mod limits {
     pub const MAX_IMAGE_SIZE: u32 = 1024;
     pub const MAX_POINTS: u32 = 65_536;
+    pub const MAX_DEPTH_GRID: u32 = 256;
     pub const MAX_SAMPLES: u32 = 4096;
     pub const MAX_MODES: u32 = 64;
     pub const MAX_GRASPS: u32 = 4096;

@@ -30,7 +30,7 @@ pub struct CameraIntrinsics {
     pub height: u32,
 }
 
-/// User header of an Observation (152 bytes, alignment 8).
+/// User header of an Observation (160 bytes, alignment 8).
 ///
 /// | offset | size | field             | type     | meaning |
 /// |-------:|-----:|-------------------|----------|---------|
@@ -43,13 +43,27 @@ pub struct CameraIntrinsics {
 /// | 140    | 4    | patch_grid        | u32      | P: the image encoder sees P×P patch tokens (S divisible by P) |
 /// | 144    | 4    | point_count       | u32      | N: points in the payload |
 /// | 148    | 4    | valid_point_count | u32      | distinct observed points before resampling to N |
+/// | 152    | 4    | depth_grid        | u32      | G: the depth and mask sections are G×G; 0 = no such sections |
+/// | 156    | 4    | depth_span        | f32      | the depth grid's square: the crop scaled by this about its centre |
 ///
 /// Payload (`f32`): `image` 3·S·S (CHW, RGB, normalised with the model's mean
 /// and std) ‖ `token_mask` P·P (1 = patch overlaps the object mask, 0 = not;
-/// row-major over patch rows) ‖ `points` N·3 (x, y, z interleaved).
+/// row-major over patch rows) ‖ `points` N·3 (x, y, z interleaved) ‖
+/// `depth` G·G ‖ `mask` G·G.
+///
+/// `depth` and `mask` sample one square on a G×G grid, row-major over grid
+/// rows: the crop scaled by `depth_span` about its centre (wider than the
+/// crop, so that a pose putting the object beyond the mask is seen there).
+/// With that square's corner `(x₀, y₀)` and side `d`, cell `(j, i)` holds
+/// the full image's pixel nearest to `(x₀ + (j + ½)·d/G, y₀ + (i + ½)·d/G)`.
+/// `depth` is its camera
+/// z in metres, everything the camera saw there and not only the object (0 =
+/// no depth, or outside the image); `mask` is 1 where the pixel is the
+/// object's, 0 elsewhere. They let a consumer test a pose against free space:
+/// the camera seeing beyond where the posed object would be.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("poseflow/Observation/v1")]
+#[type_name("poseflow/Observation/v2")]
 pub struct ObservationHeader {
     pub header: Header,
     pub intrinsics: CameraIntrinsics,
@@ -60,6 +74,8 @@ pub struct ObservationHeader {
     pub patch_grid: u32,
     pub point_count: u32,
     pub valid_point_count: u32,
+    pub depth_grid: u32,
+    pub depth_span: f32,
 }
 
 /// The sections of an Observation payload.
@@ -68,10 +84,13 @@ pub struct ObservationView<'a> {
     pub image: &'a [f32],
     pub token_mask: &'a [f32],
     pub points: &'a [f32],
+    /// Empty when `depth_grid` is 0.
+    pub depth: &'a [f32],
+    pub mask: &'a [f32],
 }
 
 impl ObservationHeader {
-    fn section_lengths(&self) -> Result<[usize; 3], ContractError> {
+    fn section_lengths(&self) -> Result<[usize; 5], ContractError> {
         let s = bounded(Self::NAME, "image_size", self.image_size, 1, limits::MAX_IMAGE_SIZE, "1..=1024 pixels")?;
         let p = bounded(
             Self::NAME,
@@ -91,14 +110,15 @@ impl ObservationHeader {
         }
         let n = bounded(Self::NAME, "point_count", self.point_count, 1, limits::MAX_POINTS, "1..=65536")?;
         bounded(Self::NAME, "valid_point_count", self.valid_point_count, 0, self.point_count, "0..=point_count")?;
-        Ok([3 * s * s, p * p, 3 * n])
+        let g = bounded(Self::NAME, "depth_grid", self.depth_grid, 0, limits::MAX_DEPTH_GRID, "0..=256 cells")?;
+        Ok([3 * s * s, p * p, 3 * n, g * g, g * g])
     }
 
     /// Splits a payload that [`MessageHeader::check_payload`] accepts.
     pub fn view<'a>(&self, payload: &'a [f32]) -> Result<ObservationView<'a>, ContractError> {
         self.check_payload(payload)?;
-        let [image, token_mask, points] = sections(payload, self.section_lengths()?);
-        Ok(ObservationView { image, token_mask, points })
+        let [image, token_mask, points, depth, mask] = sections(payload, self.section_lengths()?);
+        Ok(ObservationView { image, token_mask, points, depth, mask })
     }
 }
 

@@ -12,7 +12,7 @@ fn type_name<T: ZeroCopySend>() -> &'static str {
 #[test]
 fn type_names_are_stable_and_versioned() {
     assert_eq!(type_name::<Header>(), "poseflow/Header/v1");
-    assert_eq!(type_name::<ObservationHeader>(), "poseflow/Observation/v1");
+    assert_eq!(type_name::<ObservationHeader>(), "poseflow/Observation/v2");
     assert_eq!(type_name::<ConditionHandle>(), "poseflow/Condition/v1");
     assert_eq!(type_name::<VelocityRequest>(), "poseflow/VelocityRequest/v1");
     assert_eq!(type_name::<VelocityResponse>(), "poseflow/VelocityResponse/v1");
@@ -47,6 +47,15 @@ fn observation_payload_splits_into_its_sections() {
     assert_eq!(view.token_mask, &[48.0, 49.0, 50.0, 51.0]);
     assert_eq!(view.points[0], 52.0);
     assert_eq!(view.points.len(), 9);
+    assert!(view.depth.is_empty() && view.mask.is_empty());
+
+    let header = ObservationHeader { depth_grid: 2, ..header };
+    // … then depth 2·2 and mask 2·2.
+    assert_eq!(header.payload_len().unwrap(), 69);
+    let payload: Vec<f32> = (0..69).map(|i| i as f32).collect();
+    let view = header.view(&payload).unwrap();
+    assert_eq!(view.depth, &[61.0, 62.0, 63.0, 64.0]);
+    assert_eq!(view.mask, &[65.0, 66.0, 67.0, 68.0]);
 }
 
 #[test]
@@ -64,6 +73,10 @@ fn inconsistent_lengths_are_named() {
     let mut resampled = observation(224, 16, 10);
     resampled.valid_point_count = 11;
     assert!(resampled.payload_len().unwrap_err().to_string().contains("valid_point_count"));
+
+    let deep = ObservationHeader { depth_grid: 257, ..observation(4, 2, 3) };
+    let err = deep.payload_len().unwrap_err().to_string();
+    assert!(err.contains("depth_grid") && err.contains("257") && err.contains("0..=256"), "{err}");
 }
 
 #[test]
@@ -146,12 +159,13 @@ proptest! {
     /// or overflow, and any length they accept stays within the limits.
     #[test]
     fn arbitrary_observation_headers_are_checked_not_trusted(
-        s in any::<u32>(), p in any::<u32>(), n in any::<u32>(), valid in any::<u32>(),
+        s in any::<u32>(), p in any::<u32>(), n in any::<u32>(), valid in any::<u32>(), g in any::<u32>(),
     ) {
         let mut header = observation(s, p, n);
         header.valid_point_count = valid;
+        header.depth_grid = g % 512;
         if let Ok(len) = header.payload_len() {
-            prop_assert!(len <= 3 * 1024 * 1024 + 1024 * 1024 + 3 * 65_536);
+            prop_assert!(len <= 3 * 1024 * 1024 + 1024 * 1024 + 3 * 65_536 + 2 * 256 * 256);
             let payload = vec![0.0; len];
             prop_assert!(header.view(&payload).is_ok());
             prop_assert!(header.view(&payload[..len - 1]).is_err());
@@ -181,7 +195,7 @@ fn message_names_resolve_to_their_header_types() {
             std::mem::size_of::<H>()
         }
     }
-    assert_eq!(visit_message("Observation", Size), Some(152));
+    assert_eq!(visit_message("Observation", Size), Some(160));
     assert_eq!(visit_message("Estimate", Size), Some(344));
     assert_eq!(visit_message("Tensor", Size), Some(104));
     assert_eq!(visit_message("Pose", Size), None);

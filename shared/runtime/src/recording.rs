@@ -2,11 +2,11 @@
 //! they were received, so a stage can be developed and benchmarked against
 //! a real stream without the stages upstream of it.
 //!
-//! # File format (version 1)
+//! # File format (version 2)
 //!
 //! ```text
 //! "POSEFLOW-REC"  12 bytes magic
-//! version         u32 little-endian (1)
+//! version         u32 little-endian (2: Observation/v2 headers)
 //! frames          each: u64 little-endian length, then that many bytes of
 //!                 bincode 2 (standard config, serde): first a
 //!                 RecordingInfo, then one RecordedMessage per message
@@ -24,7 +24,7 @@ pub use poseflow_contracts::{header_bytes, header_from_bytes};
 use serde::{Deserialize, Serialize};
 
 pub const MAGIC: &[u8; 12] = b"POSEFLOW-REC";
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 /// A frame larger than this is a corrupt file, not a message.
 const MAX_FRAME_BYTES: u64 = 1 << 30;
 
