@@ -377,3 +377,35 @@ pub fn from_wiring(wiring: &poseflow_graph::StageWiring) -> Result<SelectorStage
     tracing::info!(method = ?stage.params().method, refine = stage.params().refine, "selector ready");
     Ok(stage)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn observation(crop: [f32; 4], depth_span: f32) -> ObservationHeader {
+        ObservationHeader { header: Header::new(7, 3), crop, depth_grid: 2, depth_span, ..Default::default() }
+    }
+
+    #[test]
+    fn the_depth_grid_spans_the_crop_scaled_about_its_centre() {
+        let grid =
+            depth_grid(&observation([10.0, 20.0, 30.0, 40.0], 2.0), 2, &[0.5, 0.0, 1.0, 2.0], &[1.0, 0.0, 0.0, 1.0])
+                .unwrap();
+        assert_eq!((grid.x_min, grid.y_min, grid.side, grid.cells), (0.0, 10.0, 40.0, 2));
+        assert_eq!(grid.mask, [true, false, false, true]);
+        assert_eq!(grid.depth, [0.5, 0.0, 1.0, 2.0]);
+    }
+
+    #[test]
+    fn a_bad_span_or_crop_is_refused_by_name() {
+        for (crop, span, field) in [
+            ([10.0, 20.0, 30.0, 40.0], f32::NAN, "depth_span NaN"),
+            ([10.0, 20.0, 30.0, 40.0], 0.0, "depth_span 0"),
+            ([10.0, 20.0, 10.0, 40.0], 2.0, "crop"),
+            ([f32::INFINITY, 20.0, 30.0, 40.0], 2.0, "crop"),
+        ] {
+            let err = depth_grid(&observation(crop, span), 2, &[0.0; 4], &[0.0; 4]).unwrap_err().to_string();
+            assert!(err.contains(field) && err.contains("frame 7"), "{err}");
+        }
+    }
+}
