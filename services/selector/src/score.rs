@@ -98,10 +98,6 @@ impl Scorer<'_> {
         self.residuals.score(pose, self.points, &self.likelihood)
     }
 
-    pub fn score(&self, pose: &Pose) -> f64 {
-        self.scores(std::slice::from_ref(pose), &[self.fit(pose)], f64::NEG_INFINITY)[0]
-    }
-
     /// The scores of `poses` from their `fits`: the free-space penalty added
     /// in order of fit for as long as it can change which pose is best.
     /// A penalty only lowers a score, so once the best score found (or
