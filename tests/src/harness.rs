@@ -231,7 +231,7 @@ max_payload_len = {observation_payload}
 /// frames stage (exe and params) and `detector` a Python detector plug-in
 /// and its params.
 pub fn ingest_graph(scratch: &Scratch, name: &str, frames: &str, detector: Option<(&str, &str)>) -> PathBuf {
-    let mut text = graph_head("ingest-corpus", 10_000);
+    let mut text = graph_head("ingest-corpus", 12_000);
     text += &format!(
         r#"
 [stages.frames]
