@@ -195,22 +195,36 @@ class ConditionHandle(ctypes.Structure):
         return 0
 
 
+MAX_SEGMENTS = 16
+
+
+class VelocitySegment(ctypes.Structure):
+    """A run of a VelocityRequest's samples under one condition at one flow time."""
+
+    _fields_ = [
+        ("condition_id", ctypes.c_uint64),
+        ("sample_count", ctypes.c_uint32),
+        ("t", ctypes.c_float),
+    ]
+
+
 class VelocityRequest(ctypes.Structure):
-    """Payload: N poses (POSE_LEN each) at time t (shared/contracts/src/velocity.rs)."""
+    """Payload: N poses (POSE_LEN each), the segments' samples one segment
+    after the other (shared/contracts/src/velocity.rs)."""
 
     _fields_ = [
         ("header", Header),
-        ("condition_id", ctypes.c_uint64),
         ("request_id", ctypes.c_uint64),
+        ("segment_count", ctypes.c_uint32),
         ("sample_count", ctypes.c_uint32),
-        ("t", ctypes.c_float),
         ("step_index", ctypes.c_uint32),
         ("step_count", ctypes.c_uint32),
+        ("segments", VelocitySegment * MAX_SEGMENTS),
     ]
 
     @staticmethod
     def type_name():
-        return "poseflow/VelocityRequest/v1"
+        return "poseflow/VelocityRequest/v2"
 
     def payload_len(self):
         return POSE_LEN * self.sample_count
@@ -331,6 +345,7 @@ CONTRACTS = [
     FrameHeader,
     ObservationHeader,
     ConditionHandle,
+    VelocitySegment,
     VelocityRequest,
     VelocityResponse,
     HypothesesHeader,

@@ -149,8 +149,7 @@ params = {{ report = "{report}" }}
         assert_eq!(unknown["status"], status::UNKNOWN_CONDITION, "{unknown}");
         assert_eq!(unknown["velocities"].as_array().map(Vec::len), Some(0));
         let poses = poseflow_e2e::probe_poses(frame, object, 50);
-        let request = VelocityRequest { header: header.header, sample_count: 50, t: 0.2, ..Default::default() };
-        let request = VelocityRequest { condition_id: handle.condition_id, ..request };
+        let request = VelocityRequest::single(header.header, handle.condition_id, 0, 50, 0.2);
         let mut expected = vec![0.0f32; 50 * 6];
         stage.velocities(&request, &poses, &mut expected).unwrap();
         let served: Vec<f32> =

@@ -13,7 +13,7 @@ use iceoryx2::prelude::ZeroCopySend;
 use poseflow_contracts::{
     CameraIntrinsics, ConditionHandle, EstimateHeader, FrameHeader, GraspsHeader, Header, Heartbeat, HypothesesHeader,
     NextViewHeader, ObservationHeader, STAGE_SLOTS, StageStamps, StampSlot, TensorHeader, VelocityRequest,
-    VelocityResponse,
+    VelocityResponse, VelocitySegment,
 };
 use poseflow_e2e::harness::*;
 use poseflow_e2e::plugin_python;
@@ -40,7 +40,7 @@ macro_rules! rust_layout {
 }
 
 /// Contracts that only ever travel inside another header.
-const NESTED: [&str; 3] = ["StageStamps", "Header", "CameraIntrinsics"];
+const NESTED: [&str; 4] = ["StageStamps", "Header", "CameraIntrinsics", "VelocitySegment"];
 
 const DUMP: &str = r#"
 import ctypes, json, sys
@@ -84,7 +84,16 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
             centroid,
             point_scale
         }),
-        rust_layout!(VelocityRequest { header, condition_id, request_id, sample_count, t, step_index, step_count }),
+        rust_layout!(VelocitySegment { condition_id, sample_count, t }),
+        rust_layout!(VelocityRequest {
+            header,
+            request_id,
+            segment_count,
+            sample_count,
+            step_index,
+            step_count,
+            segments
+        }),
         rust_layout!(VelocityResponse { header, request_id, sample_count, status }),
         rust_layout!(HypothesesHeader { header, sample_count, step_count }),
         rust_layout!(EstimateHeader {

@@ -32,13 +32,9 @@ impl Probe {
         self.requests += 1;
         let poses = probe_poses(handle.header.frame_id, handle.header.object_id, SAMPLES);
         let request = VelocityRequest {
-            header: handle.header,
-            condition_id,
-            request_id: self.requests,
-            sample_count: SAMPLES as u32,
-            t: T,
             step_index: 1,
             step_count: 5,
+            ..VelocityRequest::single(handle.header, condition_id, self.requests, SAMPLES as u32, T)
         };
         let reply = self
             .client

@@ -195,31 +195,46 @@ def validate(encoder, velocity, observations, cfg, count, samples, steps, seed):
 class OnnxPoseFlow:
     """An exported model directory through ONNX Runtime, callable like the
     PyTorch modules, so the figures of a model card come from the files the
-    inference stage serves."""
+    inference stage serves. `precision` "int8" loads the quantised files
+    (`encoder.int8.onnx`, `velocity.int8.onnx`, `poseflow_train.quantize`)."""
 
-    def __init__(self, model_dir, threads):
+    def __init__(self, model_dir, threads, precision="fp32"):
         import onnxruntime
 
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = threads
         model_dir = Path(model_dir)
-        self.encoder_session = onnxruntime.InferenceSession(str(model_dir / "encoder.onnx"), options)
-        self.velocity_session = onnxruntime.InferenceSession(str(model_dir / "velocity.onnx"), options)
+        suffix = {"fp32": "", "int8": ".int8"}[precision]
+        self.encoder_session = onnxruntime.InferenceSession(str(model_dir / f"encoder{suffix}.onnx"), options)
+        self.velocity_session = onnxruntime.InferenceSession(str(model_dir / f"velocity{suffix}.onnx"), options)
         meta = self.encoder_session.get_modelmeta().custom_metadata_map
+        self.contract = meta["contract"]
         self.object_ids = json.loads(meta["object_ids"])
         self.translation_noise_std = float(meta["translation_noise_std"])
         self.translation_scale = float(meta["translation_scale"])
         self.width = int(meta["width"])
+        # poseflow-onnx/2: the cross-attention keys and values of the last
+        # encoded batch, which the velocity calls that follow it read.
+        self.cross_kv = None
 
     def encoder(self, image, token_mask, points, object_index):
-        condition, mask = self.encoder_session.run(
+        outputs = self.encoder_session.run(
             None, {"image": image.numpy(), "token_mask": token_mask.numpy(), "points": points.numpy(),
                    "object_index": object_index.numpy()})
-        return torch.from_numpy(condition), torch.from_numpy(mask)
+        if self.contract != "poseflow-onnx/1":
+            self.cross_kv = outputs[2]
+        return torch.from_numpy(outputs[0]), torch.from_numpy(outputs[1])
 
     def velocity(self, condition, mask, r, p, t):
-        """The contract's velocity net takes one condition: samples are
-        grouped by observation, in order."""
+        """Samples are grouped by observation, in order. poseflow-onnx/2
+        runs all observations at once on the last encoded batch's keys and
+        values; poseflow-onnx/1 takes one observation per run."""
+        if self.contract != "poseflow-onnx/1":
+            assert self.cross_kv is not None and self.cross_kv.shape[0] == condition.shape[0], "encode first"
+            w, v = self.velocity_session.run(
+                None, {"condition": condition.numpy(), "condition_mask": mask.numpy(), "cross_kv": self.cross_kv,
+                       "rotation": r.numpy(), "translation": p.numpy(), "t": t.numpy()})
+            return torch.from_numpy(w), torch.from_numpy(v)
         b = condition.shape[0]
         n = r.shape[0] // b
         v_rot, v_pos = [], []
@@ -241,6 +256,8 @@ def add_model_arguments(parser):
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--precision", choices=["fp32", "int8"], default="fp32",
+                        help="int8: the quantised files (encoder.int8.onnx, velocity.int8.onnx)")
 
 
 def load_model(args):
@@ -249,7 +266,7 @@ def load_model(args):
     from types import SimpleNamespace
 
     torch.set_num_threads(args.threads)
-    model = OnnxPoseFlow(args.model, args.threads)
+    model = OnnxPoseFlow(args.model, args.threads, args.precision)
     cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std, translation_scale=model.translation_scale)
     return model, cfg
 

@@ -7,12 +7,22 @@ writes `encoder.onnx`, `velocity.onnx` and `parity.bin` + `parity.json`
 (fixed inputs and the PyTorch outputs, checked against ONNX Runtime here and
 from Rust in CI).
 
+Contract poseflow-onnx/2 (B observations, G samples each, M = B*G):
+
 encoder.onnx:  image [B,3,S,S] f32 (normalised), token_mask [B,P*P] f32,
                points [B,N,3] f32 (centred, metres), object_index [B] i64
-               -> condition [B,T,D] f32, condition_mask [B,T] f32
-velocity.onnx: condition [1,T,D], condition_mask [1,T], rotation [M,3,3],
-               translation [M,3] (metres, relative to the points' mean),
-               t [M] -> v_rot [M,3] (body frame), v_pos [M,3] (m per unit t)
+               -> condition [B,T,D] f32, condition_mask [B,T] f32,
+                  cross_kv [B,L,T,2D] f32 (keys then values of each of the
+                  L DiT blocks' cross-attention over the condition tokens)
+velocity.onnx: condition [B,T,D], condition_mask [B,T], cross_kv [B,L,T,2D],
+               rotation [M,3,3], translation [M,3] (metres, relative to the
+               points' mean), t [M]; samples b*G .. (b+1)*G - 1 belong to
+               observation b -> v_rot [M,3] (body frame), v_pos [M,3]
+               (m per unit t)
+
+poseflow-onnx/1 differed in two ways: the encoder had no cross_kv (the
+velocity network computed the keys and values at every Euler step), and
+the velocity network took one observation ([1,T,D]).
 """
 
 import argparse
@@ -28,7 +38,32 @@ from . import se3
 from .model import Encoder, ModelConfig, VelocityNet
 from .objects import write_objects
 
-CONTRACT = "poseflow-onnx/1"
+CONTRACT = "poseflow-onnx/2"
+
+
+class ExportedEncoder(torch.nn.Module):
+    """encoder.onnx: the encoder, plus the keys and values of the velocity
+    network's cross-attention over its condition, which depend on the
+    observation only (computed once per observation, not per Euler step)."""
+
+    def __init__(self, encoder, velocity):
+        super().__init__()
+        self.encoder, self.velocity = encoder, velocity
+
+    def forward(self, image, token_mask, points, object_index):
+        condition, mask = self.encoder(image, token_mask, points, object_index)
+        return condition, mask, self.velocity.cross_kv(condition)
+
+
+class ExportedVelocity(torch.nn.Module):
+    """velocity.onnx: the velocity network on cached keys and values."""
+
+    def __init__(self, velocity):
+        super().__init__()
+        self.velocity = velocity
+
+    def forward(self, condition, condition_mask, cross_kv, rotation, translation, t):
+        return self.velocity(condition, condition_mask, rotation, translation, t, cross_kv)
 
 
 def metadata(cfg, extra):
@@ -101,34 +136,51 @@ def main():
     token_mask = (torch.rand(2, p * p, generator=g) < 0.5).float()
     points = torch.randn(2, n, 3, generator=g) * 0.03
     object_index = torch.tensor([0, len(cfg.object_ids) - 1])
-    export(encoder, (image, token_mask, points, object_index), ["image", "token_mask", "points", "object_index"],
-           ["condition", "condition_mask"], {k: {0: "batch"} for k in ["image", "token_mask", "points", "object_index", "condition", "condition_mask"]},
+    encoder_inputs = ["image", "token_mask", "points", "object_index"]
+    export(ExportedEncoder(encoder, velocity), (image, token_mask, points, object_index), encoder_inputs,
+           ["condition", "condition_mask", "cross_kv"],
+           {k: {0: "batch"} for k in encoder_inputs + ["condition", "condition_mask", "cross_kv"]},
            out / "encoder.onnx", meta)
     with torch.no_grad():
         condition, mask = encoder(image, token_mask, points, object_index)
+        cross_kv = velocity.cross_kv(condition)
+    # Two observations with 5 samples each, so the export traces the grouping.
     m = 5
-    rotation = se3.uniform_rotation((m,), generator=g)
-    translation = torch.randn(m, 3, generator=g) * cfg.translation_noise_std
-    t = torch.tensor([0.0, 0.2, 0.4, 0.6, 0.8])
-    vel_inputs = (condition[:1], mask[:1], rotation, translation, t)
-    export(velocity, vel_inputs, ["condition", "condition_mask", "rotation", "translation", "t"], ["v_rot", "v_pos"],
-           {"rotation": {0: "samples"}, "translation": {0: "samples"}, "t": {0: "samples"}, "v_rot": {0: "samples"}, "v_pos": {0: "samples"}},
+    rotation = se3.uniform_rotation((2 * m,), generator=g)
+    translation = torch.randn(2 * m, 3, generator=g) * cfg.translation_noise_std
+    t = torch.tensor([0.0, 0.2, 0.4, 0.6, 0.8] * 2)
+    velocity_inputs = ["condition", "condition_mask", "cross_kv", "rotation", "translation", "t"]
+    vel_inputs = (condition, mask, cross_kv, rotation, translation, t)
+    export(ExportedVelocity(velocity), vel_inputs, velocity_inputs, ["v_rot", "v_pos"],
+           {"condition": {0: "observations"}, "condition_mask": {0: "observations"}, "cross_kv": {0: "observations"},
+            "rotation": {0: "samples"}, "translation": {0: "samples"}, "t": {0: "samples"}, "v_rot": {0: "samples"},
+            "v_pos": {0: "samples"}},
            out / "velocity.onnx", meta)
     with torch.no_grad():
-        v_rot, v_pos = velocity(*vel_inputs)
+        v_rot, v_pos = velocity(condition, mask, rotation, translation, t)
 
-    # Parity: ONNX Runtime against PyTorch, and the vectors for the Rust test.
+    # Parity: ONNX Runtime against PyTorch (which computes the keys and values
+    # inside the velocity network, as in training), and the vectors for the
+    # Rust tests: two observations, encoded and sampled together. The keys and
+    # values (0.8 MB) are not stored: the Rust tests take the encoder's.
     tensors = {
-        "image": image[:1], "token_mask": token_mask[:1], "points": points[:1], "object_index": object_index[:1],
-        "condition": condition[:1], "condition_mask": mask[:1], "rotation": rotation, "translation": translation,
-        "t": t, "v_rot": v_rot, "v_pos": v_pos,
+        "image": image, "token_mask": token_mask, "points": points, "object_index": object_index,
+        "condition": condition, "condition_mask": mask, "rotation": rotation,
+        "translation": translation, "t": t, "v_rot": v_rot, "v_pos": v_pos,
     }
     enc_session = onnxruntime.InferenceSession(str(out / "encoder.onnx"))
-    got = enc_session.run(None, {k: tensors[k].numpy() for k in ["image", "token_mask", "points", "object_index"]})
+    got = enc_session.run(None, {k: tensors[k].numpy() for k in encoder_inputs})
     assert np.abs(got[0] - tensors["condition"].numpy()).max() < 1e-4, "encoder parity"
+    assert np.abs(got[2] - cross_kv.numpy()).max() < 1e-4, "encoder parity (cross_kv)"
     vel_session = onnxruntime.InferenceSession(str(out / "velocity.onnx"))
-    got = vel_session.run(None, {k: tensors[k].numpy() for k in ["condition", "condition_mask", "rotation", "translation", "t"]})
+    got = vel_session.run(None, {**{k: tensors[k].numpy() for k in velocity_inputs if k != "cross_kv"},
+                                 "cross_kv": cross_kv.numpy()})
     assert np.abs(got[0] - v_rot.numpy()).max() < 1e-4 and np.abs(got[1] - v_pos.numpy()).max() < 1e-4, "velocity parity"
+    # One observation at a time, with another sample count: what the batch gave.
+    alone = vel_session.run(None, {"condition": condition[1:].numpy(), "condition_mask": mask[1:].numpy(),
+                                   "cross_kv": cross_kv[1:].numpy(), "rotation": rotation[m + 2:].numpy(),
+                                   "translation": translation[m + 2:].numpy(), "t": t[m + 2:].numpy()})
+    assert np.abs(alone[0] - v_rot[m + 2:].numpy()).max() < 1e-4, "velocity parity (one observation)"
     write_parity(out, tensors)
     if args.models_info:
         write_objects(out, cfg.object_ids, args.models_info)

@@ -111,7 +111,9 @@ class Attention(nn.Module):
     `x` [Bc * G, N, D] attends to `context` [Bc, T, D]: the G queries of a
     group share one context (the samples of one observation share its
     condition), whose keys and values are computed once. `mask` [Bc, T]:
-    1 = attend, 0 = ignore."""
+    1 = attend, 0 = ignore. `kv` [Bc, T, 2 D]: the context's keys and
+    values when already computed (`context_kv`), as the exported velocity
+    network receives them once per observation."""
 
     def __init__(self, width, heads):
         super().__init__()
@@ -121,12 +123,15 @@ class Attention(nn.Module):
         self.kv = nn.Linear(width, 2 * width)
         self.out = nn.Linear(width, width)
 
-    def forward(self, x, context, mask=None):
+    def context_kv(self, context):
+        return self.kv(context)
+
+    def forward(self, x, context, mask=None, kv=None):
         bx, n, d = x.shape
         bc, tk = context.shape[0], context.shape[1]
         h, dh = self.heads, d // self.heads
         q = self.q(x).reshape(bc, -1, n, h, dh).permute(0, 1, 3, 2, 4)
-        kv = self.kv(context).reshape(bc, tk, 2, h, dh).permute(2, 0, 3, 1, 4)
+        kv = (self.kv(context) if kv is None else kv).reshape(bc, tk, 2, h, dh).permute(2, 0, 3, 1, 4)
         k, v = kv[0][:, None], kv[1][:, None]
         scores = (q @ k.transpose(-1, -2)) * self.scale
         if mask is not None:
@@ -233,6 +238,17 @@ class PointEncoder(nn.Module):
         return torch.cat([features + self.position(centres), whole], 1)
 
 
+def split_first(mlp, local, shared):
+    """`mlp(cat([local, shared expanded over the points], -1))` with the
+    first layer's product split in two: the shared part ([B, 1, C]: the
+    object embedding, the cloud's pooled feature) is multiplied once per
+    cloud instead of once per point. Same function, same parameters."""
+    first = mlp[0]
+    k = local.shape[-1]
+    hidden = local @ first.weight[:, :k].T + (shared @ first.weight[:, k:].T + first.bias)
+    return mlp[1:](hidden)
+
+
 class Correspondences(nn.Module):
     """Object-frame coordinates of observed points: a PointNet segmentation
     network (per-point features, the cloud's max-pooled feature, the
@@ -251,10 +267,10 @@ class Correspondences(nn.Module):
 
     def forward(self, points, object_index):
         x = points[:, : self.count] / self.scale
-        o = self.objects(object_index)[:, None, :].expand(-1, x.shape[1], -1)
+        o = self.objects(object_index)[:, None, :]
         local = self.local(x)
-        whole = self.whole(torch.cat([local, o], -1)).amax(1, keepdim=True).expand(-1, x.shape[1], -1)
-        return self.head(torch.cat([local, whole, o], -1)) * self.scale
+        whole = split_first(self.whole, local, o).amax(1, keepdim=True)
+        return split_first(self.head, local, torch.cat([whole, o], -1)) * self.scale
 
 
 class Refiner(nn.Module):
@@ -285,10 +301,10 @@ class Refiner(nn.Module):
         observed = points[:, : self.count]
         # Rows R^T (x - p), in translation_scale units.
         canonical = ((observed - translation[:, None]) @ rotation) / self.scale
-        o = self.objects(object_index)[:, None, :].expand(-1, canonical.shape[1], -1)
+        o = self.objects(object_index)[:, None, :]
         local = self.local(canonical)
-        whole = self.whole(torch.cat([local, o], -1)).amax(1, keepdim=True).expand(-1, canonical.shape[1], -1)
-        coordinates = (canonical + self.head(torch.cat([local, whole, o], -1))) * self.scale
+        whole = split_first(self.whole, local, o).amax(1, keepdim=True)
+        coordinates = (canonical + split_first(self.head, local, torch.cat([whole, o], -1))) * self.scale
         rotation, translation = se3.align(coordinates, observed)
         return coordinates, rotation, translation
 
@@ -394,7 +410,7 @@ class DiTBlock(nn.Module):
         nn.init.zeros_(self.modulation.weight)
         nn.init.zeros_(self.modulation.bias)
 
-    def forward(self, x, c, condition, condition_mask):
+    def forward(self, x, c, condition, condition_mask, cross_kv=None):
         shift = self.modulation(nn.functional.silu(c))[:, None, :].chunk(9, -1)
 
         def modulated(i, y):
@@ -402,7 +418,7 @@ class DiTBlock(nn.Module):
 
         y = modulated(0, x)
         x = x + shift[2] * self.self_attn(y, y)
-        x = x + shift[5] * self.cross_attn(modulated(1, x), condition, condition_mask)
+        x = x + shift[5] * self.cross_attn(modulated(1, x), condition, condition_mask, cross_kv)
         return x + shift[8] * self.mlp(modulated(2, x))
 
 
@@ -428,7 +444,14 @@ class VelocityNet(nn.Module):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
 
-    def clean_pose(self, condition, condition_mask, rotation, translation, t):
+    def cross_kv(self, condition):
+        """[B, L, T, 2 D]: the keys and values of every block's
+        cross-attention over the condition tokens. They depend on the
+        observation only, so inference computes them once per observation
+        instead of at every Euler step."""
+        return torch.stack([block.cross_attn.context_kv(condition) for block in self.blocks], 1)
+
+    def clean_pose(self, condition, condition_mask, rotation, translation, t, cross_kv=None):
         """The predicted clean pose (R1_hat, p1_hat in metres)."""
         scale = self.cfg.translation_scale
         bc = condition.shape[0]
@@ -452,8 +475,8 @@ class VelocityNet(nn.Module):
             per_observation = per_observation + self.summary(pooled)
         c = (c.reshape(bc, -1, c.shape[-1]) + per_observation[:, None, :]).reshape(-1, c.shape[-1])
         samples = rotation.shape[0] // bc
-        for block in self.blocks:
-            x = block(x, c, condition, condition_mask)
+        for i, block in enumerate(self.blocks):
+            x = block(x, c, condition, condition_mask, None if cross_kv is None else cross_kv[:, i])
         shift, scl = self.final_modulation(nn.functional.silu(c))[:, None, :].chunk(2, -1)
         x = self.final_norm(x) * (1 + scl) + shift
         # Corrections of the coarse pose, not of (R_t, p_t): at small t the
@@ -469,7 +492,7 @@ class VelocityNet(nn.Module):
         base_6d = torch.cat([hint_r[:, :, 0], hint_r[:, :, 1]], -1)[:, None, :].expand(bc, samples, 6).reshape(-1, 6)
         return se3.rotation_from_6d(base_6d + self.rotation_head(x[:, 0])), p1
 
-    def forward(self, condition, condition_mask, rotation, translation, t):
-        r1, p1 = self.clean_pose(condition, condition_mask, rotation, translation, t)
+    def forward(self, condition, condition_mask, rotation, translation, t, cross_kv=None):
+        r1, p1 = self.clean_pose(condition, condition_mask, rotation, translation, t, cross_kv)
         remaining = (1.0 - t).clamp_min(self.cfg.min_remaining)[:, None]
         return se3.so3_log(rotation.transpose(-1, -2) @ r1) / remaining, (p1 - translation) / remaining

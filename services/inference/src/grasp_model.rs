@@ -48,7 +48,7 @@ impl GraspFlowModel {
     /// Loads and checks `<dir>/grasp_encoder.onnx` and `<dir>/grasp_velocity.onnx`.
     pub fn load(dir: &Path, threads: usize) -> Result<Self, InferenceError> {
         let SessionPair { encoder, encoder_path, velocity, velocity_path } =
-            open_pair(dir, ["grasp_encoder.onnx", "grasp_velocity.onnx"], threads, GRASP_CONTRACT)?;
+            open_pair(dir, ["grasp_encoder.onnx", "grasp_velocity.onnx"], threads, &[GRASP_CONTRACT])?.0;
         let n: i64 = meta(&encoder, &encoder_path, "point_count")?;
         let width: i64 = meta(&encoder, &encoder_path, "width")?;
         use TensorElementType::Float32 as F;

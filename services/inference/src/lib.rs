@@ -12,16 +12,22 @@ pub mod stage;
 
 pub use error::InferenceError;
 pub use grasp_model::{GRASP_CONTRACT, GraspFlowModel, GraspModelInfo};
-pub use model::{CONTRACT, Condition, ModelInfo, PoseFlowModel, Velocities};
+pub use model::{CONTRACTS, Condition, EncoderInput, ModelInfo, PoseFlowModel, Precision, Velocities};
 
 /// The stage of this crate: `inference` (Observation in, Condition handle
 /// out, velocity requests served).
 pub fn registrations() -> Vec<poseflow_runtime::Registration> {
     vec![poseflow_runtime::Registration::server("inference", |wiring| {
         let mut params = stage::InferenceParams::from_json(&wiring.params)?;
-        // A reader a full queue behind, with one handle in hand and one more
-        // held for publishing, must still find its conditions cached.
-        let in_flight = wiring.outputs.iter().map(|o| o.queue + 2).max().unwrap_or(0);
+        // A reader a full queue behind, with a batch of handles in hand,
+        // while this stage holds a batch for publishing, must still find its
+        // conditions cached.
+        let in_flight = wiring
+            .outputs
+            .iter()
+            .map(|o| o.queue + params.batch + poseflow_contracts::MAX_SEGMENTS + 1)
+            .max()
+            .unwrap_or(0);
         if params.cache < in_flight {
             tracing::info!(cache = params.cache, in_flight, "cache raised to the conditions a reader can lag by");
             params.cache = in_flight;

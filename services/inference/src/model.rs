@@ -1,13 +1,20 @@
 //! The two ONNX networks of a PoseFlow model directory and their contract
-//! (`training/poseflow_train/export.py`):
+//! (`training/poseflow_train/export.py`), for B observations of G samples
+//! each (M = B·G samples; samples b·G … (b+1)·G − 1 belong to observation b):
 //!
 //! - `encoder.onnx`: `image` [B,3,S,S] f32, `token_mask` [B,P·P] f32,
 //!   `points` [B,N,3] f32, `object_index` [B] i64 → `condition` [B,T,D],
-//!   `condition_mask` [B,T];
-//! - `velocity.onnx`: `condition` [1,T,D], `condition_mask` [1,T],
-//!   `rotation` [M,3,3], `translation` [M,3] (metres, relative to the
-//!   observed points' mean), `t` [M] → `v_rot` [M,3] (body frame),
-//!   `v_pos` [M,3].
+//!   `condition_mask` [B,T], and from `poseflow-onnx/2` on `cross_kv`
+//!   [B,L,T,2D] (the keys then values of each of the velocity network's L
+//!   cross-attention blocks over the condition tokens);
+//! - `velocity.onnx`: `condition` [B,T,D], `condition_mask` [B,T],
+//!   (`poseflow-onnx/2`) `cross_kv` [B,L,T,2D], `rotation` [M,3,3],
+//!   `translation` [M,3] (metres, relative to the observed points' mean),
+//!   `t` [M] → `v_rot` [M,3] (body frame), `v_pos` [M,3].
+//!
+//! `poseflow-onnx/1` (still served) has no `cross_kv`, so its velocity
+//! network recomputes the keys and values at every Euler step, and takes one
+//! observation per run (B = 1): a batch of several runs one by one.
 //!
 //! Metadata (ONNX `metadata_props`, JSON values) gives S, P, N, the
 //! normalisation, the translation scale and noise, and the object ids.
@@ -20,8 +27,9 @@ use ort::value::{TensorElementType, TensorRef, ValueType};
 
 use crate::InferenceError;
 
-/// The contract version this crate serves.
-pub const CONTRACT: &str = "poseflow-onnx/1";
+/// The contract versions this crate serves, oldest first: `metadata`
+/// `contract` of an encoder names one.
+pub const CONTRACTS: [&str; 2] = ["poseflow-onnx/1", "poseflow-onnx/2"];
 
 /// What a model says about itself in its metadata.
 #[derive(Debug, Clone, PartialEq)]
@@ -38,6 +46,11 @@ pub struct ModelInfo {
     /// Condition tokens T and their width D.
     pub tokens: usize,
     pub width: usize,
+    /// The contract version (1 or 2) of [`CONTRACTS`].
+    pub contract: u32,
+    /// Cross-attention blocks L whose keys and values the encoder caches
+    /// (`poseflow-onnx/2`); 0 under `poseflow-onnx/1`.
+    pub cached_blocks: usize,
 }
 
 /// One observation's encoded condition, kept by the inference stage and
@@ -48,6 +61,67 @@ pub struct Condition {
     pub tokens: Vec<f32>,
     /// T values, 1 = attend.
     pub mask: Vec<f32>,
+    /// L·T·2D values, row-major: the velocity network's cross-attention
+    /// keys and values (`poseflow-onnx/2`); empty under `poseflow-onnx/1`.
+    pub cross_kv: Vec<f32>,
+    /// Which encoding this is (numbered by the model from 1); lets a batch
+    /// of the same conditions be gathered once for all its Euler steps.
+    /// 0: made elsewhere, gathered every time.
+    pub serial: u64,
+}
+
+/// Which files of a model directory are served: the exported FP32 networks
+/// (`encoder.onnx`, `velocity.onnx`) or their dynamic INT8 quantisation
+/// (`encoder.int8.onnx`, `velocity.int8.onnx`, `poseflow_train.quantize`):
+/// the same contract, weights in 8 bits and matrix products in integers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    #[default]
+    Fp32,
+    Int8,
+}
+
+impl Precision {
+    pub const ALL: [Precision; 2] = [Precision::Fp32, Precision::Int8];
+
+    /// The encoder's and the velocity network's file names.
+    pub fn files(self) -> [&'static str; 2] {
+        match self {
+            Precision::Fp32 => ["encoder.onnx", "velocity.onnx"],
+            Precision::Int8 => ["encoder.int8.onnx", "velocity.int8.onnx"],
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Precision::Fp32 => "fp32",
+            Precision::Int8 => "int8",
+        }
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, String> {
+        Self::ALL
+            .into_iter()
+            .find(|p| p.name() == text)
+            .ok_or_else(|| format!("{text:?}: expected \"fp32\" or \"int8\""))
+    }
+}
+
+/// One observation's encoder inputs (payload sections of an Observation).
+#[derive(Debug, Clone, Copy)]
+pub struct EncoderInput<'a> {
+    /// 3·S·S values, channel-major, normalised.
+    pub image: &'a [f32],
+    /// P·P values, 1 = the patch shows the object.
+    pub token_mask: &'a [f32],
+    /// N·3 values, centred, metres.
+    pub points: &'a [f32],
+    pub object_index: usize,
 }
 
 /// Velocities of a batch: `v_rot` and `v_pos`, M·3 values each.
@@ -63,6 +137,22 @@ pub struct PoseFlowModel {
     pub info: ModelInfo,
     encoder: Session,
     velocity: Session,
+    /// A batch's inputs, gathered (reused between runs).
+    gathered: Gathered,
+    encodings: u64,
+}
+
+#[derive(Debug, Default)]
+struct Gathered {
+    /// The serials of the conditions in `tokens`, `mask` and `cross_kv`.
+    conditions: Vec<u64>,
+    image: Vec<f32>,
+    token_mask: Vec<f32>,
+    points: Vec<f32>,
+    object_index: Vec<i64>,
+    tokens: Vec<f32>,
+    mask: Vec<f32>,
+    cross_kv: Vec<f32>,
 }
 
 /// An expected input or output: name, element type, dimensions (-1 = any).
@@ -175,31 +265,38 @@ pub(crate) struct SessionPair {
 }
 
 /// Opens `<dir>/<files[0]>` (encoder) and `<dir>/<files[1]>` (velocity)
-/// and checks that the encoder's metadata declares `contract`.
+/// and checks that the encoder's metadata declares one of `contracts`;
+/// returns the pair and the index of the declared contract.
 pub(crate) fn open_pair(
     dir: &Path,
     files: [&str; 2],
     threads: usize,
-    contract: &str,
-) -> Result<SessionPair, InferenceError> {
+    contracts: &[&str],
+) -> Result<(SessionPair, usize), InferenceError> {
     let (encoder_path, velocity_path) = (dir.join(files[0]), dir.join(files[1]));
     let encoder = session(&encoder_path, threads)?;
     let velocity = session(&velocity_path, threads)?;
     let declared: String = meta(&encoder, &encoder_path, "contract")?;
-    if declared != contract {
+    let Some(version) = contracts.iter().position(|&c| c == declared) else {
         return Err(InferenceError::Model {
             path: encoder_path,
-            detail: format!("metadata `contract` = {declared:?}, this build serves {contract:?}"),
+            detail: format!("metadata `contract` = {declared:?}, this build serves {contracts:?}"),
         });
-    }
-    Ok(SessionPair { encoder, encoder_path, velocity, velocity_path })
+    };
+    Ok((SessionPair { encoder, encoder_path, velocity, velocity_path }, version))
 }
 
 impl PoseFlowModel {
     /// Loads and checks `<dir>/encoder.onnx` and `<dir>/velocity.onnx`.
     pub fn load(dir: &Path, threads: usize) -> Result<Self, InferenceError> {
-        let SessionPair { encoder, encoder_path, velocity, velocity_path } =
-            open_pair(dir, ["encoder.onnx", "velocity.onnx"], threads, CONTRACT)?;
+        Self::load_as(dir, threads, Precision::Fp32)
+    }
+
+    /// Loads and checks the networks of `precision` in `dir`.
+    pub fn load_as(dir: &Path, threads: usize, precision: Precision) -> Result<Self, InferenceError> {
+        let (SessionPair { encoder, encoder_path, velocity, velocity_path }, version) =
+            open_pair(dir, precision.files(), threads, &CONTRACTS)?;
+        let contract = version as u32 + 1;
         let (s, p, n): (i64, i64, i64) = (
             meta(&encoder, &encoder_path, "image_size")?,
             meta(&encoder, &encoder_path, "patch_grid")?,
@@ -218,25 +315,27 @@ impl PoseFlowModel {
                 port("object_index", I, &[-1]),
             ],
         )?;
-        check_ports(
-            &encoder_path,
-            "outputs",
-            encoder.outputs(),
-            &[port("condition", F, &[-1, -1, width]), port("condition_mask", F, &[-1, -1])],
-        )?;
+        let mut encoder_outputs = vec![port("condition", F, &[-1, -1, width]), port("condition_mask", F, &[-1, -1])];
+        if contract >= 2 {
+            encoder_outputs.push(port("cross_kv", F, &[-1, -1, -1, 2 * width]));
+        }
+        check_ports(&encoder_path, "outputs", encoder.outputs(), &encoder_outputs)?;
         let t_dim = condition_tokens(&velocity, &velocity_path)?;
-        check_ports(
-            &velocity_path,
-            "inputs",
-            velocity.inputs(),
-            &[
-                port("condition", F, &[1, t_dim, width]),
-                port("condition_mask", F, &[1, t_dim]),
-                port("rotation", F, &[-1, 3, 3]),
-                port("translation", F, &[-1, 3]),
-                port("t", F, &[-1]),
-            ],
-        )?;
+        let cached_blocks = if contract >= 2 { cross_kv_blocks(&velocity, &velocity_path)? } else { 0 };
+        let observations = if contract >= 2 { -1 } else { 1 };
+        let mut velocity_inputs = vec![
+            port("condition", F, &[observations, t_dim, width]),
+            port("condition_mask", F, &[observations, t_dim]),
+        ];
+        if contract >= 2 {
+            velocity_inputs.push(port("cross_kv", F, &[-1, cached_blocks as i64, t_dim, 2 * width]));
+        }
+        velocity_inputs.extend([
+            port("rotation", F, &[-1, 3, 3]),
+            port("translation", F, &[-1, 3]),
+            port("t", F, &[-1]),
+        ]);
+        check_ports(&velocity_path, "inputs", velocity.inputs(), &velocity_inputs)?;
         check_velocity_outputs(&velocity, &velocity_path)?;
         let info = ModelInfo {
             image_size: s as usize,
@@ -248,8 +347,10 @@ impl PoseFlowModel {
             object_ids: meta(&encoder, &encoder_path, "object_ids")?,
             tokens: t_dim as usize,
             width: width as usize,
+            contract,
+            cached_blocks,
         };
-        Ok(Self { dir: dir.to_path_buf(), info, encoder, velocity })
+        Ok(Self { dir: dir.to_path_buf(), info, encoder, velocity, gathered: Gathered::default(), encodings: 0 })
     }
 
     /// Index of a BOP object id for `object_index`.
@@ -265,21 +366,57 @@ impl PoseFlowModel {
         points: &[f32],
         object_index: usize,
     ) -> Result<Condition, InferenceError> {
+        let mut conditions = self.encode_batch(&[EncoderInput { image, token_mask, points, object_index }])?;
+        Ok(conditions.pop().expect("one condition per input"))
+    }
+
+    /// Encodes several observations in one run of the encoder (batch B);
+    /// each condition equals the one its observation gets alone.
+    pub fn encode_batch(&mut self, inputs: &[EncoderInput<'_>]) -> Result<Vec<Condition>, InferenceError> {
         let (s, p, n) = (self.info.image_size, self.info.patch_grid, self.info.point_count);
+        let b = inputs.len();
+        if b == 0 {
+            return Ok(Vec::new());
+        }
         let run_error = |e: ort::Error| InferenceError::Run { model: "encoder", detail: e.to_string() };
-        let index = [object_index as i64];
+        let g = &mut self.gathered;
+        g.image.clear();
+        g.token_mask.clear();
+        g.points.clear();
+        g.object_index.clear();
+        for input in inputs {
+            g.image.extend_from_slice(input.image);
+            g.token_mask.extend_from_slice(input.token_mask);
+            g.points.extend_from_slice(input.points);
+            g.object_index.push(input.object_index as i64);
+        }
         let outputs = self
             .encoder
             .run(ort::inputs![
-                "image" => TensorRef::from_array_view(([1usize, 3, s, s], image)).map_err(run_error)?,
-                "token_mask" => TensorRef::from_array_view(([1usize, p * p], token_mask)).map_err(run_error)?,
-                "points" => TensorRef::from_array_view(([1usize, n, 3], points)).map_err(run_error)?,
-                "object_index" => TensorRef::from_array_view(([1usize], &index[..])).map_err(run_error)?,
+                "image" => TensorRef::from_array_view(([b, 3, s, s], &g.image[..])).map_err(run_error)?,
+                "token_mask" => TensorRef::from_array_view(([b, p * p], &g.token_mask[..])).map_err(run_error)?,
+                "points" => TensorRef::from_array_view(([b, n, 3], &g.points[..])).map_err(run_error)?,
+                "object_index" => TensorRef::from_array_view(([b], &g.object_index[..])).map_err(run_error)?,
             ])
             .map_err(run_error)?;
         let (_, tokens) = outputs["condition"].try_extract_tensor::<f32>().map_err(run_error)?;
         let (_, mask) = outputs["condition_mask"].try_extract_tensor::<f32>().map_err(run_error)?;
-        Ok(Condition { tokens: tokens.to_vec(), mask: mask.to_vec() })
+        let cross_kv = match self.info.contract {
+            1 => &[][..],
+            _ => outputs["cross_kv"].try_extract_tensor::<f32>().map_err(run_error)?.1,
+        };
+        let per = |values: &[f32]| values.len() / b;
+        let (tokens_per, mask_per, kv_per) = (per(tokens), per(mask), per(cross_kv));
+        let first = self.encodings + 1;
+        self.encodings += b as u64;
+        Ok((0..b)
+            .map(|i| Condition {
+                tokens: tokens[i * tokens_per..(i + 1) * tokens_per].to_vec(),
+                mask: mask[i * mask_per..(i + 1) * mask_per].to_vec(),
+                cross_kv: cross_kv[i * kv_per..(i + 1) * kv_per].to_vec(),
+                serial: first + i as u64,
+            })
+            .collect())
     }
 
     /// Velocities for M poses (`rotations` M·9 row-major, `translations` M·3,
@@ -291,20 +428,171 @@ impl PoseFlowModel {
         translations: &[f32],
         t: &[f32],
     ) -> Result<Velocities, InferenceError> {
-        let (tk, d, m) = (self.info.tokens, self.info.width, t.len());
+        self.velocity_batch(&[condition], rotations, translations, t)
+    }
+
+    /// Velocities for the samples of several observations in one run of
+    /// the velocity network (`poseflow-onnx/2`; one run per observation
+    /// under `poseflow-onnx/1`): M = B·G poses, the G samples of
+    /// `conditions[b]` at rows b·G … (b+1)·G − 1, as in [`Self::velocity`].
+    pub fn velocity_batch(
+        &mut self,
+        conditions: &[&Condition],
+        rotations: &[f32],
+        translations: &[f32],
+        t: &[f32],
+    ) -> Result<Velocities, InferenceError> {
+        let (b, m) = (conditions.len(), t.len());
+        if b == 0 || m % b != 0 || rotations.len() != 9 * m || translations.len() != 3 * m {
+            return Err(InferenceError::Run {
+                model: "velocity",
+                detail: format!(
+                    "{b} conditions, {} rotation, {} translation and {m} time values: expected B × G samples (9, 3 and 1 values each) for B ≥ 1 conditions",
+                    rotations.len(),
+                    translations.len()
+                ),
+            });
+        }
+        if self.info.contract == 1 && b > 1 {
+            let g = m / b;
+            let mut all = Velocities { rotation: Vec::with_capacity(3 * m), translation: Vec::with_capacity(3 * m) };
+            for (i, condition) in conditions.iter().enumerate() {
+                let part = self.velocity_batch(
+                    &[condition],
+                    &rotations[9 * g * i..9 * g * (i + 1)],
+                    &translations[3 * g * i..3 * g * (i + 1)],
+                    &t[g * i..g * (i + 1)],
+                )?;
+                all.rotation.extend(part.rotation);
+                all.translation.extend(part.translation);
+            }
+            return Ok(all);
+        }
+        let (tk, d, l) = (self.info.tokens, self.info.width, self.info.cached_blocks);
         let run_error = |e: ort::Error| InferenceError::Run { model: "velocity", detail: e.to_string() };
-        let outputs = self
-            .velocity
-            .run(ort::inputs![
-                "condition" => TensorRef::from_array_view(([1usize, tk, d], &condition.tokens[..])).map_err(run_error)?,
-                "condition_mask" => TensorRef::from_array_view(([1usize, tk], &condition.mask[..])).map_err(run_error)?,
-                "rotation" => TensorRef::from_array_view(([m, 3, 3], rotations)).map_err(run_error)?,
-                "translation" => TensorRef::from_array_view(([m, 3], translations)).map_err(run_error)?,
-                "t" => TensorRef::from_array_view(([m], t)).map_err(run_error)?,
-            ])
-            .map_err(run_error)?;
+        // One condition is read in place; several are gathered, once for
+        // all the Euler steps of the same batch.
+        let (tokens, mask, cross_kv) = match conditions {
+            [one] => (&one.tokens[..], &one.mask[..], &one.cross_kv[..]),
+            _ => {
+                let g = &mut self.gathered;
+                let same = conditions.iter().all(|c| c.serial != 0)
+                    && g.conditions.iter().copied().eq(conditions.iter().map(|c| c.serial));
+                if !same {
+                    g.conditions.clear();
+                    g.tokens.clear();
+                    g.mask.clear();
+                    g.cross_kv.clear();
+                    for condition in conditions {
+                        g.conditions.push(condition.serial);
+                        g.tokens.extend_from_slice(&condition.tokens);
+                        g.mask.extend_from_slice(&condition.mask);
+                        g.cross_kv.extend_from_slice(&condition.cross_kv);
+                    }
+                }
+                (&g.tokens[..], &g.mask[..], &g.cross_kv[..])
+            }
+        };
+        let sizes = [(tokens.len(), b * tk * d), (mask.len(), b * tk), (cross_kv.len(), b * l * tk * 2 * d)];
+        if sizes.iter().any(|&(found, expected)| found != expected) {
+            return Err(InferenceError::Run {
+                model: "velocity",
+                detail: format!(
+                    "conditions hold {} token, {} mask and {} cross_kv values, expected {} (B = {b} of T = {tk}, D = {d}, L = {l})",
+                    tokens.len(),
+                    mask.len(),
+                    cross_kv.len(),
+                    b * tk * d
+                ),
+            });
+        }
+        let mut inputs = ort::inputs![
+            "condition" => TensorRef::from_array_view(([b, tk, d], tokens)).map_err(run_error)?,
+            "condition_mask" => TensorRef::from_array_view(([b, tk], mask)).map_err(run_error)?,
+            "rotation" => TensorRef::from_array_view(([m, 3, 3], rotations)).map_err(run_error)?,
+            "translation" => TensorRef::from_array_view(([m, 3], translations)).map_err(run_error)?,
+            "t" => TensorRef::from_array_view(([m], t)).map_err(run_error)?,
+        ];
+        if self.info.contract >= 2 {
+            inputs.push((
+                "cross_kv".into(),
+                TensorRef::from_array_view(([b, l, tk, 2 * d], cross_kv)).map_err(run_error)?.into(),
+            ));
+        }
+        let outputs = self.velocity.run(inputs).map_err(run_error)?;
         let (_, rotation) = outputs["v_rot"].try_extract_tensor::<f32>().map_err(run_error)?;
         let (_, translation) = outputs["v_pos"].try_extract_tensor::<f32>().map_err(run_error)?;
         Ok(Velocities { rotation: rotation.to_vec(), translation: translation.to_vec() })
     }
+}
+
+impl PoseFlowModel {
+    /// Velocities for runs of samples of different lengths, each under its
+    /// condition (`segments`: the condition and its sample count, in the
+    /// order of the samples): one network run for all of them, shorter runs
+    /// padded to the longest with identity poses whose velocities are
+    /// dropped (a sample attends only to its own tokens and its
+    /// observation's condition, so padding changes no other sample).
+    pub fn velocity_segments(
+        &mut self,
+        segments: &[(&Condition, usize)],
+        rotations: &[f32],
+        translations: &[f32],
+        t: &[f32],
+    ) -> Result<Velocities, InferenceError> {
+        let m: usize = segments.iter().map(|&(_, count)| count).sum();
+        let longest = segments.iter().map(|&(_, count)| count).max().unwrap_or(0);
+        if m != t.len() || rotations.len() != 9 * m || translations.len() != 3 * m || longest == 0 {
+            return Err(InferenceError::Run {
+                model: "velocity",
+                detail: format!(
+                    "segments of {m} samples in all, {} rotation, {} translation and {} time values: expected 9, 3 and 1 per sample, at least one sample",
+                    rotations.len(),
+                    translations.len(),
+                    t.len()
+                ),
+            });
+        }
+        let conditions: Vec<&Condition> = segments.iter().map(|&(condition, _)| condition).collect();
+        if segments.iter().all(|&(_, count)| count == longest) {
+            return self.velocity_batch(&conditions, rotations, translations, t);
+        }
+        let (mut r, mut p, mut times) = (Vec::new(), Vec::new(), Vec::new());
+        let mut start = 0;
+        for &(_, count) in segments {
+            let samples = start..start + count;
+            r.extend_from_slice(&rotations[9 * samples.start..9 * samples.end]);
+            p.extend_from_slice(&translations[3 * samples.start..3 * samples.end]);
+            times.extend_from_slice(&t[samples]);
+            let padding = longest - count;
+            r.extend((0..padding).flat_map(|_| [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]));
+            p.extend(std::iter::repeat_n(0.0, 3 * padding));
+            times.extend(std::iter::repeat_n(0.0, padding));
+            start += count;
+        }
+        let padded = self.velocity_batch(&conditions, &r, &p, &times)?;
+        let mut out = Velocities { rotation: Vec::with_capacity(3 * m), translation: Vec::with_capacity(3 * m) };
+        for (i, &(_, count)) in segments.iter().enumerate() {
+            let rows = 3 * i * longest..3 * (i * longest + count);
+            out.rotation.extend_from_slice(&padded.rotation[rows.clone()]);
+            out.translation.extend_from_slice(&padded.translation[rows]);
+        }
+        Ok(out)
+    }
+}
+
+/// The block count L of a `poseflow-onnx/2` velocity network's `cross_kv`
+/// input (dimension 1).
+fn cross_kv_blocks(velocity: &Session, path: &Path) -> Result<usize, InferenceError> {
+    velocity
+        .inputs()
+        .iter()
+        .find(|o| o.name() == "cross_kv")
+        .and_then(|o| o.dtype().tensor_shape().and_then(|s| s.get(1).copied()))
+        .filter(|&blocks| blocks > 0)
+        .map(|blocks| blocks as usize)
+        .ok_or_else(|| InferenceError::Model {
+            path: path.to_path_buf(),
+            detail: "poseflow-onnx/2: input `cross_kv` [B, L, T, 2D] needs a fixed block count L (dimension 1)".into(),
+        })
 }

@@ -12,8 +12,14 @@
 //! | key | meaning | default |
 //! |---|---|---|
 //! | `model` | directory with `encoder.onnx` and `velocity.onnx` | `models/poseflow-lmo10` |
+//! | `precision` | `fp32` (`encoder.onnx`, `velocity.onnx`) or `int8` (`encoder.int8.onnx`, `velocity.int8.onnx`) | `fp32` |
 //! | `threads` | ONNX Runtime intra-op threads per network | 2 |
-//! | `cache` | conditions kept (oldest dropped first); the process raises it to its output queue + 2 | 8 |
+//! | `cache` | conditions kept (oldest dropped first); the process raises it to what a reader can hold (its queue, a batch, one in hand) | 8 |
+//! | `batch` | most observations of one frame encoded in one run of the encoder | 1 |
+//!
+//! Batching: the Observations of one frame (the ingest stage marks all but
+//! the last `MORE_IN_FRAME`) are encoded in one run of the encoder, at most
+//! `batch` at a time ([`FrameBatches`]).
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -22,10 +28,10 @@ use poseflow_contracts::status as velocity_status;
 use poseflow_contracts::{
     ConditionHandle, Header, ObservationHeader, POSE_LEN, StampSlot, VELOCITY_LEN, VelocityRequest, VelocityResponse,
 };
-use poseflow_runtime::{Emitter, Input, Server, Transform};
+use poseflow_runtime::{Emitter, Flush, FrameBatches, Input, Server, Transform};
 use serde::Deserialize;
 
-use crate::{Condition, InferenceError, PoseFlowModel};
+use crate::{Condition, EncoderInput, InferenceError, PoseFlowModel, Precision};
 
 /// The stage's parameters.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -33,10 +39,14 @@ use crate::{Condition, InferenceError, PoseFlowModel};
 pub struct InferenceParams {
     #[serde(default = "default_model")]
     pub model: PathBuf,
+    #[serde(default)]
+    pub precision: Precision,
     #[serde(default = "default_threads")]
     pub threads: usize,
     #[serde(default = "default_cache")]
     pub cache: usize,
+    #[serde(default = "default_batch")]
+    pub batch: usize,
 }
 
 fn default_model() -> PathBuf {
@@ -47,6 +57,9 @@ fn default_threads() -> usize {
 }
 fn default_cache() -> usize {
     8
+}
+fn default_batch() -> usize {
+    1
 }
 
 impl InferenceParams {
@@ -63,8 +76,27 @@ impl InferenceParams {
         if params.cache == 0 {
             return Err(InferenceError::Params { key: "cache".into(), detail: "0: expected at least 1".into() });
         }
+        if !(1..=64).contains(&params.batch) {
+            return Err(InferenceError::Params {
+                key: "batch".into(),
+                detail: format!("{}: expected 1 to 64", params.batch),
+            });
+        }
         Ok(params)
     }
+}
+
+/// A checked observation waiting to be encoded with those that arrived
+/// with it.
+#[derive(Debug)]
+struct Held {
+    header: ObservationHeader,
+    image: Vec<f32>,
+    token_mask: Vec<f32>,
+    /// Metres (the network's unit).
+    points: Vec<f32>,
+    object_index: usize,
+    active_image_tokens: u32,
 }
 
 /// One encoded observation, kept for its velocity requests.
@@ -88,7 +120,9 @@ pub struct InferenceStage {
     /// instead of another observation's condition.
     run_nonce: u64,
     encoded: u64,
-    points: Vec<f32>,
+    /// When the held observations are encoded.
+    batches: FrameBatches,
+    held: Vec<Held>,
     rotations: Vec<f32>,
     translations: Vec<f32>,
     times: Vec<f32>,
@@ -107,7 +141,8 @@ fn run_nonce() -> u64 {
 
 impl InferenceStage {
     pub fn new(params: &InferenceParams) -> Result<Self, InferenceError> {
-        Ok(Self::with_model(PoseFlowModel::load(&params.model, params.threads)?, params.cache))
+        let model = PoseFlowModel::load_as(&params.model, params.threads, params.precision)?;
+        Ok(Self { batches: FrameBatches::new(params.batch), ..Self::with_model(model, params.cache) })
     }
 
     pub fn with_model(model: PoseFlowModel, capacity: usize) -> Self {
@@ -117,7 +152,8 @@ impl InferenceStage {
             cache: VecDeque::new(),
             run_nonce: run_nonce(),
             encoded: 0,
-            points: Vec::new(),
+            batches: FrameBatches::new(default_batch()),
+            held: Vec::new(),
             rotations: Vec::new(),
             translations: Vec::new(),
             times: Vec::new(),
@@ -132,6 +168,13 @@ impl InferenceStage {
 
     /// Encodes one observation and caches its condition; returns the handle.
     pub fn encode(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<ConditionHandle, InferenceError> {
+        self.hold(header, payload)?;
+        Ok(self.encode_held()?.pop().expect("one observation held"))
+    }
+
+    /// Checks an observation against the model and keeps a copy of it for
+    /// the next [`Self::encode_held`].
+    pub fn hold(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<(), InferenceError> {
         let frame = header.header.frame_id;
         let bad = |detail: String| InferenceError::Observation { frame, detail };
         let info = &self.model.info;
@@ -158,66 +201,120 @@ impl InferenceStage {
             return Err(bad(format!("point_scale {}: expected a positive number", header.point_scale)));
         }
         let view = header.view(payload).map_err(|e| bad(e.to_string()))?;
-        // The network takes metres.
-        self.points.clear();
-        self.points.extend(view.points.iter().map(|&x| x * header.point_scale));
-        let condition = self.model.encode(view.image, view.token_mask, &self.points, object_index)?;
-        self.encoded += 1;
-        let id = self.run_nonce | (self.encoded & 0xFFFF_FFFF);
-        let active_image_tokens = view.token_mask.iter().filter(|&&m| m > 0.5).count() as u32;
-        let image_tokens = (self.model.info.patch_grid * self.model.info.patch_grid) as u32;
-        let handle = ConditionHandle {
-            header: header.header,
-            condition_id: id,
-            image_tokens,
-            point_tokens: (self.model.info.tokens as u32).saturating_sub(image_tokens),
-            active_image_tokens,
-            model_width: self.model.info.width as u32,
-            centroid: header.centroid,
-            point_scale: header.point_scale,
-        };
-        if self.cache.len() == self.capacity {
-            self.cache.pop_front();
-        }
-        self.cache.push_back(Cached { id, condition, point_scale: header.point_scale });
-        Ok(handle)
+        self.held.push(Held {
+            header: *header,
+            image: view.image.to_vec(),
+            token_mask: view.token_mask.to_vec(),
+            // The network takes metres.
+            points: view.points.iter().map(|&x| x * header.point_scale).collect(),
+            object_index,
+            active_image_tokens: view.token_mask.iter().filter(|&&m| m > 0.5).count() as u32,
+        });
+        Ok(())
     }
 
-    /// Velocities (`v` then `ω`, 6 per sample, the request's frame) of a
-    /// request's samples, written into `out`; Err carries the status code.
+    /// Observations held and not yet encoded.
+    pub fn held(&self) -> usize {
+        self.held.len()
+    }
+
+    /// Encodes every held observation in one run of the encoder, caches
+    /// their conditions and returns their handles, in arrival order.
+    pub fn encode_held(&mut self) -> Result<Vec<ConditionHandle>, InferenceError> {
+        let held = std::mem::take(&mut self.held);
+        let inputs: Vec<EncoderInput> = held
+            .iter()
+            .map(|h| EncoderInput {
+                image: &h.image,
+                token_mask: &h.token_mask,
+                points: &h.points,
+                object_index: h.object_index,
+            })
+            .collect();
+        let conditions = self.model.encode_batch(&inputs)?;
+        let image_tokens = (self.model.info.patch_grid * self.model.info.patch_grid) as u32;
+        let mut handles = Vec::with_capacity(held.len());
+        for (held, condition) in held.iter().zip(conditions) {
+            self.encoded += 1;
+            let id = self.run_nonce | (self.encoded & 0xFFFF_FFFF);
+            let header = &held.header;
+            handles.push(ConditionHandle {
+                header: header.header,
+                condition_id: id,
+                image_tokens,
+                point_tokens: (self.model.info.tokens as u32).saturating_sub(image_tokens),
+                active_image_tokens: held.active_image_tokens,
+                model_width: self.model.info.width as u32,
+                centroid: header.centroid,
+                point_scale: header.point_scale,
+            });
+            if self.cache.len() == self.capacity {
+                self.cache.pop_front();
+            }
+            self.cache.push_back(Cached { id, condition, point_scale: header.point_scale });
+        }
+        Ok(handles)
+    }
+
+    /// Velocities (`v` then `ω`, 6 per sample, each segment's network
+    /// frame) of a request's samples, written into `out`: one run of the
+    /// velocity network for all its segments. Err carries the status code.
     pub fn velocities(&mut self, request: &VelocityRequest, poses: &[f32], out: &mut [f32]) -> Result<(), u32> {
-        let Some(cached) = self.cache.iter().find(|c| c.id == request.condition_id) else {
-            return Err(velocity_status::UNKNOWN_CONDITION);
-        };
         let n = request.sample_count as usize;
         if poses.len() != n * POSE_LEN || out.len() != n * VELOCITY_LEN || poses.iter().any(|x| !x.is_finite()) {
             return Err(velocity_status::INVALID_REQUEST);
         }
-        let scale = cached.point_scale;
+        let mut segments = Vec::with_capacity(request.segments().len());
+        for segment in request.segments() {
+            let Some(cached) = self.cache.iter().find(|c| c.id == segment.condition_id) else {
+                return Err(velocity_status::UNKNOWN_CONDITION);
+            };
+            segments.push((cached, segment.sample_count as usize, segment.t));
+        }
         self.rotations.clear();
         self.translations.clear();
-        for pose in poses.chunks_exact(POSE_LEN) {
-            self.rotations.extend_from_slice(&pose[..9]);
-            self.translations.extend(pose[9..].iter().map(|&x| x * scale));
-        }
         self.times.clear();
-        self.times.resize(n, request.t);
-        let velocities = self
-            .model
-            .velocity(&cached.condition, &self.rotations, &self.translations, &self.times)
-            .map_err(|err| {
+        let mut samples = poses.chunks_exact(POSE_LEN);
+        for &(cached, count, t) in &segments {
+            for pose in samples.by_ref().take(count) {
+                self.rotations.extend_from_slice(&pose[..9]);
+                self.translations.extend(pose[9..].iter().map(|&x| x * cached.point_scale));
+            }
+            self.times.extend(std::iter::repeat_n(t, count));
+        }
+        let runs: Vec<(&Condition, usize)> =
+            segments.iter().map(|&(cached, count, _)| (&cached.condition, count)).collect();
+        let velocities =
+            self.model.velocity_segments(&runs, &self.rotations, &self.translations, &self.times).map_err(|err| {
                 tracing::warn!(%err, "velocity network failed");
                 velocity_status::INFERENCE_FAILED
             })?;
-        for ((o, v), w) in out
+        let mut rows = out
             .chunks_exact_mut(VELOCITY_LEN)
             .zip(velocities.translation.chunks_exact(3))
-            .zip(velocities.rotation.chunks_exact(3))
-        {
-            o[0] = v[0] / scale;
-            o[1] = v[1] / scale;
-            o[2] = v[2] / scale;
-            o[3..].copy_from_slice(w);
+            .zip(velocities.rotation.chunks_exact(3));
+        for &(cached, count, _) in &segments {
+            let scale = cached.point_scale;
+            for ((o, v), w) in rows.by_ref().take(count) {
+                o[0] = v[0] / scale;
+                o[1] = v[1] / scale;
+                o[2] = v[2] / scale;
+                o[3..].copy_from_slice(w);
+            }
+        }
+        Ok(())
+    }
+
+    /// Encodes the held observations and emits their handles.
+    fn run_batch(&mut self, output: &mut dyn Emitter<ConditionHandle>) -> Result<(), InferenceError> {
+        if self.held.is_empty() {
+            return Ok(());
+        }
+        let frames: Vec<u64> = self.held.iter().map(|h| h.header.header.frame_id).collect();
+        let handles = self.encode_held().inspect_err(|_| tracing::warn!(?frames, "observations not encoded"))?;
+        tracing::debug!(observations = handles.len(), "encoded");
+        for handle in handles {
+            output.emit(handle, 0, &mut |_| {})?;
         }
         Ok(())
     }
@@ -245,10 +342,19 @@ impl Transform for InferenceStage {
         input: Input<'_, ObservationHeader>,
         output: &mut dyn Emitter<ConditionHandle>,
     ) -> Result<(), InferenceError> {
-        let handle = self.encode(input.header, input.payload)?;
-        tracing::debug!(condition = handle.condition_id, "encoded");
-        output.emit(handle, 0, &mut |_| {})?;
+        let header = &input.header.header;
+        if self.batches.run_before(header, self.held.len()) {
+            self.run_batch(output)?;
+        }
+        self.hold(input.header, input.payload)?;
+        if self.batches.run_after(header, self.held.len()) {
+            self.run_batch(output)?;
+        }
         Ok(())
+    }
+
+    fn flush(&mut self, output: &mut dyn Emitter<ConditionHandle>, reason: Flush) -> Result<(), InferenceError> {
+        if self.batches.run_at(reason) { self.run_batch(output) } else { Ok(()) }
     }
 
     fn take_rejected(&mut self) -> u64 {
@@ -285,7 +391,8 @@ impl Server for InferenceStage {
             }
             Err(status) => {
                 self.rejected += 1;
-                tracing::warn!(condition = header.condition_id, status, "velocity request not served");
+                let conditions: Vec<u64> = header.segments().iter().map(|s| s.condition_id).collect();
+                tracing::warn!(?conditions, status, "velocity request not served");
                 Self::reply_status(header.header, header.request_id, status, reply)
             }
         };

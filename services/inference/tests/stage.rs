@@ -6,8 +6,8 @@ mod common;
 
 use std::collections::BTreeMap;
 
-use common::{max_difference, model_dir, parity};
-use poseflow_contracts::{Header, MessageHeader, ObservationHeader, VelocityRequest, status};
+use common::{max_difference, model_dir, parity, parity_of};
+use poseflow_contracts::{Header, MessageHeader, ObservationHeader, VelocityRequest, VelocitySegment, status};
 use poseflow_inference::PoseFlowModel;
 use poseflow_inference::stage::{InferenceParams, InferenceStage};
 
@@ -47,13 +47,68 @@ fn poses(v: &BTreeMap<String, Vec<f32>>, point_scale: f32) -> Vec<f32> {
 
 fn request(condition_id: u64, sample_count: u32, t: f32) -> VelocityRequest {
     VelocityRequest {
-        header: Header::new(7, 1),
-        condition_id,
-        request_id: 3,
-        sample_count,
-        t,
         step_index: 1,
         step_count: 5,
+        ..VelocityRequest::single(Header::new(7, 1), condition_id, 3, sample_count, t)
+    }
+}
+
+/// Observations that arrived together are encoded in one run, and one
+/// request of several segments (observations at other scales, sample
+/// counts and flow times) is answered as each segment is alone, under both
+/// contracts (the fixture is `poseflow-onnx/1`, the default model `/2`).
+#[test]
+fn held_observations_and_segmented_requests_match_one_by_one() {
+    let default_model = model_dir().parent().unwrap().join("poseflow-lmo10");
+    for dir in [model_dir(), default_model] {
+        let v = parity_of(&dir);
+        let per = v["image"].len() / v["object_index"].len();
+        let first: BTreeMap<String, Vec<f32>> = ["image", "token_mask", "points"]
+            .iter()
+            .map(|&name| {
+                let values = &v[name];
+                let count = values.len() * per / v["image"].len();
+                (name.to_string(), values[..count].to_vec())
+            })
+            .chain(["rotation", "translation"].iter().map(|&name| (name.to_string(), v[name].clone())))
+            .collect();
+        let mut together = InferenceStage::with_model(PoseFlowModel::load(&dir, 1).unwrap(), 8);
+        let mut alone = InferenceStage::with_model(PoseFlowModel::load(&dir, 1).unwrap(), 8);
+        let scales = [1.0, 0.5];
+        let mut handles = Vec::new();
+        for &scale in &scales {
+            let (header, payload) = observation(&first, 5, scale);
+            together.hold(&header, &payload).unwrap();
+            handles.push(alone.encode(&header, &payload).unwrap());
+        }
+        assert_eq!(together.held(), 2);
+        let held = together.encode_held().unwrap();
+        assert_eq!(together.held(), 0);
+        // Segments of 5 and 3 samples at different flow times.
+        let counts = [5usize, 3];
+        let times = [0.2f32, 0.8];
+        let mut joint = VelocityRequest { header: Header::new(7, 5), ..Default::default() };
+        let mut payload = Vec::new();
+        let mut expected = Vec::new();
+        for (k, handle) in held.iter().enumerate() {
+            joint.push(VelocitySegment {
+                condition_id: handle.condition_id,
+                sample_count: counts[k] as u32,
+                t: times[k],
+            });
+            let part = &poses(&first, scales[k])[..counts[k] * 12];
+            payload.extend_from_slice(part);
+            let mut out = vec![0.0; counts[k] * 6];
+            alone.velocities(&request(handles[k].condition_id, counts[k] as u32, times[k]), part, &mut out).unwrap();
+            expected.extend(out);
+        }
+        joint.check_payload(&payload).unwrap();
+        let mut out = vec![0.0; expected.len()];
+        together.velocities(&joint, &payload, &mut out).unwrap();
+        assert!(max_difference(&out, &expected) < 1e-4, "{}", dir.display());
+        // A segment whose condition is unknown fails the whole request.
+        joint.segments[1].condition_id ^= 1 << 40;
+        assert_eq!(together.velocities(&joint, &payload, &mut out), Err(status::UNKNOWN_CONDITION));
     }
 }
 
@@ -129,7 +184,11 @@ fn observations_the_model_cannot_take_are_rejected_with_the_reason() {
 #[test]
 fn parameters_name_the_key_that_is_wrong() {
     let params = InferenceParams::from_json(&serde_json::json!({ "model": "models/x" })).unwrap();
-    assert_eq!((params.threads, params.cache), (2, 8));
+    assert_eq!((params.threads, params.cache, params.batch), (2, 8, 1));
+    let err = InferenceParams::from_json(&serde_json::json!({ "batch": 0 })).unwrap_err().to_string();
+    assert!(err.contains("`batch`") && err.contains("1 to 64"), "{err}");
+    let err = InferenceParams::from_json(&serde_json::json!({ "precision": "fp16" })).unwrap_err().to_string();
+    assert!(err.contains("fp16") && err.contains("fp32") && err.contains("int8"), "{err}");
     let err = InferenceParams::from_json(&serde_json::json!({ "threads": 0 })).unwrap_err().to_string();
     assert!(err.contains("`threads`") && err.contains("1 to 64"), "{err}");
     let err = InferenceParams::from_json(&serde_json::json!({ "modle": "x" })).unwrap_err().to_string();

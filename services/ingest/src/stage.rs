@@ -240,24 +240,34 @@ impl Transform for IngestStage {
             return Err(err);
         }
         let mut rng = Self::rng(frame.frame_id);
+        let mut observed = Vec::with_capacity(objects.len());
         for object in &objects {
             match prepare(&frame, object, &self.params, &mut rng) {
                 Ok(prepared) => {
                     let mut header = prepared.header(frame.frame_id, &frame.camera, &self.params);
                     header.header.stamps = input.header.header.stamps;
-                    header.header.flags |= input.header.header.flags;
+                    header.header.flags |= input.header.header.flags & !flags::MORE_IN_FRAME;
                     // Validated parameters always give a valid header; a
                     // failure here names the frame rather than a parameter.
                     let len = header
                         .payload_len()
                         .map_err(|err| IngestError::Frame { frame: frame.label.clone(), detail: err.to_string() })?;
-                    output.emit(header, len, &mut |out| prepared.write_payload(&frame, object, &self.params, out))?;
+                    observed.push((header, len, prepared, object));
                 }
                 Err(err) => {
                     tracing::warn!(%err, "object skipped");
                     self.rejected += 1;
                 }
             }
+        }
+        // Sent together once all are ready, each but the last marked: the
+        // inference stage encodes them as one batch.
+        let count = observed.len();
+        for (header, _, _, _) in observed.iter_mut().take(count.saturating_sub(1)) {
+            header.header.flags |= flags::MORE_IN_FRAME;
+        }
+        for (header, len, prepared, object) in observed {
+            output.emit(header, len, &mut |out| prepared.write_payload(&frame, object, &self.params, out))?;
         }
         Ok(())
     }

@@ -1,12 +1,18 @@
-//! Euler integration of the learned flow for one observation.
+//! Euler integration of the learned flow, for one observation or for the
+//! several observations of a frame in lockstep (one velocity request per
+//! Euler step for all of them).
 //!
 //! Frames: the network works in the request frame — camera axes, origin at
 //! the observed points' centroid, lengths divided by the observation's
 //! `point_scale`. Hypotheses leave in the camera frame (metres):
 //! `t_cam = s · p + centroid`, `R` unchanged.
 
+use std::ops::Range;
+
 use nalgebra::Vector3;
-use poseflow_contracts::{ConditionHandle, POSE_LEN, VELOCITY_LEN, VelocityRequest};
+use poseflow_contracts::{
+    ConditionHandle, MAX_SEGMENTS, POSE_LEN, VELOCITY_LEN, VelocityRequest, VelocitySegment, limits,
+};
 use poseflow_geometry::flow::euler_step;
 use poseflow_geometry::sampling::{TranslationNoise, initial_pose, sample_seed, seeded_rng};
 use poseflow_geometry::{Pose, Velocity, so3};
@@ -48,17 +54,29 @@ pub enum Start {
 #[derive(Debug)]
 pub struct FlowSampler {
     params: SamplerParams,
+    /// Every job's samples, one job after the other.
     poses: Vec<Pose>,
     request: Vec<f32>,
     response: Vec<f32>,
     velocities: Vec<Velocity>,
     requests: u64,
+    /// Most samples one velocity request may carry (the request-response
+    /// edge's payload capacity).
+    request_capacity: usize,
 }
 
 /// What one call produced: camera-frame hypotheses and how many steps.
 #[derive(Debug)]
 pub struct Sampled<'a> {
     pub poses: &'a [Pose],
+    pub steps: usize,
+}
+
+/// One job of [`FlowSampler::sample_batch`]: where its hypotheses are in
+/// [`FlowSampler::poses`] and how many steps they took.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Batched {
+    pub samples: Range<usize>,
     pub steps: usize,
 }
 
@@ -71,11 +89,24 @@ impl FlowSampler {
             response: Vec::new(),
             velocities: Vec::new(),
             requests: 0,
+            request_capacity: limits::MAX_SAMPLES as usize,
         }
+    }
+
+    /// Caps the samples of one velocity request (at most the contract's
+    /// 4096): a batch is split into more requests rather than overflow the
+    /// edge. One observation's group of samples is never split.
+    pub fn set_request_capacity(&mut self, samples: usize) {
+        self.request_capacity = samples.clamp(1, limits::MAX_SAMPLES as usize);
     }
 
     pub fn params(&self) -> &SamplerParams {
         &self.params
+    }
+
+    /// The samples of the last call (camera frame, metres).
+    pub fn poses(&self) -> &[Pose] {
+        &self.poses
     }
 
     /// N hypotheses for the observation behind `handle`.
@@ -85,83 +116,130 @@ impl FlowSampler {
         start: &Start,
         field: &mut dyn VelocityField,
     ) -> Result<Sampled<'_>, SamplerError> {
-        let (frame, object) = (handle.header.frame_id, handle.header.object_id);
-        let scale = f64::from(handle.point_scale);
-        if !(scale.is_finite() && scale > 0.0) || handle.centroid.iter().any(|x| !x.is_finite()) {
-            return Err(SamplerError::Geometry {
-                frame,
-                object,
-                detail: format!(
-                    "condition handle with point_scale {} and centroid {:?}: expected a positive scale and a finite centroid",
-                    handle.point_scale, handle.centroid
-                ),
-            });
-        }
-        let centroid = Vector3::from(handle.centroid.map(f64::from));
-        let groups = self.draw(handle, start, scale, centroid);
-        for group in &groups {
-            self.integrate(handle, group, field)?;
-        }
-        for pose in &mut self.poses {
-            pose.translation = pose.translation * scale + centroid;
-        }
-        let steps = groups.iter().map(|g| g.steps).max().unwrap_or(0);
-        Ok(Sampled { poses: &self.poses, steps })
+        let mut batch = self.sample_batch(&[(*handle, *start)], field)?;
+        let Batched { samples, steps } = batch.pop().expect("one job")?;
+        Ok(Sampled { poses: &self.poses[samples], steps })
     }
 
-    /// Integrates the samples of `group` from its start time to t = 1 in
-    /// its number of Euler steps.
-    fn integrate(
+    /// N hypotheses for each job's observation, integrated in lockstep: at
+    /// each Euler step one velocity request carries every job's samples
+    /// that still move (in requests of at most [`MAX_SEGMENTS`] segments).
+    /// A job whose handle is unusable fails alone (inner `Err`); a velocity
+    /// request that fails fails the whole batch (outer `Err`). Each job's
+    /// samples equal what [`Self::sample`] gives it alone.
+    pub fn sample_batch(
         &mut self,
-        handle: &ConditionHandle,
-        group: &Group,
+        jobs: &[(ConditionHandle, Start)],
+        field: &mut dyn VelocityField,
+    ) -> Result<Vec<Result<Batched, SamplerError>>, SamplerError> {
+        self.poses.clear();
+        let mut results = Vec::with_capacity(jobs.len());
+        let mut groups = Vec::new();
+        for (job, (handle, start)) in jobs.iter().enumerate() {
+            let (frame, object) = (handle.header.frame_id, handle.header.object_id);
+            let scale = f64::from(handle.point_scale);
+            if !(scale.is_finite() && scale > 0.0) || handle.centroid.iter().any(|x| !x.is_finite()) {
+                results.push(Err(SamplerError::Geometry {
+                    frame,
+                    object,
+                    detail: format!(
+                        "condition handle with point_scale {} and centroid {:?}: expected a positive scale and a finite centroid",
+                        handle.point_scale, handle.centroid
+                    ),
+                }));
+                continue;
+            }
+            let centroid = Vector3::from(handle.centroid.map(f64::from));
+            let first = self.poses.len();
+            let drawn = self.draw(handle, start, scale, centroid);
+            let steps = drawn.iter().map(|g| g.steps).max().unwrap_or(0);
+            groups.extend(drawn.into_iter().map(|mut group| {
+                group.within_job = group.samples.start;
+                group.samples = first + group.samples.start..first + group.samples.end;
+                group.job = job;
+                group
+            }));
+            results.push(Ok(Batched { samples: first..self.poses.len(), steps }));
+        }
+        let most_steps = groups.iter().map(|g| g.steps).max().unwrap_or(0);
+        for k in 0..most_steps {
+            let moving: Vec<&Group> = groups.iter().filter(|g| k < g.steps).collect();
+            for request in requests_of(&moving, self.request_capacity) {
+                self.step(jobs, request, k, most_steps, field)?;
+            }
+        }
+        for (result, (handle, _)) in results.iter().zip(jobs) {
+            if let Ok(batched) = result {
+                let scale = f64::from(handle.point_scale);
+                let centroid = Vector3::from(handle.centroid.map(f64::from));
+                for pose in &mut self.poses[batched.samples.clone()] {
+                    pose.translation = pose.translation * scale + centroid;
+                }
+            }
+        }
+        Ok(results)
+    }
+
+    /// Euler step `k` of `groups`: one velocity request for all of them.
+    fn step(
+        &mut self,
+        jobs: &[(ConditionHandle, Start)],
+        groups: &[&Group],
+        k: usize,
+        step_count: usize,
         field: &mut dyn VelocityField,
     ) -> Result<(), SamplerError> {
-        let (frame, object) = (handle.header.frame_id, handle.header.object_id);
-        let poses = &mut self.poses[group.samples.clone()];
-        let n = poses.len();
-        let dt = (1.0 - group.start_time) / group.steps as f64;
-        for k in 0..group.steps {
-            let t = group.start_time + k as f64 * dt;
-            self.request.clear();
-            self.request.extend(poses.iter().flat_map(|p| p.to_f32_row_major()));
-            self.response.clear();
-            self.response.resize(n * VELOCITY_LEN, 0.0);
-            self.requests += 1;
-            let request = VelocityRequest {
-                header: handle.header,
+        let first = &jobs[groups[0].job].0;
+        let (frame, object) = (first.header.frame_id, first.header.object_id);
+        self.requests += 1;
+        let mut request = VelocityRequest {
+            header: first.header,
+            request_id: self.requests,
+            step_index: k as u32,
+            step_count: step_count as u32,
+            ..Default::default()
+        };
+        self.request.clear();
+        for group in groups {
+            let handle = &jobs[group.job].0;
+            let t = group.start_time + k as f64 * group.dt();
+            request.push(VelocitySegment {
                 condition_id: handle.condition_id,
-                request_id: self.requests,
-                sample_count: n as u32,
+                sample_count: group.samples.len() as u32,
                 t: t as f32,
-                step_index: k as u32,
-                step_count: group.steps as u32,
-            };
-            field.velocities(&request, &self.request, &mut self.response).map_err(|source| SamplerError::Velocity {
-                frame,
-                object,
-                step: k,
-                source,
-            })?;
-            if let Some(bad) = self.response.iter().position(|v| !v.is_finite()) {
-                let (component, sample) = (bad % VELOCITY_LEN, group.samples.start + bad / VELOCITY_LEN);
+            });
+            self.request.extend(self.poses[group.samples.clone()].iter().flat_map(|p| p.to_f32_row_major()));
+        }
+        self.response.clear();
+        self.response.resize(request.sample_count as usize * VELOCITY_LEN, 0.0);
+        field.velocities(&request, &self.request, &mut self.response).map_err(|source| SamplerError::Velocity {
+            frame,
+            object,
+            step: k,
+            source,
+        })?;
+        let mut offset = 0;
+        for group in groups {
+            let handle = &jobs[group.job].0;
+            let (frame, object) = (handle.header.frame_id, handle.header.object_id);
+            let values = &self.response[offset * VELOCITY_LEN..(offset + group.samples.len()) * VELOCITY_LEN];
+            offset += group.samples.len();
+            if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
+                let (component, sample) = (bad % VELOCITY_LEN, group.within_job + bad / VELOCITY_LEN);
                 return Err(SamplerError::NonFinite { frame, object, step: k, component, sample });
             }
             self.velocities.clear();
-            self.velocities.extend(
-                self.response.chunks_exact(VELOCITY_LEN).map(|v| Velocity::from_f32(v.try_into().expect("6 values"))),
-            );
-            euler_step(poses, &self.velocities, dt).map_err(|e| SamplerError::Geometry {
-                frame,
-                object,
-                detail: e.to_string(),
-            })?;
+            self.velocities
+                .extend(values.chunks_exact(VELOCITY_LEN).map(|v| Velocity::from_f32(v.try_into().expect("6 values"))));
+            euler_step(&mut self.poses[group.samples.clone()], &self.velocities, group.dt())
+                .map_err(|e| SamplerError::Geometry { frame, object, detail: e.to_string() })?;
         }
         Ok(())
     }
 
-    /// Fills `self.poses` with the start samples in the request frame; the
-    /// groups that integrate from different start times.
+    /// Appends the start samples of one job to `self.poses` (request
+    /// frame); the groups that integrate from different start times, with
+    /// sample ranges relative to the job's first sample.
     fn draw(&mut self, handle: &ConditionHandle, start: &Start, scale: f64, centroid: Vector3<f64>) -> Vec<Group> {
         let params = &self.params;
         let mut rng = seeded_rng(sample_seed(params.seed, handle.header.frame_id, handle.header.object_id));
@@ -175,12 +253,12 @@ impl FlowSampler {
                 (share.clamp(1, n.saturating_sub(1).max(1)), Some(previous))
             }
         };
-        self.poses.clear();
+        let base = self.poses.len();
         let noise = TranslationNoise::Gaussian { std_dev: params.translation_noise_std / scale };
         self.poses.extend((0..from_prior).map(|_| initial_pose(&mut rng, &noise)));
         let mut groups = Vec::with_capacity(2);
         if from_prior > 0 {
-            groups.push(Group { samples: 0..from_prior, start_time: 0.0, steps: params.steps });
+            groups.push(Group { job: 0, within_job: 0, samples: 0..from_prior, start_time: 0.0, steps: params.steps });
         }
         if let Some(previous) = previous {
             let tracking = &params.tracking;
@@ -195,13 +273,15 @@ impl FlowSampler {
             // tracked sample, outside the integrated group, and only beside
             // at least one sample of the flow.
             let integrated_end = if tracking.keep_previous && n - from_prior >= 2 {
-                self.poses[n - 1] = Pose::new(previous.rotation, centred);
+                self.poses[base + n - 1] = Pose::new(previous.rotation, centred);
                 n - 1
             } else {
                 n
             };
             if from_prior < integrated_end {
                 groups.push(Group {
+                    job: 0,
+                    within_job: from_prior,
                     samples: from_prior..integrated_end,
                     start_time: tracking.start_time,
                     steps: tracking.steps,
@@ -212,12 +292,42 @@ impl FlowSampler {
     }
 }
 
-/// Samples that start at one flow time and take one number of steps.
+/// `groups` split into runs that one request can carry: at most
+/// [`MAX_SEGMENTS`] segments and `capacity` samples each (a group larger
+/// than that goes alone).
+fn requests_of<'a, 'g>(groups: &'a [&'g Group], capacity: usize) -> Vec<&'a [&'g Group]> {
+    let mut requests = Vec::new();
+    let (mut start, mut samples) = (0, 0);
+    for (i, group) in groups.iter().enumerate() {
+        let full = i - start == MAX_SEGMENTS || samples + group.samples.len() > capacity;
+        if full && i > start {
+            requests.push(&groups[start..i]);
+            (start, samples) = (i, 0);
+        }
+        samples += group.samples.len();
+    }
+    if start < groups.len() {
+        requests.push(&groups[start..]);
+    }
+    requests
+}
+
+/// Samples of one job that start at one flow time and take one number of
+/// steps.
 #[derive(Debug, Clone)]
 struct Group {
-    samples: std::ops::Range<usize>,
+    job: usize,
+    /// Where the group's samples start among its job's.
+    within_job: usize,
+    samples: Range<usize>,
     start_time: f64,
     steps: usize,
+}
+
+impl Group {
+    fn dt(&self) -> f64 {
+        (1.0 - self.start_time) / self.steps as f64
+    }
 }
 
 fn gaussian3<R: Rng + ?Sized>(rng: &mut R, sigma: f64) -> Vector3<f64> {

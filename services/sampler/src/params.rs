@@ -11,6 +11,7 @@ use crate::SamplerError;
 /// | `seed` | seed of the initial draws (mixed with frame and object ids) | 0 |
 /// | `translation_noise_std` | σ of the initial translations, metres; must match the model's `translation_noise_std` metadata | 0.05 |
 /// | `velocity_timeout_ms` | how long one velocity request may take before the frame is dropped (counted) | 5000 |
+/// | `batch` | most observations of one frame sampled together, one velocity request per Euler step for all | 1 |
 /// | `tracking` | see [`TrackingParams`] | off |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -25,8 +26,14 @@ pub struct SamplerParams {
     pub translation_noise_std: f64,
     #[serde(default = "default_timeout")]
     pub velocity_timeout_ms: u64,
+    #[serde(default = "default_batch")]
+    pub batch: usize,
     #[serde(default)]
     pub tracking: TrackingParams,
+}
+
+fn default_batch() -> usize {
+    1
 }
 
 /// Tracking mode: a frame whose object has an estimate from an earlier frame
@@ -138,8 +145,9 @@ impl SamplerParams {
 
     fn validate(&self) -> Result<(), SamplerError> {
         let max = poseflow_contracts::limits::MAX_SAMPLES as usize;
-        let checks: [(&'static str, bool, String); 8] = [
+        let checks: [(&'static str, bool, String); 9] = [
             ("samples", (1..=max).contains(&self.samples), format!("{}: expected 1 to {max}", self.samples)),
+            ("batch", (1..=64).contains(&self.batch), format!("{}: expected 1 to 64", self.batch)),
             ("steps", (1..=1000).contains(&self.steps), format!("{}: expected 1 to 1000", self.steps)),
             (
                 "translation_noise_std",

@@ -9,7 +9,7 @@ use poseflow_contracts::{
     status as velocity_status,
 };
 use poseflow_geometry::Pose;
-use poseflow_runtime::{Call, Emitter, Input, Joined, Transform};
+use poseflow_runtime::{Call, Emitter, Flush, FrameBatches, Input, Joined, Transform};
 
 use crate::flow::write_poses;
 use crate::{FieldError, FlowSampler, SamplerError, SamplerParams, Start, VelocityField};
@@ -72,6 +72,12 @@ const KEPT_ESTIMATES: usize = 32;
 pub struct SamplerStage<F> {
     sampler: FlowSampler,
     field: F,
+    /// Handles of one frame, sampled together ([`FrameBatches`]).
+    held: Vec<ConditionHandle>,
+    batches: FrameBatches,
+    /// Handles of a batch that could not be sampled beyond the first
+    /// (which fails the flush), counted as rejected parts of it.
+    rejected: u64,
     previous: HashMap<u32, BTreeMap<u64, Remembered>>,
     /// Per object, the first frame of its current sequence
     /// ([`flags::SEQUENCE_START`]): estimates of earlier frames still on
@@ -89,7 +95,20 @@ struct Remembered {
 
 impl<F: VelocityField> SamplerStage<F> {
     pub fn new(params: SamplerParams, field: F) -> Self {
-        Self { sampler: FlowSampler::new(params), field, previous: HashMap::new(), sequence_start: HashMap::new() }
+        Self {
+            batches: FrameBatches::new(params.batch),
+            sampler: FlowSampler::new(params),
+            field,
+            held: Vec::new(),
+            rejected: 0,
+            previous: HashMap::new(),
+            sequence_start: HashMap::new(),
+        }
+    }
+
+    /// Caps the samples of one velocity request ([`FlowSampler::set_request_capacity`]).
+    pub fn set_request_capacity(&mut self, samples: usize) {
+        self.sampler.set_request_capacity(samples);
     }
 
     /// Records an estimate (camera frame) that later frames of the object
@@ -137,14 +156,47 @@ impl<F: VelocityField> SamplerStage<F> {
     pub fn hypotheses(&mut self, handle: &ConditionHandle) -> Result<(HypothesesHeader, &[Pose]), SamplerError> {
         let start = self.start_for(handle);
         let sampled = self.sampler.sample(handle, &start, &mut self.field)?;
-        let mut header = handle.header;
-        if matches!(start, Start::Track(_) | Start::Mixed(_)) {
-            header.flags |= flags::TRACKING;
-        }
-        let out =
-            HypothesesHeader { header, sample_count: sampled.poses.len() as u32, step_count: sampled.steps as u32 };
-        Ok((out, sampled.poses))
+        Ok((hypotheses_header(handle, &start, sampled.poses.len(), sampled.steps), sampled.poses))
     }
+
+    /// Samples every held handle together and emits each one's hypotheses;
+    /// a handle that cannot be sampled is counted and the others go on.
+    fn sample_held(&mut self, output: &mut dyn Emitter<HypothesesHeader>) -> Result<(), SamplerError> {
+        let held = std::mem::take(&mut self.held);
+        if held.is_empty() {
+            return Ok(());
+        }
+        let jobs: Vec<(ConditionHandle, Start)> = held.iter().map(|h| (*h, self.start_for(h))).collect();
+        let results = self.sampler.sample_batch(&jobs, &mut self.field).inspect_err(|_| {
+            let frames: Vec<(u64, u32)> = held.iter().map(|h| (h.header.frame_id, h.header.object_id)).collect();
+            tracing::warn!(?frames, "a velocity request failed: these (frame, object) pairs are not sampled");
+        })?;
+        let mut first_error = None;
+        for ((handle, start), result) in jobs.iter().zip(results) {
+            match result {
+                Ok(batched) => {
+                    let poses = &self.sampler.poses()[batched.samples];
+                    let header = hypotheses_header(handle, start, poses.len(), batched.steps);
+                    output.emit(header, poses.len() * POSE_LEN, &mut |buffer| write_poses(poses, buffer))?;
+                }
+                Err(err) if first_error.is_none() => first_error = Some(err),
+                Err(err) => {
+                    self.rejected += 1;
+                    tracing::warn!(err = %poseflow_runtime::error_chain(&err), "not sampled");
+                }
+            }
+        }
+        first_error.map_or(Ok(()), Err)
+    }
+}
+
+/// The Hypotheses header of a handle's samples.
+fn hypotheses_header(handle: &ConditionHandle, start: &Start, samples: usize, steps: usize) -> HypothesesHeader {
+    let mut header = handle.header;
+    if matches!(start, Start::Track(_) | Start::Mixed(_)) {
+        header.flags |= flags::TRACKING;
+    }
+    HypothesesHeader { header, sample_count: samples as u32, step_count: steps as u32 }
 }
 
 impl<F: VelocityField> Transform for SamplerStage<F> {
@@ -175,9 +227,25 @@ impl<F: VelocityField> Transform for SamplerStage<F> {
             }
             self.sequence_start.insert(object, frame);
         }
-        let (header, poses) = self.hypotheses(handle)?;
-        output.emit(header, poses.len() * POSE_LEN, &mut |buffer| write_poses(poses, buffer))?;
+        // A batch holds one handle per object: a later frame of an object
+        // starts from the estimate of the earlier one when tracking.
+        let repeated = self.held.iter().any(|h| h.header.object_id == handle.header.object_id);
+        if repeated || self.batches.run_before(&handle.header, self.held.len()) {
+            self.sample_held(output)?;
+        }
+        self.held.push(*handle);
+        if self.batches.run_after(&handle.header, self.held.len()) {
+            self.sample_held(output)?;
+        }
         Ok(())
+    }
+
+    fn flush(&mut self, output: &mut dyn Emitter<HypothesesHeader>, reason: Flush) -> Result<(), SamplerError> {
+        if self.batches.run_at(reason) { self.sample_held(output) } else { Ok(()) }
+    }
+
+    fn take_rejected(&mut self) -> u64 {
+        std::mem::take(&mut self.rejected)
     }
 }
 
@@ -215,5 +283,7 @@ pub fn from_wiring(
     let client = poseflow_runtime::connect(&wiring.stage, edge)?;
     let timeout = std::time::Duration::from_millis(params.velocity_timeout_ms);
     tracing::info!(samples = params.samples, steps = params.steps, tracking = params.tracking.enabled, "sampler ready");
-    Ok(SamplerStage::new(params, RemoteField::new(client, timeout)))
+    let mut stage = SamplerStage::new(params, RemoteField::new(client, timeout));
+    stage.set_request_capacity(edge.max_payload_len / POSE_LEN);
+    Ok(stage)
 }

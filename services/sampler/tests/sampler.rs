@@ -4,7 +4,7 @@ use nalgebra::Vector3;
 use poseflow_contracts::{ConditionHandle, Header, VelocityRequest, flags};
 use poseflow_geometry::flow::target_velocity;
 use poseflow_geometry::{Pose, so3};
-use poseflow_runtime::{EmitError, Emitter, Input, Transform};
+use poseflow_runtime::{EmitError, Emitter, Flush, Input, Transform};
 use poseflow_sampler::stage::SamplerStage;
 use poseflow_sampler::{FieldError, FlowSampler, SamplerParams, Start, TrackingParams};
 
@@ -29,18 +29,62 @@ fn toward_target<'a>(
     handle: &ConditionHandle,
     times: &'a mut Vec<f32>,
 ) -> impl FnMut(&VelocityRequest, &[f32], &mut [f32]) -> Result<(), FieldError> + 'a {
-    let scale = f64::from(handle.point_scale);
-    let centroid = Vector3::from(handle.centroid.map(f64::from));
-    let goal = Pose::new(target().rotation, (target().translation - centroid) / scale);
+    toward_targets_recording(vec![*handle], move |request| times.extend(request.segments().iter().map(|s| s.t)))
+}
+
+/// As [`toward_target`] for several handles (the request frame of each
+/// segment is its condition's); records each request's segments as
+/// (condition, samples, t).
+fn toward_targets<'a>(
+    handles: Vec<ConditionHandle>,
+    requests: &'a mut Vec<Vec<(u64, u32, f32)>>,
+) -> impl FnMut(&VelocityRequest, &[f32], &mut [f32]) -> Result<(), FieldError> + 'a {
+    toward_targets_recording(handles, move |request| {
+        requests.push(request.segments().iter().map(|s| (s.condition_id, s.sample_count, s.t)).collect())
+    })
+}
+
+/// As [`toward_targets`], handing every request to `record`.
+fn toward_targets_recording<'a>(
+    handles: Vec<ConditionHandle>,
+    mut record: impl FnMut(&VelocityRequest) + 'a,
+) -> impl FnMut(&VelocityRequest, &[f32], &mut [f32]) -> Result<(), FieldError> + 'a {
     move |request, poses, out| {
-        times.push(request.t);
-        for (pose, velocity) in poses.chunks_exact(12).zip(out.chunks_exact_mut(6)) {
-            let current = Pose::from_f32_row_major(pose.try_into().unwrap()).map_err(|e| FieldError::Call(e.into()))?;
-            let v = target_velocity(&current, &goal, f64::from(request.t)).map_err(|e| FieldError::Call(e.into()))?;
-            velocity.copy_from_slice(&v.to_f32());
+        record(request);
+        let mut rows = poses.chunks_exact(12).zip(out.chunks_exact_mut(6));
+        for segment in request.segments() {
+            let handle = handles.iter().find(|h| h.condition_id == segment.condition_id).expect("a known condition");
+            let scale = f64::from(handle.point_scale);
+            let centroid = Vector3::from(handle.centroid.map(f64::from));
+            let goal = Pose::new(target().rotation, (target().translation - centroid) / scale);
+            for (pose, velocity) in rows.by_ref().take(segment.sample_count as usize) {
+                let current =
+                    Pose::from_f32_row_major(pose.try_into().unwrap()).map_err(|e| FieldError::Call(e.into()))?;
+                let v =
+                    target_velocity(&current, &goal, f64::from(segment.t)).map_err(|e| FieldError::Call(e.into()))?;
+                velocity.copy_from_slice(&v.to_f32());
+            }
         }
         Ok(())
     }
+}
+
+/// The handle marked as not its frame's last.
+fn more_follow(handle: &ConditionHandle) -> ConditionHandle {
+    let mut marked = *handle;
+    marked.header.flags |= flags::MORE_IN_FRAME;
+    marked
+}
+
+/// What the runtime does with one input: process it, then (the queue being
+/// empty) flush.
+fn run<F: poseflow_sampler::VelocityField>(
+    stage: &mut SamplerStage<F>,
+    handle: &ConditionHandle,
+    out: &mut Collect,
+) -> Result<(), poseflow_sampler::SamplerError> {
+    stage.process(Input { header: handle, payload: &[] }, out)?;
+    stage.flush(out, Flush::Idle)
 }
 
 fn assert_near_target(poses: &[Pose], degrees: f64, metres: f64) {
@@ -199,10 +243,11 @@ fn lost_and_unsure_estimates_start_from_the_prior_wholly_or_in_part() {
         stage.remember(10, 5, target(), flags::REINITIALISED);
         assert_eq!(stage.start_for(&next), Start::Track(target()));
     }
-    // 3 of 10 from the prior in 4 steps from t = 0, then 6 tracked in one
-    // step from t = 0.8 beside the previous estimate itself.
-    assert_eq!(counts, vec![3, 3, 3, 3, 6]);
-    assert_eq!(times, vec![0.0, 0.25, 0.5, 0.75, 0.8]);
+    // 3 of 10 from the prior in 4 steps from t = 0 and, in the first step's
+    // request beside them, 6 tracked in one step from t = 0.8 beside the
+    // previous estimate itself.
+    assert_eq!(counts, vec![9, 3, 3, 3]);
+    assert_eq!(times, vec![0.0, 0.8, 0.25, 0.5, 0.75]);
 }
 
 /// A tracking sampler of 2 samples whose field never moves them.
@@ -231,7 +276,7 @@ fn an_upstream_restart_drops_the_tracks() {
 
     let mut restarted = handle(0);
     restarted.header.flags |= flags::UPSTREAM_RESTARTED;
-    stage.process(Input { header: &restarted, payload: &[] }, &mut out).unwrap();
+    run(&mut stage, &restarted, &mut out).unwrap();
     let (first, _) = &out.0[0];
     assert!(!first.header.has_flag(flags::TRACKING), "started from the prior");
     assert!(first.header.has_flag(flags::UPSTREAM_RESTARTED), "the notice travels on");
@@ -259,7 +304,7 @@ fn a_sequence_start_drops_the_object_track_and_late_estimates_of_the_old_scene()
     stage.remember(41, 5, fed_ahead, 0);
     let mut first = handle(40);
     first.header.flags |= flags::SEQUENCE_START;
-    stage.process(Input { header: &first, payload: &[] }, &mut out).unwrap();
+    run(&mut stage, &first, &mut out).unwrap();
     assert!(!out.0[0].0.header.has_flag(flags::TRACKING), "started from the prior");
     stage.remember(39, 5, target(), 0);
     assert_eq!(stage.start_for(&handle(41)), Start::Track(fed_ahead), "the old scene's estimate is ignored");
@@ -293,7 +338,7 @@ fn failed_or_non_finite_velocities_fail_the_frame_with_its_ids() {
     let h = handle(9);
     let mut out = Collect(Vec::new());
     // The cause travels as the error's source, as the runtime logs it.
-    let err = poseflow_runtime::error_chain(&stage.process(Input { header: &h, payload: &[] }, &mut out).unwrap_err());
+    let err = poseflow_runtime::error_chain(&run(&mut stage, &h, &mut out).unwrap_err());
     assert!(err.contains("frame 9 object 5") && err.contains("step 0") && err.contains("timed out"), "{err}");
     assert!(out.0.is_empty());
 
@@ -320,12 +365,115 @@ fn the_stage_publishes_camera_frame_poses() {
     let mut stage =
         SamplerStage::new(SamplerParams { samples: 4, ..Default::default() }, toward_target(&h, &mut times));
     let mut out = Collect(Vec::new());
-    stage.process(Input { header: &h, payload: &[] }, &mut out).unwrap();
+    run(&mut stage, &h, &mut out).unwrap();
     let (header, payload) = &out.0[0];
     assert_eq!((header.sample_count, header.step_count, header.header.frame_id), (4, 5, 2));
     let poses: Vec<Pose> =
         payload.chunks_exact(12).map(|c| Pose::from_f32_row_major(c.try_into().unwrap()).unwrap()).collect();
     assert_near_target(&poses, 1e-3, 1e-5);
+}
+
+/// Three objects of a frame that arrived together are sampled in lockstep:
+/// one velocity request per Euler step carries all three, and each gets
+/// exactly the hypotheses it gets alone. A fourth handle of an object
+/// already held starts a new batch (it may track from the first's estimate).
+#[test]
+fn objects_that_arrive_together_share_one_request_per_step() {
+    let handles: Vec<ConditionHandle> = (0..3)
+        .map(|k| ConditionHandle {
+            header: Header::new(8, 5 + k),
+            condition_id: 40 + u64::from(k),
+            centroid: [0.1 * k as f32, -0.05, 0.7],
+            point_scale: 0.5 + 0.1 * k as f32,
+            ..Default::default()
+        })
+        .collect();
+    let params = SamplerParams { samples: 6, ..Default::default() };
+    let mut requests = Vec::new();
+    let mut stage = SamplerStage::new(params.clone(), toward_targets(handles.clone(), &mut requests));
+    let mut out = Collect(Vec::new());
+    for h in &handles[..2] {
+        stage.process(Input { header: &more_follow(h), payload: &[] }, &mut out).unwrap();
+    }
+    stage.flush(&mut out, Flush::Idle).unwrap();
+    assert!(out.0.is_empty(), "held until the frame's last handle");
+    stage.process(Input { header: &handles[2], payload: &[] }, &mut out).unwrap();
+    assert_eq!(out.0.len(), 3, "the frame's last handle runs the batch");
+    let again = ConditionHandle { header: Header::new(9, 5), ..handles[0] };
+    stage.process(Input { header: &more_follow(&again), payload: &[] }, &mut out).unwrap();
+    let later = ConditionHandle { header: Header::new(9, 5), ..handles[0] };
+    stage.process(Input { header: &later, payload: &[] }, &mut out).unwrap();
+    assert_eq!(out.0.len(), 5, "a second handle of an object runs the first");
+    drop(stage);
+    assert_eq!(requests.len(), 5 + 5 + 5, "one request per step and batch");
+    for (k, request) in requests[..5].iter().enumerate() {
+        let expected: Vec<(u64, u32, f32)> = (40..43).map(|id| (id, 6, 0.2 * k as f32)).collect();
+        assert_eq!(request, &expected);
+    }
+    for (h, (header, payload)) in handles.iter().zip(&out.0) {
+        let mut alone_requests = Vec::new();
+        let mut alone = SamplerStage::new(params.clone(), toward_targets(vec![*h], &mut alone_requests));
+        let (alone_header, alone_poses) = alone.hypotheses(h).unwrap();
+        assert_eq!(header.header.frame_id, alone_header.header.frame_id);
+        assert_eq!(header.sample_count, alone_header.sample_count);
+        let alone_payload: Vec<f32> = alone_poses.iter().flat_map(|p| p.to_f32_row_major()).collect();
+        assert_eq!(payload, &alone_payload);
+    }
+}
+
+/// A request never carries more samples than the edge holds: with room for
+/// 8 samples, three objects of 6 samples each go in three requests a step,
+/// with the same hypotheses.
+#[test]
+fn a_batch_larger_than_the_edge_is_split_into_requests() {
+    let handles: Vec<ConditionHandle> = (0..3)
+        .map(|k| ConditionHandle { header: Header::new(8, 5 + k), condition_id: 40 + u64::from(k), ..handle(8) })
+        .collect();
+    let params = SamplerParams { samples: 6, steps: 2, ..Default::default() };
+    let sample = |capacity: usize| {
+        let mut requests = Vec::new();
+        let mut stage = SamplerStage::new(params.clone(), toward_targets(handles.clone(), &mut requests));
+        stage.set_request_capacity(capacity);
+        let mut out = Collect(Vec::new());
+        for h in &handles {
+            stage.process(Input { header: &more_follow(h), payload: &[] }, &mut out).unwrap();
+        }
+        stage.flush(&mut out, Flush::End).unwrap();
+        drop(stage);
+        (requests.iter().map(|r| r.iter().map(|s| s.1).sum::<u32>()).collect::<Vec<_>>(), out.0)
+    };
+    let (split, split_out) = sample(8);
+    let (whole, whole_out) = sample(4096);
+    assert_eq!(split, vec![6; 6]);
+    assert_eq!(whole, vec![18; 2]);
+    assert_eq!(split_out, whole_out);
+}
+
+/// A tracked object (one step from t = 0.8) and an object started from the
+/// prior (five steps from 0) share the first request; the last four carry
+/// the second alone.
+#[test]
+fn a_batch_of_tracked_and_new_objects_steps_each_at_its_own_times() {
+    let tracked = handle(12);
+    let fresh = ConditionHandle { header: Header::new(12, 6), condition_id: 43, ..tracked };
+    let params = SamplerParams {
+        samples: 4,
+        tracking: TrackingParams { enabled: true, keep_previous: false, ..Default::default() },
+        ..Default::default()
+    };
+    let mut requests = Vec::new();
+    let mut stage = SamplerStage::new(params, toward_targets(vec![tracked, fresh], &mut requests));
+    stage.remember(11, 5, target(), 0);
+    let mut out = Collect(Vec::new());
+    stage.process(Input { header: &more_follow(&tracked), payload: &[] }, &mut out).unwrap();
+    stage.process(Input { header: &fresh, payload: &[] }, &mut out).unwrap();
+    assert_eq!((out.0[0].0.step_count, out.0[1].0.step_count), (1, 5));
+    assert!(out.0[0].0.header.has_flag(flags::TRACKING) && !out.0[1].0.header.has_flag(flags::TRACKING));
+    drop(stage);
+    assert_eq!(requests[0], vec![(43, 4, 0.0), (42, 4, 0.8)].into_iter().rev().collect::<Vec<_>>());
+    for (k, request) in requests[1..].iter().enumerate() {
+        assert_eq!(request, &vec![(43, 4, 0.2 * (k + 1) as f32)]);
+    }
 }
 
 #[test]

@@ -113,6 +113,14 @@ pub mod flags {
     /// other than the previous frame's) and forwarded downstream: earlier
     /// frames' estimates belong to another scene, so trackers start afresh.
     pub const SEQUENCE_START: u32 = 1 << 6;
+    /// Another message of the same frame follows on this edge: the ingest
+    /// stage sets it on every Observation of a frame but the last, and the
+    /// stages that copy their input's header pass it on. A stage that
+    /// batches the objects of a frame runs the batch at the first message
+    /// without it, so batches follow the messages, not their timing (a
+    /// graph gives the same results as processes and in-process), and a
+    /// producer that never sets it gets every message handled at once.
+    pub const MORE_IN_FRAME: u32 = 1 << 7;
 }
 
 /// The first 80 bytes of every message header.

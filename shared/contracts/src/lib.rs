@@ -73,7 +73,7 @@ pub use message::{MessageHeader, POSE_LEN, VELOCITY_LEN, limits};
 pub use next_view::{CANDIDATE_LEN, NextViewHeader};
 pub use observation::{CameraIntrinsics, ObservationHeader, ObservationView};
 pub use tensor::{MAX_TENSOR_LEN, TensorHeader};
-pub use velocity::{VelocityRequest, VelocityResponse, status};
+pub use velocity::{MAX_SEGMENTS, VelocityRequest, VelocityResponse, VelocitySegment, status};
 pub use visit::{MessageVisitor, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, visit_message};
 
 /// The layout tables in the docs, checked by the compiler.
@@ -101,9 +101,10 @@ mod layout {
     assert_layout!(ConditionHandle, size 120, align 8,
         header @ 0, condition_id @ 80, image_tokens @ 88, point_tokens @ 92,
         active_image_tokens @ 96, model_width @ 100, centroid @ 104, point_scale @ 116);
-    assert_layout!(VelocityRequest, size 112, align 8,
-        header @ 0, condition_id @ 80, request_id @ 88, sample_count @ 96, t @ 100,
-        step_index @ 104, step_count @ 108);
+    assert_layout!(VelocitySegment, size 16, align 8, condition_id @ 0, sample_count @ 8, t @ 12);
+    assert_layout!(VelocityRequest, size 360, align 8,
+        header @ 0, request_id @ 80, segment_count @ 88, sample_count @ 92, step_index @ 96,
+        step_count @ 100, segments @ 104);
     assert_layout!(VelocityResponse, size 96, align 8,
         header @ 0, request_id @ 80, sample_count @ 88, status @ 92);
     assert_layout!(HypothesesHeader, size 88, align 8, header @ 0, sample_count @ 80, step_count @ 84);

@@ -14,7 +14,7 @@ fn type_names_are_stable_and_versioned() {
     assert_eq!(type_name::<Header>(), "poseflow/Header/v1");
     assert_eq!(type_name::<ObservationHeader>(), "poseflow/Observation/v2");
     assert_eq!(type_name::<ConditionHandle>(), "poseflow/Condition/v1");
-    assert_eq!(type_name::<VelocityRequest>(), "poseflow/VelocityRequest/v1");
+    assert_eq!(type_name::<VelocityRequest>(), "poseflow/VelocityRequest/v2");
     assert_eq!(type_name::<VelocityResponse>(), "poseflow/VelocityResponse/v1");
     assert_eq!(type_name::<HypothesesHeader>(), "poseflow/Hypotheses/v1");
     assert_eq!(type_name::<EstimateHeader>(), "poseflow/Estimate/v2");
@@ -81,13 +81,43 @@ fn inconsistent_lengths_are_named() {
 
 #[test]
 fn velocity_request_rejects_flow_time_outside_unit_interval() {
-    let mut request = VelocityRequest { sample_count: 50, t: 0.8, ..Default::default() };
+    let mut request = VelocityRequest::single(Header::new(7, 1), 3, 1, 50, 0.8);
     assert_eq!(request.payload_len().unwrap(), 50 * POSE_LEN);
     for t in [1.0, -0.1, f32::NAN] {
-        request.t = t;
+        request.segments[0].t = t;
         let err = request.payload_len().unwrap_err().to_string();
-        assert!(err.contains("field `t`"), "{err}");
+        assert!(err.contains("field `segments[].t`"), "{err}");
     }
+}
+
+#[test]
+fn velocity_request_segments_add_up_to_its_samples() {
+    let mut request = VelocityRequest::single(Header::new(7, 1), 3, 1, 50, 0.0);
+    assert!(request.push(VelocitySegment { condition_id: 4, sample_count: 49, t: 0.6 }));
+    assert_eq!((request.segment_count, request.sample_count), (2, 99));
+    assert_eq!(request.payload_len().unwrap(), 99 * POSE_LEN);
+    // A header whose total disagrees with its segments, or with no or too
+    // many segments, or an empty segment, is refused by field name.
+    let mut wrong = request;
+    wrong.sample_count = 100;
+    assert!(wrong.payload_len().unwrap_err().to_string().contains("the sum of the segments"));
+    for (count, field) in [(0, "segment_count"), (17, "segment_count")] {
+        let mut wrong = request;
+        wrong.segment_count = count;
+        assert!(wrong.payload_len().unwrap_err().to_string().contains(field), "{count}");
+    }
+    let mut empty = request;
+    empty.segments[1].sample_count = 0;
+    empty.sample_count = 50;
+    assert!(empty.payload_len().unwrap_err().to_string().contains("segments[].sample_count"));
+    // A full request takes no seventeenth segment.
+    let mut full = VelocityRequest::default();
+    for id in 0..MAX_SEGMENTS as u64 {
+        assert!(full.push(VelocitySegment { condition_id: id, sample_count: 1, t: 0.0 }));
+    }
+    assert!(!full.push(VelocitySegment { condition_id: 99, sample_count: 1, t: 0.0 }));
+    assert_eq!((full.segment_count, full.sample_count), (16, 16));
+    assert_eq!(full.segments().len(), MAX_SEGMENTS);
 }
 
 #[test]

@@ -28,4 +28,4 @@ pub use local::{Collector, DriveError, Feed, LocalGraph, LocalGraphError, LocalO
 pub use logging::init_logging;
 pub use process::{run_joined, run_server, run_sink, run_source, run_transform, run_transform_or_joined};
 pub use registry::{Registration, Registry, StageKind, run_registered};
-pub use stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};
+pub use stage::{EmitError, Emitter, Flush, FrameBatches, Input, Joined, Server, Sink, Source, SourceStep, Transform};

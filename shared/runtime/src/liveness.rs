@@ -39,6 +39,24 @@ fn micros(ns: u64) -> u32 {
 }
 
 impl Liveness {
+    /// Lets a transform run what it batched ([`crate::Transform::flush`]),
+    /// timed and counted as an input is.
+    pub fn flush<T: crate::Transform>(
+        &self,
+        stage: &mut T,
+        output: &mut dyn crate::Emitter<T::Out>,
+        reason: crate::Flush,
+    ) {
+        let started = std::time::Instant::now();
+        self.work_started();
+        if let Err(err) = stage.flush(output, reason) {
+            self.count_error();
+            tracing::warn!(err = %crate::error_chain(&err), "flush failed; its frames skipped");
+        }
+        self.count_errors(stage.take_rejected());
+        self.work_finished(started.elapsed());
+    }
+
     pub fn new() -> Self {
         Self {
             frames_in: AtomicU64::new(0),

@@ -13,7 +13,7 @@ use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, RequestServer, Re
 use crate::error::error_chain;
 use crate::heartbeat::HeartbeatThread;
 use crate::liveness::Liveness;
-use crate::stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};
+use crate::stage::{EmitError, Emitter, Flush, Input, Joined, Server, Sink, Source, SourceStep, Transform};
 use crate::{BuildError, RuntimeError, init_logging};
 
 /// How long a finished stage waits for its receivers to drain before exiting
@@ -98,13 +98,14 @@ impl StageProcess {
     }
 
     /// Sleeps until the input wakes it; hands every valid message to
-    /// `on_input`.
+    /// `on_input`, then calls `on_drained` once the queue is empty.
     fn event_loop<H: MessageHeader>(
         &self,
         input: &EdgeSubscriber<H>,
         on_input: impl FnMut(Input<'_, H>),
+        on_drained: impl FnMut(),
     ) -> Result<LoopEnd, RuntimeError> {
-        self.event_loop_also(input, on_input, None::<Attachment<'_, EdgeSubscriber<H>>>)
+        self.event_loop_also(input, on_input, on_drained, None::<Attachment<'_, EdgeSubscriber<H>>>)
     }
 
     /// As [`Self::event_loop`], also waking on `also`.
@@ -112,6 +113,7 @@ impl StageProcess {
         &self,
         input: &EdgeSubscriber<H>,
         mut on_input: impl FnMut(Input<'_, H>),
+        mut on_drained: impl FnMut(),
         mut also: Option<Attachment<'_, X>>,
     ) -> Result<LoopEnd, RuntimeError> {
         let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(waitset_error)?;
@@ -135,6 +137,9 @@ impl StageProcess {
                     ended |= end;
                     drain(input, &self.liveness, &mut on_input)
                 });
+                if let Ok(true) = step {
+                    on_drained();
+                }
                 if let Err(err) = step {
                     failure = Some(err.into());
                     return CallbackProgression::Stop;
@@ -161,12 +166,13 @@ impl StageProcess {
 }
 
 /// Takes every queued message, rejects those that break their contract,
-/// counts gaps, times the handler.
+/// counts gaps, times the handler. Returns whether any was handled.
 fn drain<H: MessageHeader>(
     input: &EdgeSubscriber<H>,
     liveness: &Liveness,
     on_input: &mut impl FnMut(Input<'_, H>),
-) -> Result<(), TransportError> {
+) -> Result<bool, TransportError> {
+    let mut handled = false;
     while let Some(message) = input.receive()? {
         let header = message.header();
         let frame = header.header().frame_id;
@@ -184,8 +190,9 @@ fn drain<H: MessageHeader>(
         liveness.work_started();
         on_input(Input { header, payload: message.payload() });
         liveness.work_finished(started.elapsed());
+        handled = true;
     }
-    Ok(())
+    Ok(handled)
 }
 
 /// Writes outputs straight into loaned shared memory.
@@ -261,10 +268,20 @@ pub fn run_transform<T: Transform, E: Into<BuildError>>(make: impl FnOnce(&Stage
         tracing::info!(input = input.name(), output = output.name(), "running");
         let liveness = &process.liveness;
         let slot = process.wiring.stamp_slot(T::SLOT);
-        let end = process.event_loop(&input, |message| {
-            let mut emitter = IpcEmitter { publisher: &output, slot, liveness, while_blocked: &mut || {} };
-            transform_one(&mut stage, message, &mut emitter, liveness)
-        })?;
+        let stage = std::cell::RefCell::new(&mut stage);
+        let end = process.event_loop(
+            &input,
+            |message| {
+                let mut emitter = IpcEmitter { publisher: &output, slot, liveness, while_blocked: &mut || {} };
+                transform_one(&mut **stage.borrow_mut(), message, &mut emitter, liveness)
+            },
+            || {
+                let mut emitter = IpcEmitter { publisher: &output, slot, liveness, while_blocked: &mut || {} };
+                liveness.flush(&mut **stage.borrow_mut(), &mut emitter, Flush::Idle)
+            },
+        )?;
+        let mut emitter = IpcEmitter { publisher: &output, slot, liveness, while_blocked: &mut || {} };
+        liveness.flush(&mut **stage.borrow_mut(), &mut emitter, Flush::End);
         finish_transform(process, &input, &output, end, || Ok(()))
     })())
 }
@@ -429,19 +446,28 @@ pub fn run_server<S: Server, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         // Outputs are held until the stage has returned, then published while
         // requests keep being answered: the reader of a full output queue may
         // be waiting for an answer before it reads again.
-        let mut held = HeldOutputs { outputs: Vec::new(), slot };
+        let held = std::cell::RefCell::new(HeldOutputs { outputs: Vec::new(), slot });
+        let publish_held = || {
+            held.borrow_mut().publish(&output, liveness, &mut || {
+                if let Err(err) = on_requests() {
+                    tracing::warn!(err = %error_chain(&err), "requests not served while the output was full");
+                }
+            })
+        };
         let end = process.event_loop_also(
             &input,
             |message| {
-                transform_one(&mut **stage.borrow_mut(), message, &mut held, liveness);
-                held.publish(&output, liveness, &mut || {
-                    if let Err(err) = on_requests() {
-                        tracing::warn!(err = %error_chain(&err), "requests not served while the output was full");
-                    }
-                });
+                transform_one(&mut **stage.borrow_mut(), message, &mut *held.borrow_mut(), liveness);
+                publish_held();
+            },
+            || {
+                liveness.flush(&mut **stage.borrow_mut(), &mut *held.borrow_mut(), Flush::Idle);
+                publish_held();
             },
             Some(requests),
         )?;
+        liveness.flush(&mut **stage.borrow_mut(), &mut *held.borrow_mut(), Flush::End);
+        publish_held();
         // The readers of the handles may still be asking for velocities.
         finish_transform(process, &input, &output, end, on_requests)
     })())
@@ -492,22 +518,41 @@ pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
             Ok(())
         };
         let attachment = Attachment { source: &side, on_event: &mut on_side };
+        // Outputs are held until the stage has returned, then published while
+        // side messages keep being read (and handed to the stage): in a loop
+        // the side input's writer may be this output's reader, itself
+        // waiting for room on the side input (tracking: the selector's
+        // Estimates feed the sampler whose Hypotheses it reads). The writer
+        // may also be restarted and waiting for this stage's READY: its
+        // handshake is answered on the way.
+        let held = std::cell::RefCell::new(HeldOutputs { outputs: Vec::new(), slot });
+        let read_side = || {
+            answer_handshake(&side, &side_ended_early);
+            if let Err(err) = drain_side(&side, &mut **stage.borrow_mut(), liveness) {
+                tracing::warn!(err = %error_chain(&err), "side input not read");
+            }
+        };
+        let publish_held = || held.borrow_mut().publish(&output, liveness, &mut || read_side());
+        // Side messages published while the stage was being built woke no
+        // one: a writer blocked on this full side queue would wait forever.
+        read_side();
         let end = process.event_loop_also(
             &input,
             |message| {
-                let mut stage = stage.borrow_mut();
-                if let Err(err) = drain_side(&side, &mut **stage, liveness) {
-                    tracing::warn!(err = %error_chain(&err), "side input not read");
-                }
-                // The reader of a full output may be the side input's writer,
-                // restarted and waiting for this stage's READY before it
-                // reads again: answer it while blocked.
-                let mut answer_side = || answer_handshake(&side, &side_ended_early);
-                let mut emitter = IpcEmitter { publisher: &output, slot, liveness, while_blocked: &mut answer_side };
-                transform_one(&mut **stage, message, &mut emitter, liveness)
+                read_side();
+                transform_one(&mut **stage.borrow_mut(), message, &mut *held.borrow_mut(), liveness);
+                publish_held();
+            },
+            || {
+                // A batch starts from the side messages published before it runs.
+                read_side();
+                liveness.flush(&mut **stage.borrow_mut(), &mut *held.borrow_mut(), Flush::Idle);
+                publish_held();
             },
             Some(attachment),
         )?;
+        liveness.flush(&mut **stage.borrow_mut(), &mut *held.borrow_mut(), Flush::End);
+        publish_held();
         // A side input that has already ended (one that closes no loop) is
         // acknowledged even when the output has no reader to wait for.
         if let Err(err) = on_side() {
@@ -568,12 +613,16 @@ pub fn run_sink<K: Sink, E: Into<BuildError>>(make: impl FnOnce(&StageWiring) ->
         let input = process.input::<K::In>()?;
         tracing::info!(input = input.name(), "running");
         let liveness = &process.liveness;
-        let end = process.event_loop(&input, |message| {
-            if let Err(err) = sink.consume(message) {
-                liveness.count_error();
-                tracing::warn!(err = %error_chain(&err), "consume failed; frame skipped");
-            }
-        })?;
+        let end = process.event_loop(
+            &input,
+            |message| {
+                if let Err(err) = sink.consume(message) {
+                    liveness.count_error();
+                    tracing::warn!(err = %error_chain(&err), "consume failed; frame skipped");
+                }
+            },
+            || {},
+        )?;
         if let Err(err) = sink.finish() {
             tracing::error!(err = %error_chain(&err), "sink could not finish");
         }

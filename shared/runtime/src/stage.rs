@@ -48,6 +48,63 @@ impl From<poseflow_transport::TransportError> for EmitError {
     }
 }
 
+/// Why [`Transform::flush`] is called.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Flush {
+    /// The input queue ran empty: more may come.
+    Idle,
+    /// The input ended, or the stage is stopping: nothing more will come.
+    End,
+}
+
+/// When a stage that batches the objects of a frame (the inference stage,
+/// the sampler) runs its batch, so that batches depend on the messages, not
+/// on their timing:
+///
+/// - at the frame's last message: the first without
+///   [`flags::MORE_IN_FRAME`] (so a producer that never sets it gets each
+///   message handled at once), or when the batch is full;
+/// - before holding a message of another frame (the rest of the held
+///   frame was lost);
+/// - at [`Flush::End`]. An idle input runs nothing: a batch waits for the
+///   rest of its frame.
+///
+/// [`flags::MORE_IN_FRAME`]: poseflow_contracts::flags::MORE_IN_FRAME
+#[derive(Debug, Clone)]
+pub struct FrameBatches {
+    capacity: usize,
+    frame: Option<u64>,
+}
+
+impl FrameBatches {
+    /// Batches of at most `capacity` messages (at least 1).
+    pub fn new(capacity: usize) -> Self {
+        Self { capacity: capacity.max(1), frame: None }
+    }
+
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// Before holding a message: whether the held batch (`held` messages)
+    /// must run first.
+    pub fn run_before(&self, header: &Header, held: usize) -> bool {
+        held > 0 && self.frame != Some(header.frame_id)
+    }
+
+    /// After holding a message (now `held` in all): whether the batch is
+    /// complete.
+    pub fn run_after(&mut self, header: &Header, held: usize) -> bool {
+        self.frame = Some(header.frame_id);
+        header.flags & poseflow_contracts::flags::MORE_IN_FRAME == 0 || held >= self.capacity
+    }
+
+    /// At a flush: whether to run what is held.
+    pub fn run_at(&self, reason: Flush) -> bool {
+        reason == Flush::End
+    }
+}
+
 /// A stage with one input and one output edge.
 pub trait Transform {
     type In: MessageHeader;
@@ -59,6 +116,18 @@ pub trait Transform {
 
     /// Handles one input; may emit zero or more outputs.
     fn process(&mut self, input: Input<'_, Self::In>, output: &mut dyn Emitter<Self::Out>) -> Result<(), Self::Error>;
+
+    /// Called when the input queue has run empty after one or more inputs
+    /// were processed, before the stage waits for more ([`Flush::Idle`]),
+    /// and once when the input has ended or the stage stops
+    /// ([`Flush::End`]). A stage that batches keeps inputs in `process` and
+    /// runs them together when a batch is complete (see [`FrameBatches`]),
+    /// or here; at `End` it must run whatever it holds. The default holds
+    /// nothing.
+    fn flush(&mut self, output: &mut dyn Emitter<Self::Out>, reason: Flush) -> Result<(), Self::Error> {
+        let _ = (output, reason);
+        Ok(())
+    }
 
     /// As [`Source::take_rejected`]: parts of inputs rejected since the
     /// last call without failing the whole input.
@@ -141,4 +210,35 @@ pub trait Sink {
 
     /// Called once after the stream ended or the stage was asked to stop.
     fn finish(&mut self) -> Result<(), Self::Error>;
+}
+
+#[cfg(test)]
+mod tests {
+    use poseflow_contracts::flags::MORE_IN_FRAME;
+
+    use super::*;
+
+    fn header(frame: u64, flags: u32) -> Header {
+        Header { flags, ..Header::new(frame, 1) }
+    }
+
+    /// Messages marked `MORE_IN_FRAME` wait for their frame's last one; an
+    /// unmarked message, a full batch or a message of the next frame runs
+    /// the batch; an idle input runs nothing, the end everything.
+    #[test]
+    fn frame_batches_follow_the_messages() {
+        let mut batches = FrameBatches::new(8);
+        assert!(!batches.run_before(&header(3, MORE_IN_FRAME), 0));
+        assert!(!batches.run_after(&header(3, MORE_IN_FRAME), 1));
+        assert!(!batches.run_at(Flush::Idle) && batches.run_at(Flush::End));
+        assert!(!batches.run_before(&header(3, 0), 1));
+        assert!(batches.run_after(&header(3, 0), 2), "the frame's last");
+        assert!(!batches.run_after(&header(4, MORE_IN_FRAME), 1));
+        assert!(batches.run_before(&header(5, 0), 1), "the rest of frame 4 was lost: its batch runs before frame 5");
+        assert!(batches.run_after(&header(6, 0), 1), "an unmarked message is handled at once");
+        let mut small = FrameBatches::new(2);
+        assert!(!small.run_after(&header(1, MORE_IN_FRAME), 1));
+        assert!(small.run_after(&header(1, MORE_IN_FRAME), 2), "full");
+        assert_eq!(FrameBatches::new(0).capacity(), 1);
+    }
 }

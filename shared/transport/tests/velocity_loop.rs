@@ -64,13 +64,9 @@ fn euler_steps_get_one_velocity_per_pose() {
     let client = RequestClient::<VelocityRequest, VelocityResponse>::create(&node, &name, 4096).unwrap();
     for step in 0..5u32 {
         let request = VelocityRequest {
-            header: Header::new(9, 1),
-            condition_id: 77,
-            request_id: u64::from(step),
-            sample_count: SAMPLES,
-            t: step as f32 / 5.0,
             step_index: step,
             step_count: 5,
+            ..VelocityRequest::single(Header::new(9, 1), 77, u64::from(step), SAMPLES, step as f32 / 5.0)
         };
         let reply = client
             .call(
@@ -100,7 +96,7 @@ fn a_call_without_server_fails_at_once_with_a_named_error() {
     let name = edge_service_name(&format!("test-noserver-{}", std::process::id()), "velocity").unwrap();
     let node = create_node("lonely-sampler").unwrap();
     let client = RequestClient::<VelocityRequest, VelocityResponse>::create(&node, &name, 64).unwrap();
-    let request = VelocityRequest { sample_count: 1, t: 0.0, ..Default::default() };
+    let request = VelocityRequest::single(Header::default(), 0, 0, 1, 0.0);
     // A timeout no test run reaches: the call must not wait it out.
     let err = client.call(request, POSE_LEN, |p| p.fill(0.0), Duration::from_secs(600)).unwrap_err().to_string();
     assert!(err.contains("no server") && err.contains("velocity"), "{err}");
@@ -134,7 +130,7 @@ fn a_server_that_stops_without_answering_ends_the_call_before_its_timeout() {
     ready_rx.recv().unwrap();
     let node = create_node("waiting-sampler").unwrap();
     let client = RequestClient::<VelocityRequest, VelocityResponse>::create(&node, &name, 64).unwrap();
-    let request = VelocityRequest { sample_count: 1, t: 0.0, ..Default::default() };
+    let request = VelocityRequest::single(Header::default(), 0, 0, 1, 0.0);
     let err = client.call(request, POSE_LEN, |p| p.fill(0.0), Duration::from_secs(600)).unwrap_err().to_string();
     assert!(err.contains("no server") && err.contains("velocity"), "{err}");
     assert_eq!(server.join().unwrap(), 1);

@@ -1,7 +1,8 @@
 //! `poseflow bench pipeline`: frames per second and per-frame latency of
 //! the estimation and tracking graphs, through the process graph and in
-//! one process, on the default model and a rendered sequence (one object,
-//! an orbiting camera, every frame rendered before the first is sent).
+//! one process, on the default model and a rendered sequence (`--objects`
+//! objects occluding each other, one by default; an orbiting camera; every
+//! frame rendered before the first is sent).
 //!
 //! Per mode (estimation, tracking):
 //! 1. **in-process**: the graph's stages between its frame source and its
@@ -60,13 +61,22 @@ pub struct PipelineArgs {
     #[arg(long, default_value_t = 10)]
     pub warmup: u32,
 
-    /// The object in every frame (BOP id of the models in `--models`).
+    /// The object in every frame (BOP id of the models in `--models`); with
+    /// `--objects N` > 1, the first of them.
     #[arg(long, default_value_t = 1)]
     pub object: u32,
 
-    /// BOP models directory the sequence is rendered from.
-    #[arg(long, default_value = "objects/lmo")]
-    pub models: PathBuf,
+    /// Objects per frame: `--object` and the next N − 1 ids of `--models`
+    /// (all eight LM-O objects of the default model with N = 8), placed
+    /// at random so that they occlude each other.
+    #[arg(long, default_value_t = 1)]
+    pub objects: usize,
+
+    /// BOP models directory the sequence is rendered from (and the
+    /// selector's models) [default: objects/lmo for one object,
+    /// objects/lmo8 (the eight LM-O objects) for more].
+    #[arg(long)]
+    pub models: Option<PathBuf>,
 
     /// Camera orbit per frame, degrees (a video: tracking follows it).
     #[arg(long, default_value_t = 2.0)]
@@ -183,6 +193,7 @@ pub fn run(args: &PipelineArgs) -> anyhow::Result<()> {
     if !(args.latency_load > 0.0 && args.latency_load <= 1.0) {
         anyhow::bail!("--latency-load {}: expected a share in (0, 1]", args.latency_load);
     }
+    sequence_objects(args)?;
     let scratch = Scratch::new(args.run.out.as_deref(), "bench-pipeline")?;
     let mut measured = Vec::new();
     for &mode in &args.modes {
@@ -199,14 +210,53 @@ pub fn run(args: &PipelineArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The models directory of the sequence.
+fn models_dir(args: &PipelineArgs) -> PathBuf {
+    args.models.clone().unwrap_or_else(|| PathBuf::from(if args.objects > 1 { "objects/lmo8" } else { "objects/lmo" }))
+}
+
+/// The objects of every frame: `--object`, then the next ids of the models
+/// directory (`models_info.json` entries with a model file), up to `--objects`.
+fn sequence_objects(args: &PipelineArgs) -> anyhow::Result<Vec<u32>> {
+    let models = models_dir(args);
+    if args.objects == 0 {
+        anyhow::bail!("--objects 0: expected at least 1");
+    }
+    let info_path = models.join("models_info.json");
+    let info = poseflow_geometry::models_info::ModelsInfo::from_path(&info_path)
+        .with_context(|| format!("--models {}: reading {}", models.display(), info_path.display()))?;
+    let available: Vec<u32> =
+        info.objects.keys().copied().filter(|&id| models.join(poseflow_scene::model_file_name(id)).is_file()).collect();
+    if !available.contains(&args.object) {
+        anyhow::bail!("--object {}: {} has no such model (it has {available:?})", args.object, models.display());
+    }
+    let objects: Vec<u32> = std::iter::once(args.object)
+        .chain(available.iter().copied().filter(|&id| id > args.object))
+        .chain(available.iter().copied().filter(|&id| id < args.object))
+        .take(args.objects)
+        .collect();
+    if objects.len() < args.objects {
+        anyhow::bail!(
+            "--objects {}: {} has only {} models ({available:?}); give --models a directory with more",
+            args.objects,
+            models.display(),
+            objects.len()
+        );
+    }
+    Ok(objects)
+}
+
 /// `--set` assignments that make the graph's frame source the benchmark's
-/// sequence, then the user's own.
-fn sequence_sets(args: &PipelineArgs, source: &str) -> Vec<String> {
-    let models = toml::Value::String(args.models.display().to_string());
+/// sequence (and its selectors score the sequence's models), then the
+/// user's own.
+fn sequence_sets(args: &PipelineArgs, graph: &poseflow_graph::Graph, source: &str) -> anyhow::Result<Vec<String>> {
+    let models = toml::Value::String(models_dir(args).display().to_string());
+    let objects = sequence_objects(args)?;
+    let ids: Vec<String> = objects.iter().map(u32::to_string).collect();
     let mut sets: Vec<String> = [
         "source=\"synthetic\"".to_string(),
         format!("models={models}"),
-        format!("objects=[{}]", args.object),
+        format!("objects=[{}]", ids.join(", ")),
         "scenes=1".into(),
         format!("frames_per_scene={}", args.frames),
         format!("orbit_step_deg={:?}", args.orbit_step_deg),
@@ -216,8 +266,12 @@ fn sequence_sets(args: &PipelineArgs, source: &str) -> Vec<String> {
     .iter()
     .map(|assignment| format!("{source}.{assignment}"))
     .collect();
+    // Selectors that score against meshes need the sequence's.
+    for selector in graph.stages.values().filter(|s| s.exe_name() == "selector" && s.params.get("models").is_some()) {
+        sets.push(format!("{}.models={models}", selector.name));
+    }
     sets.extend(args.run.set.iter().cloned());
-    sets
+    Ok(sets)
 }
 
 fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::Result<ModeFigures> {
@@ -233,7 +287,7 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
         .find(|s| s.exe_name() == "frame-source")
         .map(|s| s.name.clone())
         .with_context(|| format!("{}: no stage with exe = \"frame-source\"", graph_file.display()))?;
-    let sets = sequence_sets(args, &source);
+    let sets = sequence_sets(args, &graph, &source)?;
     for assignment in &sets {
         graph.set_param(assignment)?;
     }
@@ -318,9 +372,11 @@ fn report(args: &PipelineArgs, measured: &[(Mode, ModeFigures)]) -> serde_json::
             "cores": std::thread::available_parallelism().map_or(0, |n| n.get()),
             "cpu": cpu_model(),
         },
+        "objects": args.objects,
         "sequence": {
             "object": args.object,
-            "models": args.models,
+            "objects": sequence_objects(args).unwrap_or_default(),
+            "models": models_dir(args),
             "frames": args.frames,
             "warmup": args.warmup,
             "orbit_step_deg": args.orbit_step_deg,

@@ -21,7 +21,7 @@ use poseflow_contracts::{Heartbeat, MessageHeader, StampSlot};
 use crate::call::{Endpoint, PendingRequest, open_endpoint};
 use crate::error::{BuildError, RuntimeError};
 use crate::liveness::Liveness;
-use crate::stage::{EmitError, Emitter, Input, Joined, Server, Sink, Source, SourceStep, Transform};
+use crate::stage::{EmitError, Emitter, Flush, Input, Joined, Server, Sink, Source, SourceStep, Transform};
 use queue::{Doorbell, InFlight, Queue, push_all};
 
 /// How often a blocked stage looks at the stop flag.
@@ -275,10 +275,23 @@ impl LocalGraph {
             Box::new(move |stop: Arc<AtomicBool>| {
                 let mut stage = build_or_stop(make, &stop, &live)?;
                 let mut emitter = LocalEmitter { readers, slot, liveness: &live, stop: &stop };
-                while let Some((header, payload)) = queue.pop(&stop) {
+                // Inputs processed since the stage last ran empty: handled
+                // once the flush has queued their outputs.
+                let mut unflushed = 0;
+                loop {
+                    let next = queue.try_pop().or_else(|| {
+                        if unflushed > 0 {
+                            live.flush(&mut stage, &mut emitter, Flush::Idle);
+                            queue.handled_many(std::mem::take(&mut unflushed));
+                        }
+                        queue.pop(&stop)
+                    });
+                    let Some((header, payload)) = next else { break };
                     transform_one(&mut stage, &header, &payload, &mut emitter, &live);
-                    queue.handled();
+                    unflushed += 1;
                 }
+                live.flush(&mut stage, &mut emitter, Flush::End);
+                queue.handled_many(unflushed);
                 queue.close();
                 Ok(())
             })
@@ -315,9 +328,7 @@ impl LocalGraph {
             let readers = Self::readers_of::<J::Out>(edges, &pending.edge);
             Box::new(move |stop: Arc<AtomicBool>| {
                 let mut stage = build_or_stop(make, &stop, &live)?;
-                let mut emitter = LocalEmitter { readers, slot, liveness: &live, stop: &stop };
-                while !stop.load(Ordering::Relaxed) {
-                    let seen = doorbell.count();
+                let read_side = |stage: &mut J| {
                     while let Some((header, payload)) = side_queue.try_pop() {
                         if let Err(err) = stage.side(Input { header: &header, payload: &payload }) {
                             live.count_error();
@@ -325,15 +336,45 @@ impl LocalGraph {
                         }
                         side_queue.handled();
                     }
+                };
+                // Outputs are held until the stage has returned, then
+                // delivered while side messages keep being read: in a loop
+                // the side input's writer may be this output's reader, itself
+                // waiting for room on the side input.
+                let mut held = HeldOutputs { messages: Vec::new(), slot };
+                let deliver_held = |held: &mut HeldOutputs<J::Out>, stage: &mut J| {
+                    for message in held.messages.drain(..) {
+                        deliver(message, &readers, &live, &stop, &mut || read_side(stage));
+                    }
+                };
+                let mut unflushed = 0;
+                while !stop.load(Ordering::Relaxed) {
+                    let seen = doorbell.count();
+                    read_side(&mut stage);
                     if let Some((header, payload)) = queue.try_pop() {
-                        transform_one(&mut stage, &header, &payload, &mut emitter, &live);
-                        queue.handled();
+                        transform_one(&mut stage, &header, &payload, &mut held, &live);
+                        deliver_held(&mut held, &mut stage);
+                        unflushed += 1;
+                        continue;
+                    }
+                    if unflushed > 0 {
+                        live.flush(&mut stage, &mut held, Flush::Idle);
+                        deliver_held(&mut held, &mut stage);
+                        queue.handled_many(std::mem::take(&mut unflushed));
+                        // Side messages may have come meanwhile.
                         continue;
                     }
                     if queue.ended() {
                         break;
                     }
                     doorbell.wait_past(seen, STOP_POLL);
+                }
+                live.flush(&mut stage, &mut held, Flush::End);
+                deliver_held(&mut held, &mut stage);
+                queue.handled_many(unflushed);
+                // The end of the output stream (as an emitter's drop does).
+                for reader in &readers {
+                    reader.detach_publisher();
                 }
                 queue.close();
                 side_queue.close();
@@ -382,10 +423,19 @@ impl LocalGraph {
                     }
                 };
                 let mut held = HeldOutputs { messages: Vec::new(), slot };
+                let mut unflushed = 0;
                 while !stop.load(Ordering::Relaxed) {
                     let seen = doorbell.count();
                     answer_all(&mut stage);
                     let Some((header, payload)) = queue.try_pop() else {
+                        if unflushed > 0 {
+                            live.flush(&mut stage, &mut held, Flush::Idle);
+                            for message in held.messages.drain(..) {
+                                deliver(message, &readers, &live, &stop, &mut || answer_all(&mut stage));
+                            }
+                            queue.handled_many(std::mem::take(&mut unflushed));
+                            continue;
+                        }
                         if queue.ended() {
                             break;
                         }
@@ -396,8 +446,13 @@ impl LocalGraph {
                     for message in held.messages.drain(..) {
                         deliver(message, &readers, &live, &stop, &mut || answer_all(&mut stage));
                     }
-                    queue.handled();
+                    unflushed += 1;
                 }
+                live.flush(&mut stage, &mut held, Flush::End);
+                for message in held.messages.drain(..) {
+                    deliver(message, &readers, &live, &stop, &mut || answer_all(&mut stage));
+                }
+                queue.handled_many(unflushed);
                 queue.close();
                 // The end of the output stream reaches the callers, which may
                 // still ask about the conditions they hold.

@@ -160,7 +160,8 @@ impl<H> Queue<H> {
         self.handled_many(1);
     }
 
-    fn handled_many(&self, messages: usize) {
+    /// As [`Self::handled`], for `messages` at once.
+    pub fn handled_many(&self, messages: usize) {
         if let Some(in_flight) = &self.in_flight {
             in_flight.remove(messages);
         }

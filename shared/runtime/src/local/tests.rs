@@ -109,15 +109,7 @@ impl Transform for Asker {
     ) -> Result<(), TestError> {
         let frame = input.header.header.frame_id;
         self.side_first.lock().unwrap().push(self.seen_on_side.contains(&frame));
-        let request = VelocityRequest {
-            header: input.header.header,
-            condition_id: 0,
-            request_id: frame,
-            sample_count: 1,
-            t: 0.5,
-            step_index: 0,
-            step_count: 1,
-        };
+        let request = VelocityRequest::single(input.header.header, 0, frame, 1, 0.5);
         let mut answer = None;
         self.client
             .call(request, input.payload, Duration::from_secs(5), &mut |_, payload| answer = Some(payload[0]))
@@ -259,4 +251,112 @@ fn settling_a_graph_whose_stage_cannot_be_built_names_the_stage() {
     let _ = feed.send(hypotheses(0), vec![0.0; POSE_LEN]);
     let err = running.settle(Duration::from_secs(10)).unwrap_err();
     assert_eq!(crate::error_chain(&err), "stage `broken`: cannot build from its parameters: no such model");
+}
+
+/// Holds its inputs and passes them on in `flush`, each output's payload
+/// the size of the batch it went in.
+#[derive(Default)]
+struct Batcher(Vec<HypothesesHeader>);
+
+impl Transform for Batcher {
+    type In = HypothesesHeader;
+    type Out = HypothesesHeader;
+    type Error = TestError;
+    const SLOT: Option<StampSlot> = None;
+
+    fn process(
+        &mut self,
+        input: Input<'_, HypothesesHeader>,
+        _: &mut dyn Emitter<HypothesesHeader>,
+    ) -> Result<(), TestError> {
+        self.0.push(*input.header);
+        Ok(())
+    }
+
+    fn flush(&mut self, output: &mut dyn Emitter<HypothesesHeader>, _: Flush) -> Result<(), TestError> {
+        // Slow, as a network run is: what is fed meanwhile queues up.
+        std::thread::sleep(Duration::from_millis(20));
+        let size = self.0.len() as f32;
+        for header in self.0.drain(..) {
+            output.emit(header, POSE_LEN, &mut |out| out.fill(size))?;
+        }
+        Ok(())
+    }
+}
+
+impl Joined for Batcher {
+    type Side = HypothesesHeader;
+
+    fn side(&mut self, _: Input<'_, HypothesesHeader>) -> Result<(), TestError> {
+        Ok(())
+    }
+}
+
+impl Server for Batcher {
+    type Request = VelocityRequest;
+    type Response = VelocityResponse;
+
+    fn answer(
+        &mut self,
+        request: Input<'_, VelocityRequest>,
+        reply: &mut dyn Emitter<VelocityResponse>,
+    ) -> Result<(), TestError> {
+        self.answer_invalid(request.header, reply)
+    }
+
+    fn answer_invalid(
+        &mut self,
+        request: &VelocityRequest,
+        reply: &mut dyn Emitter<VelocityResponse>,
+    ) -> Result<(), TestError> {
+        let header = VelocityResponse {
+            header: request.header,
+            request_id: request.request_id,
+            sample_count: 0,
+            status: status::INVALID_REQUEST,
+        };
+        Ok(reply.emit(header, 0, &mut |_| {})?)
+    }
+}
+
+/// A batching stage between two others, in every local shape (transform,
+/// joined, server): what it holds is flushed when its queue runs empty, so
+/// a driven graph settles with every frame's output collected, and the
+/// frames fed at once while it is busy go in batches of more than one.
+#[test]
+fn a_batching_stage_is_flushed_whenever_its_queue_runs_empty() {
+    for shape in ["transform", "joined", "server"] {
+        let service = format!("poseflow/local-test/batching-{shape}");
+        let mut local = LocalGraph::new();
+        for edge in ["raw", "side", "batched"] {
+            local.edge(edge, 64, LocalOverflow::Block);
+        }
+        let feed = local.feed::<HypothesesHeader>("raw").unwrap();
+        let _side = local.feed::<HypothesesHeader>("side").unwrap();
+        let collected = local.collect::<HypothesesHeader>("batched").unwrap();
+        match shape {
+            "transform" => local.add_transform("batcher", || Ok(Batcher::default()), "raw", "batched").unwrap(),
+            "joined" => local.add_joined("batcher", || Ok(Batcher::default()), "raw", "side", "batched").unwrap(),
+            _ => local.add_server("batcher", || Ok(Batcher::default()), "raw", &service, "batched").unwrap(),
+        }
+        let mut running = local.start(Arc::new(AtomicBool::new(false)));
+        // One at a time: a batch of one each, nothing left held.
+        for frame in 0..5 {
+            feed.send(hypotheses(frame), vec![0.0; POSE_LEN]).unwrap();
+            running.settle(Duration::from_secs(10)).unwrap();
+            let out = collected.drain();
+            assert_eq!((out.len(), out[0].1[0]), (1, 1.0), "{shape} frame {frame}");
+        }
+        // Forty at once: every one comes out, some of them together.
+        for frame in 5..45 {
+            feed.send(hypotheses(frame), vec![0.0; POSE_LEN]).unwrap();
+        }
+        running.settle(Duration::from_secs(10)).unwrap();
+        let out = collected.drain();
+        let frames: Vec<u64> = out.iter().map(|(h, _)| h.header.frame_id).collect();
+        assert_eq!(frames, (5..45).collect::<Vec<_>>(), "{shape}");
+        assert!(out.iter().any(|(_, p)| p[0] > 1.0), "{shape}: no batch of more than one");
+        drop(feed);
+        running.finish().unwrap();
+    }
 }
