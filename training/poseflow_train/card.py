@@ -89,7 +89,203 @@ def files_section(model_dir, saved, int8_eval=None):
     sizes = {f.name: f.stat().st_size for f in sorted(model_dir.glob("*.onnx"))}
     full = {n: v for n, v in sizes.items() if ".int8." not in n}
     int8 = {n: v for n, v in sizes.items() if ".int8." in n}
-    text = f"""{files_section(out, saved)}## Architecture (paper, "Method")
+    text = f"""## Files
+
+{table([(name, f"{size / 1e6:.2f} MB") for name, size in sizes.items()], ["file", "size"])}
+
+FP32 {sum(full.values()) / 1e6:.2f} MB; {parameter_count(saved):,} parameters.
+`parity.bin`/`parity.json`: stored inputs and PyTorch outputs, which ONNX
+Runtime reproduces within 1e-4 (checked at export and by the Rust tests).
+"""
+    if int8:
+        text += f"""
+`encoder.int8.onnx` and `velocity.int8.onnx` ({sum(int8.values()) / 1e6:.2f} MB): the same networks
+after ONNX Runtime's dynamic quantisation of their matrix products (weights
+INT8, activations quantised per run; `python -m poseflow_train.quantize`),
+served by the inference stage with `precision = "int8"`.
+"""
+    for e in int8_eval or []:
+        text += (f"Their per-sample 10°5cm on `{' '.join(e['shard'])}`: {e['acc_10deg_5cm']} % "
+                 f"(5°5cm {e['acc_5deg_5cm']} %, median rotation error {e['median_rot_deg']}°).\n")
+    return text + "\n"
+
+
+def rewrite_files(args):
+    """The card with its Files section and contract replaced: for a model
+    exported or quantised again from the same checkpoint."""
+    import re
+
+    # The checkpoint only (no training shards needed).
+    out = json.loads(Path(args.config).read_text())["out"]
+    saved = torch.load(Path(out) / "checkpoint.pt", weights_only=False, map_location="cpu")
+    path = Path(args.model) / "MODEL_CARD.md"
+    text = path.read_text()
+    start, end = text.index("## Files"), text.index("## Architecture")
+    int8_eval = [json.loads(Path(p).read_text()) for p in args.int8_eval]
+    text = text[:start] + files_section(args.model, saved, int8_eval) + text[end:]
+    text = re.sub(r"the ONNX contract `poseflow-onnx/\d+`", f"the ONNX contract `{contract_of(args.model)}`", text, count=1)
+    path.write_text(text)
+    print(f"wrote the Files section of {path}")
+
+
+def table(rows, header):
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def learning_rate_text(config):
+    """The learning rate and its schedule, as the card states it."""
+    decay = config.get("lr_decay")
+    if not decay:
+        return f"{config.get('lr')}"
+    return f"{config.get('lr')} cosine-decayed to {decay['final']} over {decay['over_s'] / 60:.0f} minutes (`lr_decay`)"
+
+
+def last_run_text(config):
+    """What the last run trained besides the flow loss, as the card states it."""
+    if not config.get("frozen_encoder"):
+        return (f"plus the correspondence loss with weight {config.get('correspondence', 1.0)}; the first "
+                f"{config.get('correspondence_warmup_s', 0) / 60:.0f} minutes train the correspondence network alone")
+    parts = [f"the encoder frozen (`{config.get('encoder_from') or config['init_from']}`) and the velocity network "
+             "trained on its cached conditions"]
+    if config.get("equivalent_targets"):
+        parts.append("each flow target drawn from the poses equivalent to the truth (symmetries"
+                     + (", hidden-handle turns" if config.get("hidden_arcs") else "") + ")")
+    if config.get("rollout_energy"):
+        energy = config["rollout_energy"]
+        parts.append(f"plus {energy.get('weight', 1.0)} × the energy score of the {config.get('steps')}-step sampler's "
+                     f"output ({energy.get('observations', 16)} observations × {energy.get('samples', 32)} samples) "
+                     "against those targets")
+    return "; ".join(parts)
+
+
+def robustness_section(path, compare_path, compare_label, note):
+    """The robustness table: per variant the per-sample and coarse-pose
+    accuracy, and another run's per-sample 10°5cm when given."""
+    if not path:
+        return ""
+    result = json.loads(Path(path).read_text())
+    compare = json.loads(Path(compare_path).read_text())["variants"] if compare_path else {}
+    header = ["frames", "instances", "10°5cm %", "5°5cm %", "coarse pose 10°5cm %"]
+    if compare:
+        header.append(compare_label)
+    rows = [
+        (name, r["observations"], r["acc_10deg_5cm"], r["acc_5deg_5cm"], r["coarse"]["acc_10deg_5cm"],
+         *([compare[name]["acc_10deg_5cm"] if name in compare else "–"] if compare else []))
+        for name, r in result["variants"].items()
+    ]
+    return f"""## Robustness: frames less like the renders
+
+`python -m poseflow_train.robustness --model {result['model']} --dataset {result['dataset']} --split {result['split']}`:
+perturbed copies of a held-out split (what a real sensor and a real
+segmentation add), each turned into observations by the ingest stage's own
+code (`poseflow observe`, default parameters) and scored as above (N = 50,
+K = 5, per sample, no selection).
+
+{table(rows, header)}
+
+{note}
+
+"""
+
+
+def rewrite_robustness(args):
+    """The card with its Robustness section replaced (or put before the
+    Latency section): for robustness runs made after the rest of the card."""
+    if not args.robustness:
+        raise SystemExit("--robustness-only needs --robustness")
+    path = Path(args.model) / "MODEL_CARD.md"
+    text = path.read_text()
+    start = text.find("## Robustness")
+    latency = text.index("## Latency")
+    before = text[:start] if start >= 0 else text[:latency]
+    section = robustness_section(args.robustness, args.robustness_compare, args.robustness_compare_label,
+                                 args.robustness_note)
+    path.write_text(before + section + text[latency:])
+    print(f"wrote the Robustness section of {path}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config")
+    parser.add_argument("--model", required=True)
+    parser.add_argument("--eval")
+    parser.add_argument("--bench")
+    parser.add_argument("--files-only", action="store_true",
+                        help="only (re)write the card's Files section and contract (needs --config; the rest stays)")
+    parser.add_argument("--int8-eval", nargs="*", default=[],
+                        help="`evaluate --precision int8` outputs, for the Files section")
+    parser.add_argument("--robustness-only", action="store_true",
+                        help="only (re)write the card's Robustness section from --robustness (the rest stays)")
+    parser.add_argument("--also-eval", nargs="*", default=[],
+                        help="evaluate outputs on further held-out shards (e.g. one never used during training)")
+    parser.add_argument("--earlier-logs", nargs="*", default=[],
+                        help="log.jsonl of the runs this one continues, oldest first (for the learning curve)")
+    parser.add_argument("--eval-note", default="", help="Markdown after the held-out table")
+    parser.add_argument("--robustness", help="`poseflow_train.robustness` output for this model")
+    parser.add_argument("--robustness-compare", help="another `robustness` output (e.g. other ingest settings), as a column")
+    parser.add_argument("--robustness-compare-label", default="compared 10°5cm %", help="that column's heading")
+    parser.add_argument("--robustness-note", default="", help="Markdown after the robustness table")
+    parser.add_argument("--data-note", default="", help="Markdown at the end of the Data section")
+    parser.add_argument("--ambiguity", help="the Ambiguity section as `evaluation/results_page.py --ambiguity-only` wrote "
+                                            "it (Markdown, included as it is)")
+    parser.add_argument("--history", default="",
+                        help="Markdown describing how the runs followed each other, for the Training section")
+    args = parser.parse_args()
+    if args.robustness_only:
+        return rewrite_robustness(args)
+    if args.files_only:
+        return rewrite_files(args)
+    missing = [flag for flag in ("config", "eval", "bench") if getattr(args, flag) is None]
+    if missing:
+        parser.error(f"--{missing[0]} is required (unless --robustness-only)")
+    config = load_config(args.config)
+    cfg = config["model"]
+    out = Path(args.model)
+    run = Path(config["out"])
+    saved = torch.load(run / "checkpoint.pt", weights_only=False, map_location="cpu")
+    state = saved["state"]
+    curve = learning_curve([*args.earlier_logs, run / "log.jsonl"])
+    plot(curve, out / "learning-curve.png")
+    evaluation = json.loads(Path(args.eval).read_text())
+    coarse = evaluation["coarse"]
+    bench = json.loads(Path(args.bench).read_text())
+    shards = [Shard(p) for p in config["train"]]
+    train_observations = sum(len(s) for s in shards)
+    rendered_chunks = len({(s.info["dataset"], s.info["split"]) for s in shards})
+    val_shard = Shard(config["val"][0])
+    info = json.loads(val_shard.models_info.read_text())
+
+    curve_rows = [
+        (e["step"], f"{e['train_s'] / 3600:.2f}", e["validation"]["acc_10deg_5cm"], e["validation"]["acc_5deg_5cm"],
+         e["validation"]["median_rot_deg"], e["validation"]["median_trans_cm"],
+         e["validation"].get("coarse", {}).get("acc_10deg_5cm", "–"))
+        for e in curve
+    ]
+    object_rows = [
+        (obj, "yes" if info.get(obj, {}).get("symmetries_discrete") or info.get(obj, {}).get("symmetries_continuous")
+         else "no", r["observations"] + r.get("unobserved", 0), r["acc_10deg_5cm"], r["acc_5deg_5cm"], r["median_rot_deg"], r["median_trans_cm"])
+        for obj, r in evaluation["per_object"].items()
+    ]
+    others = [json.loads(Path(p).read_text()) for p in args.also_eval]
+    other_rows = "".join(
+        f"| all, `{' '.join(e['shard'])}` ({instances(e)}) | {e['acc_10deg_5cm']} | {e['acc_5deg_5cm']} | "
+        f"{e['acc_10deg_2cm']} | {e['median_rot_deg']} | {e['median_trans_cm']} |\n"
+        f"| its coarse pose | {e['coarse']['acc_10deg_5cm']} | {e['coarse']['acc_5deg_5cm']} | "
+        f"{e['coarse']['acc_10deg_2cm']} | {e['coarse']['median_rot_deg']} | {e['coarse']['median_trans_cm']} |\n"
+        for e in others)
+    timing = lambda t: f"{t['p50_ms']:.1f} ms p50, {t['p99_ms']:.1f} ms p99 (mean {t['mean_ms']:.1f})"  # noqa: E731
+    text = f"""# Model card: {out.name}
+
+The default PoseFlow network of this project: the encoder and velocity
+networks of SE(3)-PoseFlow, trained from scratch on a 2-core CPU on renders
+of ten objects, exported to the ONNX contract `{contract_of(out)}` that the
+inference stage serves (`services/inference`). Generated by
+`training/poseflow_train/card.py` from the training log, the checkpoint and
+the measurements below; nothing in it is typed by hand.
+
+{files_section(out, saved)}## Architecture (paper, "Method")
 
 - Image stream: a ViT trained from scratch on the {cfg.image_size}×{cfg.image_size} RGB crop,
   {cfg.patch_grid}×{cfg.patch_grid} patch tokens, {cfg.image_depth} blocks, width {cfg.width}, {cfg.heads} heads;
