@@ -388,7 +388,7 @@ fn objects_that_arrive_together_share_one_request_per_step() {
             ..Default::default()
         })
         .collect();
-    let params = SamplerParams { samples: 6, ..Default::default() };
+    let params = SamplerParams { samples: 6, batch: 8, ..Default::default() };
     let mut requests = Vec::new();
     let mut stage = SamplerStage::new(params.clone(), toward_targets(handles.clone(), &mut requests));
     let mut out = Collect(Vec::new());
@@ -429,7 +429,7 @@ fn a_batch_larger_than_the_edge_is_split_into_requests() {
     let handles: Vec<ConditionHandle> = (0..3)
         .map(|k| ConditionHandle { header: Header::new(8, 5 + k), condition_id: 40 + u64::from(k), ..handle(8) })
         .collect();
-    let params = SamplerParams { samples: 6, steps: 2, ..Default::default() };
+    let params = SamplerParams { samples: 6, steps: 2, batch: 8, ..Default::default() };
     let sample = |capacity: usize| {
         let mut requests = Vec::new();
         let mut stage = SamplerStage::new(params.clone(), toward_targets(handles.clone(), &mut requests));
@@ -458,6 +458,7 @@ fn a_batch_of_tracked_and_new_objects_steps_each_at_its_own_times() {
     let fresh = ConditionHandle { header: Header::new(12, 6), condition_id: 43, ..tracked };
     let params = SamplerParams {
         samples: 4,
+        batch: 8,
         tracking: TrackingParams { enabled: true, keep_previous: false, ..Default::default() },
         ..Default::default()
     };
