@@ -123,11 +123,18 @@ pub struct InferenceStage {
     /// When the held observations are encoded.
     batches: FrameBatches,
     held: Vec<Held>,
+    /// One observation's points in metres (reused).
+    points: Vec<f32>,
     rotations: Vec<f32>,
     translations: Vec<f32>,
     times: Vec<f32>,
     response: Vec<f32>,
     rejected: u64,
+}
+
+/// Image tokens left active by a token mask.
+fn active_tokens(token_mask: &[f32]) -> u32 {
+    token_mask.iter().filter(|&&m| m > 0.5).count() as u32
 }
 
 fn run_nonce() -> u64 {
@@ -154,6 +161,7 @@ impl InferenceStage {
             encoded: 0,
             batches: FrameBatches::new(default_batch()),
             held: Vec::new(),
+            points: Vec::new(),
             rotations: Vec::new(),
             translations: Vec::new(),
             times: Vec::new(),
@@ -167,14 +175,40 @@ impl InferenceStage {
     }
 
     /// Encodes one observation and caches its condition; returns the handle.
+    /// Reads the payload in place (only the points are rescaled).
     pub fn encode(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<ConditionHandle, InferenceError> {
-        self.hold(header, payload)?;
-        Ok(self.encode_held()?.pop().expect("one observation held"))
+        let (object_index, view) = self.check(header, payload)?;
+        // The network takes metres.
+        self.points.clear();
+        self.points.extend(view.points.iter().map(|&x| x * header.point_scale));
+        let input = EncoderInput { image: view.image, token_mask: view.token_mask, points: &self.points, object_index };
+        let condition = self.model.encode_batch(&[input])?.pop().expect("one condition per input");
+        Ok(self.store(header, active_tokens(view.token_mask), condition))
     }
 
     /// Checks an observation against the model and keeps a copy of it for
     /// the next [`Self::encode_held`].
     pub fn hold(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<(), InferenceError> {
+        let (object_index, view) = self.check(header, payload)?;
+        self.held.push(Held {
+            header: *header,
+            image: view.image.to_vec(),
+            token_mask: view.token_mask.to_vec(),
+            // The network takes metres.
+            points: view.points.iter().map(|&x| x * header.point_scale).collect(),
+            object_index,
+            active_image_tokens: active_tokens(view.token_mask),
+        });
+        Ok(())
+    }
+
+    /// The observation's object index and payload sections, or why the
+    /// model cannot take it.
+    fn check<'p>(
+        &self,
+        header: &ObservationHeader,
+        payload: &'p [f32],
+    ) -> Result<(usize, poseflow_contracts::ObservationView<'p>), InferenceError> {
         let frame = header.header.frame_id;
         let bad = |detail: String| InferenceError::Observation { frame, detail };
         let info = &self.model.info;
@@ -201,16 +235,7 @@ impl InferenceStage {
             return Err(bad(format!("point_scale {}: expected a positive number", header.point_scale)));
         }
         let view = header.view(payload).map_err(|e| bad(e.to_string()))?;
-        self.held.push(Held {
-            header: *header,
-            image: view.image.to_vec(),
-            token_mask: view.token_mask.to_vec(),
-            // The network takes metres.
-            points: view.points.iter().map(|&x| x * header.point_scale).collect(),
-            object_index,
-            active_image_tokens: view.token_mask.iter().filter(|&&m| m > 0.5).count() as u32,
-        });
-        Ok(())
+        Ok((object_index, view))
     }
 
     /// Observations held and not yet encoded.
@@ -232,28 +257,32 @@ impl InferenceStage {
             })
             .collect();
         let conditions = self.model.encode_batch(&inputs)?;
+        Ok(held
+            .iter()
+            .zip(conditions)
+            .map(|(h, condition)| self.store(&h.header, h.active_image_tokens, condition))
+            .collect())
+    }
+
+    /// Caches an encoded observation under a new id; its handle.
+    fn store(&mut self, header: &ObservationHeader, active_image_tokens: u32, condition: Condition) -> ConditionHandle {
+        self.encoded += 1;
+        let id = self.run_nonce | (self.encoded & 0xFFFF_FFFF);
         let image_tokens = (self.model.info.patch_grid * self.model.info.patch_grid) as u32;
-        let mut handles = Vec::with_capacity(held.len());
-        for (held, condition) in held.iter().zip(conditions) {
-            self.encoded += 1;
-            let id = self.run_nonce | (self.encoded & 0xFFFF_FFFF);
-            let header = &held.header;
-            handles.push(ConditionHandle {
-                header: header.header,
-                condition_id: id,
-                image_tokens,
-                point_tokens: (self.model.info.tokens as u32).saturating_sub(image_tokens),
-                active_image_tokens: held.active_image_tokens,
-                model_width: self.model.info.width as u32,
-                centroid: header.centroid,
-                point_scale: header.point_scale,
-            });
-            if self.cache.len() == self.capacity {
-                self.cache.pop_front();
-            }
-            self.cache.push_back(Cached { id, condition, point_scale: header.point_scale });
+        if self.cache.len() == self.capacity {
+            self.cache.pop_front();
         }
-        Ok(handles)
+        self.cache.push_back(Cached { id, condition, point_scale: header.point_scale });
+        ConditionHandle {
+            header: header.header,
+            condition_id: id,
+            image_tokens,
+            point_tokens: (self.model.info.tokens as u32).saturating_sub(image_tokens),
+            active_image_tokens,
+            model_width: self.model.info.width as u32,
+            centroid: header.centroid,
+            point_scale: header.point_scale,
+        }
     }
 
     /// Velocities (`v` then `ω`, 6 per sample, each segment's network
@@ -346,10 +375,16 @@ impl Transform for InferenceStage {
         if self.batches.run_before(header, self.held.len()) {
             self.run_batch(output)?;
         }
-        self.hold(input.header, input.payload)?;
-        if self.batches.run_after(header, self.held.len()) {
-            self.run_batch(output)?;
+        if !self.batches.run_after(header, self.held.len() + 1) {
+            return self.hold(input.header, input.payload);
         }
+        if !self.held.is_empty() {
+            self.hold(input.header, input.payload)?;
+            return self.run_batch(output);
+        }
+        // A batch of one (unbatched, the default): encoded in place, no copy.
+        let handle = self.encode(input.header, input.payload)?;
+        output.emit(handle, 0, &mut |_| {})?;
         Ok(())
     }
 
