@@ -102,11 +102,12 @@ fn the_pipeline_benchmark_measures_both_graphs_through_processes_and_in_process(
     }
     assert_nothing_leaked(&before);
 
-    let output = poseflow().args(["bench", "pipeline", "--frames", "3", "--warmup", "5"]).output().unwrap();
+    let output = poseflow().args(["bench", "pipeline", "--frames", "3", "--warmup", "5"]).output_within(RUN_DEADLINE);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success() && stderr.contains("--frames 3") && stderr.contains("--warmup"), "{stderr}");
     let repository = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
-    let output = poseflow().current_dir(repository).args(["bench", "pipeline", "--objects", "9"]).output().unwrap();
+    let output =
+        poseflow().current_dir(repository).args(["bench", "pipeline", "--objects", "9"]).output_within(RUN_DEADLINE);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success() && stderr.contains("--objects 9") && stderr.contains("only 8"), "{stderr}");
 }

@@ -265,7 +265,7 @@ fn every_deploy_graph_gives_the_same_messages_as_processes_and_in_process() {
             if mode == "in-process" {
                 args.push("--in-process");
             }
-            let output = run_graph(&args, graph).current_dir(&root).output().unwrap();
+            let output = run_graph(&args, graph).current_dir(&root).output_within(RUN_DEADLINE);
             let summary = summary(&output);
             let stderr = String::from_utf8_lossy(&output.stderr);
             assert!(output.status.success(), "{name} ({mode}): {summary}\n{stderr}");
@@ -336,8 +336,7 @@ fn an_occluded_object_is_flagged_lost_then_reinitialised_and_recovered() {
         .args(["demo", "--track", "--json", "--frames", "60", "--occlusions", "1", "--seed", "5"])
         .args(["--out", out.to_str().unwrap()])
         .current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
-        .output()
-        .unwrap();
+        .output_within(RUN_DEADLINE);
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
     let event = &report["events"][0];

@@ -18,7 +18,7 @@ fn a_python_stage_replaces_a_rust_one() {
         .unwrap()
         .replace("exe = \"smoke-relay\"", &format!("exe = \"{}\"\nargs = [\"{plugin}\"]", plugin_python().display()));
     std::fs::write(&graph, text).unwrap();
-    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output_within(RUN_DEADLINE);
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
     assert_eq!(summary["stages"]["relay"]["frames_in"], 500, "{summary}");

@@ -135,7 +135,7 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
     .into_iter()
     .collect();
     let plugins = concat!(env!("CARGO_MANIFEST_DIR"), "/../plugins/python");
-    let output = Command::new(plugin_python()).args(["-c", DUMP, plugins]).output().unwrap();
+    let output = Command::new(plugin_python()).args(["-c", DUMP, plugins]).output_within(RUN_DEADLINE);
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let python: BTreeMap<String, Value> = serde_json::from_slice(&output.stdout).unwrap();
     let names = |m: Vec<&str>| m.join(", ");
@@ -178,7 +178,7 @@ print(json.dumps([p.STAGE_SLOTS, list(p.SLOT_NAMES), [p.SLOT_SOURCE, p.SLOT_SAMP
     let wirings = [json!({}), json!({"stamp": "grasp"}), json!({"stamp": "none"})];
     let mut args = vec!["-c".to_string(), dump.to_string(), plugins.to_string()];
     args.extend(wirings.iter().map(Value::to_string));
-    let output = Command::new(plugin_python()).args(&args).output().unwrap();
+    let output = Command::new(plugin_python()).args(&args).output_within(RUN_DEADLINE);
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let python: Value = serde_json::from_slice(&output.stdout).unwrap();
     let names: Vec<&str> = StampSlot::ALL.iter().map(|slot| slot.name()).collect();
@@ -261,7 +261,7 @@ fn a_python_sink_reads_every_estimate_of_the_estimation_graph() {
         "--set",
         "selector.sdf_resolution=16",
     ];
-    let output = run_graph(&args, &graph).current_dir(&root).output().unwrap();
+    let output = run_graph(&args, &graph).current_dir(&root).output_within(RUN_DEADLINE);
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
     assert_eq!(summary["stages"]["printer"]["outcome"], "finished", "{summary}");

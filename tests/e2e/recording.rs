@@ -14,7 +14,7 @@ fn a_recorded_edge_replays_into_a_sink() {
     let recording = scratch.dir.join("negated.rec");
     let graph = scratch.graph(300, 500.0, "block");
     let record = ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", "negated"];
-    let output = run_graph(&record, &graph).output().unwrap();
+    let output = run_graph(&record, &graph).output_within(RUN_DEADLINE);
     let recorded = summary(&output);
     assert!(output.status.success(), "{recorded}");
     assert_eq!(recorded["recorded"]["negated"], 300, "{recorded}");
@@ -28,7 +28,7 @@ fn a_recorded_edge_replays_into_a_sink() {
             .replace("speed = \"max\"", &format!("speed = \"{speed}\""))
             .replace("report = \"sink-report.json\"", &format!("report = \"{}\"", report.display()));
         std::fs::write(&replay, text).unwrap();
-        let output = run_graph(&["--json", "--status-ms", "0"], &replay).output().unwrap();
+        let output = run_graph(&["--json", "--status-ms", "0"], &replay).output_within(RUN_DEADLINE);
         let replayed = summary(&output);
         assert!(output.status.success(), "{replayed}");
         eprintln!("replay at {speed} speed took {:.2} s", replayed["elapsed_s"].as_f64().unwrap());
@@ -62,7 +62,7 @@ fn a_graph_stamp_key_chooses_the_slot_a_stage_writes() {
         let mut args = vec!["--json", "--status-ms", "0", "--record", recording.to_str().unwrap()];
         args.extend(["--record-edges", "negated"]);
         args.extend(mode);
-        let output = run_graph(&args, &graph).output().unwrap();
+        let output = run_graph(&args, &graph).output_within(RUN_DEADLINE);
         assert!(output.status.success(), "{mode:?}: {}", summary(&output));
         let mut reader = RecordingReader::open(&recording).unwrap();
         let mut seen = 0;
@@ -79,7 +79,7 @@ fn a_graph_stamp_key_chooses_the_slot_a_stage_writes() {
 
     let clash = relay_stamped("source");
     for check in [&["--check"][..], &["--json"][..]] {
-        let output = run_graph(check, &clash).output().unwrap();
+        let output = run_graph(check, &clash).output_within(RUN_DEADLINE);
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert!(!output.status.success(), "{check:?}");
         assert!(
@@ -88,7 +88,7 @@ fn a_graph_stamp_key_chooses_the_slot_a_stage_writes() {
         );
     }
     let unknown = relay_stamped("detector");
-    let output = run_graph(&["--check"], &unknown).output().unwrap();
+    let output = run_graph(&["--check"], &unknown).output_within(RUN_DEADLINE);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("stages.relay.stamp") && stderr.contains("\"detector\""), "{stderr}");
 }

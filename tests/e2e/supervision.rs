@@ -16,7 +16,7 @@ fn three_processes_pass_every_frame_intact() {
     let before = shared_memory_files();
     let scratch = Scratch::new("intact");
     let graph = scratch.graph(1000, 0.0, "block");
-    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output_within(RUN_DEADLINE);
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
     for stage in ["source", "relay", "sink"] {
@@ -54,7 +54,7 @@ fn a_killed_stage_is_restarted_and_traffic_resumes() {
     // SAFETY: signalling a process this test started (through poseflow).
     assert_eq!(unsafe { libc::kill(relay as i32, libc::SIGKILL) }, 0);
 
-    let output = run.wait_with_output().unwrap();
+    let output = wait_within(run, RUN_DEADLINE);
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}\n{}", String::from_utf8_lossy(&output.stderr));
     let relay_summary = &summary["stages"]["relay"];
@@ -152,7 +152,7 @@ fn a_stopped_stage_is_replaced_within_a_few_heartbeats() {
     let (run, relay) = start_and_wait_for(&graph, &instance, "relay");
     std::thread::sleep(Duration::from_millis(800));
     let replaced = stop_and_time_replacement(&instance, "relay", relay);
-    let output = run.wait_with_output().unwrap();
+    let output = wait_within(run, RUN_DEADLINE);
     let (summary, stderr) = (summary(&output), String::from_utf8_lossy(&output.stderr));
     assert!(output.status.success(), "{summary}\n{stderr}");
     eprintln!("stopped relay replaced {} ms after SIGSTOP", replaced.as_millis());
@@ -210,7 +210,7 @@ fn a_stage_ignoring_sigterm_is_killed_after_the_grace_period() {
     let stopping = Instant::now();
     // SAFETY: signalling the poseflow process this test started.
     assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGINT) }, 0);
-    let output = run.wait_with_output().unwrap();
+    let output = wait_within(run, RUN_DEADLINE);
     let stopped_after = stopping.elapsed();
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
@@ -265,7 +265,7 @@ fn an_invalid_graph_is_rejected_before_anything_starts() {
     let text =
         std::fs::read_to_string(&graph).unwrap().replace("inputs = [\"raw\"]", "inputs = [\"raw\", \"missing\"]");
     std::fs::write(&graph, text).unwrap();
-    let output = run_graph(&[], &graph).output().unwrap();
+    let output = run_graph(&[], &graph).output_within(RUN_DEADLINE);
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
@@ -287,7 +287,7 @@ fn ctrl_c_stops_every_stage_and_leaves_nothing_behind() {
     // SAFETY: signalling the poseflow process this test started.
     assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGINT) }, 0);
 
-    let output = run.wait_with_output().unwrap();
+    let output = wait_within(run, RUN_DEADLINE);
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
     for stage in ["source", "relay", "sink"] {
@@ -312,7 +312,7 @@ fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
         .replace("exe = \"smoke-relay\"", "exe = \"/bin/false\"\nmax_restarts = 2")
         .replace("backoff_ms = 100", "backoff_ms = 10");
     std::fs::write(&graph, text).unwrap();
-    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output().unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output_within(RUN_DEADLINE);
     assert_eq!(output.status.code(), Some(1));
     let summary = summary(&output);
     assert_eq!(summary["failed"], true);
@@ -332,12 +332,12 @@ fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
     for entry in std::fs::read_dir(deploy).unwrap().flatten() {
         let path = entry.path();
         if path.extension().is_some_and(|e| e == "toml") {
-            let output = run_graph(&["--check"], &path).output().unwrap();
+            let output = run_graph(&["--check"], &path).output_within(RUN_DEADLINE);
             assert!(output.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&output.stderr));
         }
     }
     let before = shared_memory_files();
-    let output = run_graph(&["--json", "--status-ms", "0"], &deploy.join("smoke.toml")).output().unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], &deploy.join("smoke.toml")).output_within(RUN_DEADLINE);
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
     assert_eq!(summary["stages"]["source"]["frames_out"], 3000, "{summary}");
@@ -350,7 +350,7 @@ fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
 fn the_same_graph_runs_in_process() {
     let scratch = Scratch::new("in-process");
     let graph = scratch.graph(1000, 0.0, "block");
-    let output = run_graph(&["--in-process", "--json"], &graph).output().unwrap();
+    let output = run_graph(&["--in-process", "--json"], &graph).output_within(RUN_DEADLINE);
     let summary = summary(&output);
     assert!(output.status.success(), "{summary}");
     assert_eq!(summary["stages"]["relay"]["frames_in"], 1000, "{summary}");
@@ -360,7 +360,7 @@ fn the_same_graph_runs_in_process() {
     // A stage without an in-process build is named, with the alternatives.
     let text = std::fs::read_to_string(&graph).unwrap().replace("exe = \"smoke-relay\"", "exe = \"/bin/true\"");
     std::fs::write(&graph, text).unwrap();
-    let output = run_graph(&["--in-process"], &graph).output().unwrap();
+    let output = run_graph(&["--in-process"], &graph).output_within(RUN_DEADLINE);
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("`stages.relay.exe`") && stderr.contains("smoke-relay"), "{stderr}");
@@ -396,7 +396,7 @@ fn a_stopped_sampler_of_the_tracking_graph_is_replaced_and_every_object_tracked_
     // A few images into the video (5 Hz): every object is being tracked.
     std::thread::sleep(Duration::from_secs(3));
     let replaced = stop_and_time_replacement(&instance, "sampler", sampler);
-    let output = demo.wait_with_output().unwrap();
+    let output = wait_within(demo, RUN_DEADLINE);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{stderr}");
     eprintln!("stopped sampler replaced {} ms after SIGSTOP", replaced.as_millis());

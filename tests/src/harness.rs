@@ -11,6 +11,7 @@ use std::time::{Duration, Instant};
 use poseflow_smoke::SinkReport;
 use poseflow_transport::shared_memory_files;
 
+pub use crate::deadline::{OutputWithin, RUN_DEADLINE, wait_within};
 use crate::plugin_python;
 
 static SERIAL: Mutex<()> = Mutex::new(());
@@ -56,8 +57,7 @@ pub fn bench_report(args: &[&str]) -> serde_json::Value {
         .arg("--json")
         .arg("--stage-path")
         .arg(bin_dir())
-        .output()
-        .unwrap();
+        .output_within(RUN_DEADLINE);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{stderr}");
     serde_json::from_slice(&output.stdout).unwrap()
@@ -175,7 +175,7 @@ pub fn find_stage_pid(instance: &str, stage: &str) -> Option<u32> {
 /// Runs a graph to its end; its JSON summary and stderr, checking it
 /// succeeded.
 pub fn run_to_end(graph: &Path) -> (serde_json::Value, String) {
-    let output = run_graph(&["--json", "--status-ms", "0"], graph).output().unwrap();
+    let output = run_graph(&["--json", "--status-ms", "0"], graph).output_within(RUN_DEADLINE);
     let summary = summary(&output);
     let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
     assert!(output.status.success(), "{summary}\n{stderr}");
@@ -274,7 +274,7 @@ params = {params}
 /// summary and the launcher's stderr after checking that it succeeded.
 pub fn run_recording(graph: &Path, edge: &str, recording: &Path) -> (serde_json::Value, String) {
     let args = ["--json", "--status-ms", "0", "--record", recording.to_str().unwrap(), "--record-edges", edge];
-    let output = run_graph(&args, graph).output().unwrap();
+    let output = run_graph(&args, graph).output_within(RUN_DEADLINE);
     let result = summary(&output);
     let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
     assert!(output.status.success(), "{result}\n{stderr}");

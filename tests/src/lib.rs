@@ -1,5 +1,6 @@
 //! What the end-to-end tests and their test stages share.
 
+pub mod deadline;
 pub mod harness;
 
 use poseflow_geometry::sampling::{seeded_rng, uniform_rotation};
