@@ -18,9 +18,9 @@ pub struct ModelArgs {
     /// Model directory (encoder.onnx, velocity.onnx).
     #[arg(long, default_value = "models/poseflow-lmo10")]
     pub model: PathBuf,
-    /// Which files: fp32 (encoder.onnx, velocity.onnx) or int8
-    /// (encoder.int8.onnx, velocity.int8.onnx).
-    #[arg(long, default_value = "fp32")]
+    /// Which files: int8 (encoder.int8.onnx, velocity.int8.onnx; the
+    /// inference stage's default) or fp32 (encoder.onnx, velocity.onnx).
+    #[arg(long, default_value = "int8")]
     pub precision: Precision,
     /// ONNX Runtime intra-op threads.
     #[arg(long, default_value_t = 2)]

@@ -59,7 +59,7 @@ fn default_cache() -> usize {
     8
 }
 fn default_batch() -> usize {
-    1
+    8
 }
 
 impl InferenceParams {
@@ -382,7 +382,8 @@ impl Transform for InferenceStage {
             self.hold(input.header, input.payload)?;
             return self.run_batch(output);
         }
-        // A batch of one (unbatched, the default): encoded in place, no copy.
+        // A batch of one (one object a frame, or `batch = 1`): encoded in
+        // place, no copy.
         let handle = self.encode(input.header, input.payload)?;
         output.emit(handle, 0, &mut |_| {})?;
         Ok(())

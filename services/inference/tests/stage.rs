@@ -184,7 +184,7 @@ fn observations_the_model_cannot_take_are_rejected_with_the_reason() {
 #[test]
 fn parameters_name_the_key_that_is_wrong() {
     let params = InferenceParams::from_json(&serde_json::json!({ "model": "models/x" })).unwrap();
-    assert_eq!((params.threads, params.cache, params.batch), (2, 8, 1));
+    assert_eq!((params.threads, params.cache, params.batch), (2, 8, 8));
     let err = InferenceParams::from_json(&serde_json::json!({ "batch": 0 })).unwrap_err().to_string();
     assert!(err.contains("`batch`") && err.contains("1 to 64"), "{err}");
     let err = InferenceParams::from_json(&serde_json::json!({ "precision": "fp16" })).unwrap_err().to_string();

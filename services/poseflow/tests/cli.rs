@@ -528,7 +528,10 @@ fn bench_model_times_both_networks() {
     }
     let missing = poseflow(&["bench", "model", "--model", "/nonexistent"]);
     assert_eq!(missing.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&missing.stderr).contains("/nonexistent/encoder.onnx"));
+    assert!(
+        String::from_utf8_lossy(&missing.stderr).contains("/nonexistent/encoder.int8.onnx"),
+        "the default precision is the inference stage's"
+    );
 }
 
 const YCBV_MODELS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../objects/ycbv/models");

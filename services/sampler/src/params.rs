@@ -33,7 +33,7 @@ pub struct SamplerParams {
 }
 
 fn default_batch() -> usize {
-    1
+    8
 }
 
 /// Tracking mode: a frame whose object has an estimate from an earlier frame
