@@ -361,7 +361,7 @@ object's symmetries (`models_info.json`; continuous ones in 1° steps).
 {Path(args.ambiguity).read_text() if args.ambiguity else ""}
 ## Latency (2 CPU cores, ONNX Runtime {bench['threads']} intra-op threads)
 
-`poseflow bench model --model {bench['model']} --json`:
+`poseflow bench model --model {bench['model']} --precision {bench.get('precision', 'fp32')} --json`:
 encoder per observation {timing(bench['encoder'])};
 velocity for a batch of {bench['samples']} samples {timing(bench['velocity'])}.
 """

@@ -4,6 +4,8 @@ mod graph_run;
 mod ingest;
 mod ipc;
 mod model;
+
+pub use model::NetworkWorkload;
 mod pipeline;
 mod soak;
 

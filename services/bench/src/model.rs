@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use poseflow_inference::{Condition, EncoderInput, PoseFlowModel, Precision};
+use poseflow_inference::{Condition, EncoderInput, InferenceError, PoseFlowModel, Precision};
 use serde::Serialize;
 
 use poseflow_runtime::timing::Timing;
@@ -56,6 +56,60 @@ struct Report {
     velocity_per_observation_ms: f64,
 }
 
+/// One run of each network on synthetic inputs of the model's shapes: B
+/// observations (objects in turn) for the encoder, N samples of each at
+/// one flow time for the velocity network. What `bench model` and the
+/// criterion benchmarks time.
+#[derive(Debug)]
+pub struct NetworkWorkload {
+    image: Vec<f32>,
+    token_mask: Vec<f32>,
+    points: Vec<f32>,
+    objects: Vec<usize>,
+    rotations: Vec<f32>,
+    translations: Vec<f32>,
+    t: Vec<f32>,
+}
+
+impl NetworkWorkload {
+    pub fn new(model: &PoseFlowModel, batch: usize, samples: usize) -> Self {
+        let info = &model.info;
+        let (s, p, n) = (info.image_size, info.patch_grid, info.point_count);
+        let m = samples * batch;
+        Self {
+            image: vec![0.1; 3 * s * s],
+            token_mask: vec![1.0; p * p],
+            points: (0..3 * n).map(|i| ((i * 7919) % 101) as f32 * 1e-3 - 0.05).collect(),
+            objects: (0..batch).map(|i| i % info.object_ids.len()).collect(),
+            rotations: (0..m).flat_map(|_| [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]).collect(),
+            translations: vec![0.01; 3 * m],
+            t: vec![0.2; m],
+        }
+    }
+
+    /// The B observations in one encoder run.
+    pub fn encode(&self, model: &mut PoseFlowModel) -> Result<Vec<Condition>, InferenceError> {
+        let inputs: Vec<EncoderInput> = self
+            .objects
+            .iter()
+            .map(|&object_index| EncoderInput {
+                image: &self.image,
+                token_mask: &self.token_mask,
+                points: &self.points,
+                object_index,
+            })
+            .collect();
+        model.encode_batch(&inputs)
+    }
+
+    /// Every sample of `conditions` (as many as the batch) in one velocity
+    /// run.
+    pub fn velocities(&self, model: &mut PoseFlowModel, conditions: &[Condition]) -> Result<(), InferenceError> {
+        let conditions: Vec<&Condition> = conditions.iter().collect();
+        model.velocity_batch(&conditions, &self.rotations, &self.translations, &self.t).map(drop)
+    }
+}
+
 fn timed(runs: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<Vec<Duration>> {
     for _ in 0..5 {
         f()?;
@@ -79,30 +133,15 @@ pub fn run(args: &ModelArgs) -> anyhow::Result<()> {
     }
     let mut model = PoseFlowModel::load_as(&args.model, args.threads, args.precision)?;
     let info = model.info.clone();
-    let (s, p, n, b) = (info.image_size, info.patch_grid, info.point_count, args.batch);
-    let image = vec![0.1f32; 3 * s * s];
-    let token_mask = vec![1.0f32; p * p];
-    let points: Vec<f32> = (0..3 * n).map(|i| ((i * 7919) % 101) as f32 * 1e-3 - 0.05).collect();
-    let inputs: Vec<EncoderInput> = (0..b)
-        .map(|i| EncoderInput {
-            image: &image,
-            token_mask: &token_mask,
-            points: &points,
-            object_index: i % info.object_ids.len(),
-        })
-        .collect();
+    let b = args.batch;
+    let workload = NetworkWorkload::new(&model, b, args.samples);
     let mut conditions = Vec::new();
     let encoder = timed(args.runs, || {
-        conditions = model.encode_batch(&inputs)?;
+        conditions = workload.encode(&mut model)?;
         Ok(())
     })?;
-    let conditions: Vec<&Condition> = conditions.iter().collect();
-    let m = args.samples * b;
-    let rotations: Vec<f32> = (0..m).flat_map(|_| [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]).collect();
-    let translations = vec![0.01f32; 3 * m];
-    let t = vec![0.2f32; m];
     let velocity = timed(args.runs, || {
-        model.velocity_batch(&conditions, &rotations, &translations, &t)?;
+        workload.velocities(&mut model, &conditions)?;
         Ok(())
     })?;
     let (encoder, velocity) = (Timing::of(encoder), Timing::of(velocity));
