@@ -8,7 +8,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 /// How long one `poseflow` run of a test may take (the longest, the
-/// pipeline benchmark in an unoptimised build, takes about two minutes).
+/// pipeline benchmark in an unoptimised build, takes about a minute here).
 pub const RUN_DEADLINE: Duration = Duration::from_secs(300);
 
 /// How long a process has to stop after SIGINT before it is killed.
