@@ -19,14 +19,16 @@ fn networks(c: &mut Criterion) {
     let mut model = PoseFlowModel::load_as(&dir, 2, Precision::Int8).expect("the default model and ONNX Runtime");
     let one = NetworkWorkload::new(&model, 1, SAMPLES);
     let all = NetworkWorkload::new(&model, OBJECTS, SAMPLES);
-    let single = one.encode(&mut model).unwrap();
-    let batched = all.encode(&mut model).unwrap();
+    let (one_input, all_inputs) = (one.inputs(), all.inputs());
+    let single = model.encode_batch(&one_input).unwrap();
+    let batched = model.encode_batch(&all_inputs).unwrap();
+    let (single, batched): (Vec<_>, Vec<_>) = (single.iter().collect(), batched.iter().collect());
     let mut group = c.benchmark_group(format!("{OBJECTS}_observations"));
     group.sample_size(20);
     group.bench_function("encoder/one_by_one", |b| {
-        b.iter(|| (0..OBJECTS).for_each(|_| drop(one.encode(&mut model).unwrap())))
+        b.iter(|| (0..OBJECTS).for_each(|_| drop(model.encode_batch(&one_input).unwrap())))
     });
-    group.bench_function("encoder/batched", |b| b.iter(|| all.encode(&mut model).unwrap()));
+    group.bench_function("encoder/batched", |b| b.iter(|| model.encode_batch(&all_inputs).unwrap()));
     group.bench_function(format!("velocity_{SAMPLES}_samples_each/one_by_one"), |b| {
         b.iter(|| (0..OBJECTS).for_each(|_| one.velocities(&mut model, &single).unwrap()))
     });

@@ -4,10 +4,10 @@ mod graph_run;
 mod ingest;
 mod ipc;
 mod model;
-
-pub use model::NetworkWorkload;
 mod pipeline;
 mod soak;
+
+pub use model::NetworkWorkload;
 
 use std::process::ExitCode;
 

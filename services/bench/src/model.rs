@@ -87,10 +87,10 @@ impl NetworkWorkload {
         }
     }
 
-    /// The B observations in one encoder run.
-    pub fn encode(&self, model: &mut PoseFlowModel) -> Result<Vec<Condition>, InferenceError> {
-        let inputs: Vec<EncoderInput> = self
-            .objects
+    /// The B observations, for one encoder run
+    /// ([`PoseFlowModel::encode_batch`]).
+    pub fn inputs(&self) -> Vec<EncoderInput<'_>> {
+        self.objects
             .iter()
             .map(|&object_index| EncoderInput {
                 image: &self.image,
@@ -98,15 +98,13 @@ impl NetworkWorkload {
                 points: &self.points,
                 object_index,
             })
-            .collect();
-        model.encode_batch(&inputs)
+            .collect()
     }
 
     /// Every sample of `conditions` (as many as the batch) in one velocity
     /// run.
-    pub fn velocities(&self, model: &mut PoseFlowModel, conditions: &[Condition]) -> Result<(), InferenceError> {
-        let conditions: Vec<&Condition> = conditions.iter().collect();
-        model.velocity_batch(&conditions, &self.rotations, &self.translations, &self.t).map(drop)
+    pub fn velocities(&self, model: &mut PoseFlowModel, conditions: &[&Condition]) -> Result<(), InferenceError> {
+        model.velocity_batch(conditions, &self.rotations, &self.translations, &self.t).map(drop)
     }
 }
 
@@ -132,14 +130,16 @@ pub fn run(args: &ModelArgs) -> anyhow::Result<()> {
         );
     }
     let mut model = PoseFlowModel::load_as(&args.model, args.threads, args.precision)?;
-    let info = model.info.clone();
+    let contract = model.info.contract;
     let b = args.batch;
     let workload = NetworkWorkload::new(&model, b, args.samples);
+    let inputs = workload.inputs();
     let mut conditions = Vec::new();
     let encoder = timed(args.runs, || {
-        conditions = workload.encode(&mut model)?;
+        conditions = model.encode_batch(&inputs)?;
         Ok(())
     })?;
+    let conditions: Vec<&Condition> = conditions.iter().collect();
     let velocity = timed(args.runs, || {
         workload.velocities(&mut model, &conditions)?;
         Ok(())
@@ -148,7 +148,7 @@ pub fn run(args: &ModelArgs) -> anyhow::Result<()> {
     let report = Report {
         model: args.model.clone(),
         precision: args.precision.name(),
-        contract: info.contract,
+        contract,
         threads: args.threads,
         samples: args.samples,
         batch: b,

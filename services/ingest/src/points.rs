@@ -91,11 +91,7 @@ struct Grid {
 
 impl Grid {
     fn new(points: &[Point3<f32>], cell: f32) -> Self {
-        let (mut min, mut max) = (points[0], points[0]);
-        for p in points {
-            min = min.inf(p);
-            max = max.sup(p);
-        }
+        let (min, max) = bounds(points);
         let extent = max - min;
         let dims_for = |cell: f32| extent.map(|e| (e / cell).floor() as usize + 1);
         let mut cell = cell.max(1e-6);
@@ -257,17 +253,18 @@ pub fn remove_outliers(points: Vec<Point3<f32>>, filter: &OutlierFilter) -> Vec<
     }
 }
 
+/// The axis-aligned box `(min, max)` of points (at least one).
+fn bounds(points: &[Point3<f32>]) -> (Point3<f32>, Point3<f32>) {
+    points.iter().fold((points[0], points[0]), |(min, max), p| (min.inf(p), max.sup(p)))
+}
+
 /// About how far the k-th nearest neighbour of a point is: the median over
 /// a few points spread through the input, found on a grid sized by a first
 /// guess. Cells that wide hold most points' k nearest within the first cube
 /// of 3 × 3 × 3 cells, with few other points to look at; a guess from the
 /// bounding box alone is far off when a few strays stretch it.
 fn knn_reach(points: &[Point3<f32>], k: usize) -> f32 {
-    let (mut min, mut max) = (points[0], points[0]);
-    for p in points {
-        min = min.inf(p);
-        max = max.sup(p);
-    }
+    let (min, max) = bounds(points);
     // On a surface filling its box's largest face, the k nearest lie
     // within √(k/π) neighbour gaps.
     let e = max - min;
