@@ -5,7 +5,10 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::spec::{EdgePattern, EdgeSpec, GraphFile, OverflowPolicy, RestartPolicy, StageSpec};
+use crate::hosts::{
+    BRIDGE_EXE, HostEndpoints, ZenohMode, ZenohSettings, check_placement, endpoint_problem, key_prefix_problem,
+};
+use crate::spec::{EdgePattern, EdgeSpec, GraphFile, HostSpec, OverflowPolicy, RestartPolicy, StageSpec, ZenohSpec};
 use crate::stamp::Stamp;
 use crate::wiring::{EdgeWiring, StageWiring};
 use crate::{GraphError, PUBLISH_SUBSCRIBE_MESSAGES, REQUEST_RESPONSE_MESSAGES, resolve_executable};
@@ -31,6 +34,13 @@ pub struct Graph {
     pub silence_timeout: Duration,
     pub edges: BTreeMap<String, Edge>,
     pub stages: BTreeMap<String, Stage>,
+    /// How hosts reach each other (used only when `hosts` is not empty).
+    pub zenoh: ZenohSettings,
+    /// The machines the stages are placed on; empty: one machine.
+    pub hosts: BTreeMap<String, HostEndpoints>,
+    /// The bridge executable that carries edges between hosts, found when
+    /// the graph names hosts.
+    pub bridge_exe: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -53,11 +63,25 @@ pub struct Restart {
     pub max_restarts: u32,
 }
 
+impl Default for Restart {
+    /// The graph file's defaults.
+    fn default() -> Self {
+        Self {
+            policy: RestartPolicy::OnFailure,
+            backoff: Duration::from_millis(100),
+            max_backoff: Duration::from_millis(5000),
+            max_restarts: 10,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct Stage {
     pub name: String,
     pub exe: PathBuf,
     pub args: Vec<String>,
+    /// The host that runs it, in a graph that names hosts.
+    pub host: Option<String>,
     pub inputs: Vec<String>,
     pub outputs: Vec<String>,
     /// Read beside the input, never waited on (see the graph file's
@@ -167,7 +191,28 @@ impl Checker<'_> {
             .collect::<Result<BTreeMap<_, _>, GraphError>>()?;
         self.connections(&edges, &stages)?;
         self.acyclic(&stages)?;
-        Ok(Graph {
+        let zenoh = self.zenoh(spec.zenoh, &spec.graph.name)?;
+        let hosts = spec
+            .hosts
+            .into_iter()
+            .map(|(name, host)| Ok((name.clone(), self.host(name, host)?)))
+            .collect::<Result<BTreeMap<_, _>, GraphError>>()?;
+        let bridge_exe = match (hosts.is_empty(), self.resolve_exes) {
+            (true, _) => None,
+            (false, false) => Some(PathBuf::from(BRIDGE_EXE)),
+            (false, true) => Some(resolve_executable(BRIDGE_EXE, graph_dir, search_path).map_err(|searched| {
+                let places: Vec<String> = searched.iter().map(|p| p.display().to_string()).collect();
+                self.invalid(
+                    "hosts",
+                    format!(
+                        "the `{BRIDGE_EXE}` executable, which carries edges between hosts; looked in: {}",
+                        places.join(", ")
+                    ),
+                    "none",
+                )
+            })?),
+        };
+        let graph = Graph {
             file: self.file.to_path_buf(),
             name: spec.graph.name,
             description: spec.graph.description,
@@ -176,7 +221,46 @@ impl Checker<'_> {
             silence_timeout: Duration::from_millis(silence_timeout_ms),
             edges,
             stages,
-        })
+            zenoh,
+            hosts,
+            bridge_exe,
+        };
+        check_placement(&graph)?;
+        Ok(graph)
+    }
+
+    fn zenoh(&self, spec: ZenohSpec, graph_name: &str) -> Result<ZenohSettings, GraphError> {
+        let mode = match spec.mode.as_deref() {
+            None | Some("peer") => ZenohMode::Peer,
+            Some("client") => ZenohMode::Client,
+            Some(other) => return Err(self.invalid("zenoh.mode", "\"peer\" or \"client\"", format!("{other:?}"))),
+        };
+        if let Some(problem) = spec.router.as_deref().and_then(endpoint_problem) {
+            return Err(self.invalid("zenoh.router", "a Zenoh endpoint such as \"tcp/10.0.0.1:7447\"", problem));
+        }
+        if mode == ZenohMode::Client && spec.router.is_none() {
+            return Err(self.invalid("zenoh.router", "a router endpoint in client mode", "none"));
+        }
+        let key_prefix = spec.key_prefix.unwrap_or_else(|| format!("poseflow/{graph_name}"));
+        if let Some(problem) = key_prefix_problem(&key_prefix) {
+            return Err(self.invalid("zenoh.key_prefix", "chunks separated by '/', without wildcards", problem));
+        }
+        Ok(ZenohSettings { mode, router: spec.router, multicast_scouting: spec.multicast_scouting, key_prefix })
+    }
+
+    fn host(&self, name: String, spec: HostSpec) -> Result<HostEndpoints, GraphError> {
+        let key = format!("hosts.{name}");
+        self.name(&key, "host", &name)?;
+        for (field, endpoints) in [("listen", &spec.listen), ("connect", &spec.connect)] {
+            if let Some(problem) = endpoints.iter().find_map(|e| endpoint_problem(e)) {
+                return Err(self.invalid(
+                    format!("{key}.{field}"),
+                    "Zenoh endpoints such as \"tcp/10.0.0.1:7447\"",
+                    problem,
+                ));
+            }
+        }
+        Ok(HostEndpoints { listen: spec.listen, connect: spec.connect })
     }
 
     fn edge(&self, name: String, spec: EdgeSpec) -> Result<Edge, GraphError> {
@@ -293,6 +377,7 @@ impl Checker<'_> {
             name,
             exe,
             args: spec.args,
+            host: spec.host,
             inputs: spec.inputs,
             outputs: spec.outputs,
             side_inputs: spec.side_inputs,
@@ -461,8 +546,16 @@ impl Edge {
 }
 
 impl Graph {
-    /// The wiring handed to `stage` when the graph runs as `instance`.
+    /// The wiring handed to `stage` when the whole graph runs on this
+    /// machine as `instance`.
     pub fn wiring(&self, stage: &Stage, instance: &str) -> Result<StageWiring, GraphError> {
+        self.wiring_on(stage, instance, None)
+    }
+
+    /// The wiring handed to `stage` when `poseflow run --host host` runs
+    /// its part of the graph (`None`: every stage here): outputs wait for
+    /// the readers on this host only.
+    pub fn wiring_on(&self, stage: &Stage, instance: &str, host: Option<&str>) -> Result<StageWiring, GraphError> {
         let invalid_instance = |_| GraphError::Invalid {
             file: self.file.clone(),
             key: "--instance".to_string(),
@@ -481,7 +574,7 @@ impl Graph {
                         queue: edge.queue,
                         overflow: edge.overflow,
                         max_payload_len: edge.max_payload_len,
-                        readers: self.stages.values().filter(|s| s.reads(name) || s.calls.contains(name)).count(),
+                        readers: self.local_readers(name, host),
                     })
                 })
                 .collect()

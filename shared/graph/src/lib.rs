@@ -8,6 +8,7 @@
 
 mod error;
 mod graph;
+mod hosts;
 mod overrides;
 mod resolve;
 mod spec;
@@ -17,6 +18,7 @@ mod write;
 
 pub use error::GraphError;
 pub use graph::{Edge, Graph, Restart, Stage, load, parse, parse_in_process};
+pub use hosts::{BRIDGE_EXE, BRIDGE_STAGE, BridgePlan, HostEndpoints, ZenohMode, ZenohSettings};
 pub use resolve::resolve_executable;
 pub use spec::{EdgePattern, OverflowPolicy, RestartPolicy};
 pub use stamp::Stamp;

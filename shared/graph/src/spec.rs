@@ -11,6 +11,39 @@ pub(crate) struct GraphFile {
     #[serde(default)]
     pub edges: BTreeMap<String, EdgeSpec>,
     pub stages: BTreeMap<String, StageSpec>,
+    /// How the graph's hosts reach each other, when its stages span hosts.
+    #[serde(default)]
+    pub zenoh: ZenohSpec,
+    /// The machines the stages are placed on (`stages.<name>.host`).
+    #[serde(default)]
+    pub hosts: BTreeMap<String, HostSpec>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ZenohSpec {
+    /// `peer` (default) or `client`.
+    pub mode: Option<String>,
+    /// A Zenoh router every host connects to (required in client mode).
+    pub router: Option<String>,
+    /// Find the other hosts by UDP multicast too (off by default: robot
+    /// networks often block it, and the endpoints are explicit).
+    #[serde(default)]
+    pub multicast_scouting: bool,
+    /// The key expression under which the graph's edges travel; default
+    /// `poseflow/<graph name>`.
+    pub key_prefix: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct HostSpec {
+    /// Zenoh endpoints this host's bridge listens on (`tcp/10.0.0.2:7447`).
+    #[serde(default)]
+    pub listen: Vec<String>,
+    /// Zenoh endpoints this host's bridge connects to.
+    #[serde(default)]
+    pub connect: Vec<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -106,6 +139,9 @@ pub enum RestartPolicy {
 #[serde(deny_unknown_fields)]
 pub(crate) struct StageSpec {
     pub exe: String,
+    /// The host (a `[hosts.<name>]` table) whose `poseflow run --host`
+    /// runs this stage.
+    pub host: Option<String>,
     #[serde(default)]
     pub args: Vec<String>,
     #[serde(default)]

@@ -48,6 +48,17 @@ pub enum LaunchError {
     #[error("--record-edges: `{edge}` is not an edge of {} (edges: {edges:?})", file.display())]
     RecordUnknownEdge { edge: String, file: PathBuf, edges: Vec<String> },
 
+    #[error("--host {host}: {} names no such host (its hosts: {hosts:?})", file.display())]
+    UnknownHost { file: PathBuf, host: String, hosts: Vec<String> },
+
+    #[error(
+        "--host runs one host's stages as processes beside its Zenoh bridge; --in-process runs a whole graph on one machine"
+    )]
+    HostInProcess,
+
+    #[error("--record-edges: `{edge}` is neither written nor read on host `{host}`; record it on a host that has it")]
+    RecordElsewhere { edge: String, host: String },
+
     #[error("edge `{edge}`: message type `{message}` is not a contract message")]
     UnknownMessage { edge: String, message: String },
 

@@ -57,6 +57,9 @@ pub struct LaunchOptions {
     pub stage_log: Option<PathBuf>,
     /// Threads of this process instead of processes.
     pub in_process: bool,
+    /// Run only this host's stages (and its Zenoh bridge) of a graph that
+    /// names hosts; `None`: every stage here.
+    pub host: Option<String>,
 }
 
 /// The instance name `poseflow run` uses unless told otherwise: the graph's
@@ -85,11 +88,35 @@ pub fn search_path(stage_path: &[PathBuf]) -> Vec<PathBuf> {
 pub fn launch(graph: &Graph, options: &LaunchOptions, registry: &Registry) -> Result<Report, LaunchError> {
     poseflow_transport::validate_name("graph instance", &options.instance)?;
     stamp_owners(graph, registry)?;
+    if let Some(host) = &options.host {
+        check_host(graph, host, options)?;
+    }
     if options.in_process {
         local::run(graph, &options.instance, registry, options.record.as_ref())
     } else {
         supervisor::supervise(graph, options)
     }
+}
+
+/// Checks `--host host` against the graph and the other options.
+fn check_host(graph: &Graph, host: &str, options: &LaunchOptions) -> Result<(), LaunchError> {
+    if !graph.hosts.contains_key(host) {
+        return Err(LaunchError::UnknownHost {
+            file: graph.file.clone(),
+            host: host.to_string(),
+            hosts: graph.hosts.keys().cloned().collect(),
+        });
+    }
+    if options.in_process {
+        return Err(LaunchError::HostInProcess);
+    }
+    let here = graph.edges_on(host);
+    for edge in options.record.iter().flat_map(|(_, edges)| edges) {
+        if !here.contains(&edge.as_str()) {
+            return Err(LaunchError::RecordElsewhere { edge: edge.clone(), host: host.to_string() });
+        }
+    }
+    Ok(())
 }
 
 /// [`launch`] for a program that launches a graph as one step of its own

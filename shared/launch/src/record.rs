@@ -7,79 +7,48 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use iceoryx2::prelude::{
-    CallbackProgression, FileDescriptorBased, SignalHandlingMode, SynchronousMultiplexing, WaitSetBuilder,
-};
-use poseflow_contracts::{MessageHeader, MessageVisitor, monotonic_ns, visit_message};
+use iceoryx2::prelude::{CallbackProgression, SignalHandlingMode, WaitSetBuilder};
+use poseflow_contracts::monotonic_ns;
 use poseflow_graph::{EdgePattern, Graph};
-use poseflow_runtime::recording::{RecordedEdge, RecordedMessage, RecordingInfo, RecordingWriter, header_bytes};
-use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Node, create_node, edge_service_name};
+use poseflow_runtime::recording::{RecordedEdge, RecordedMessage, RecordingInfo, RecordingWriter};
+use poseflow_transport::{
+    EdgeOptions, Ipc, TransportError, UntypedSubscriber, create_node, edge_service_name, untyped_subscriber,
+};
 
 use crate::LaunchError;
 
 /// How often the recorder checks whether it should stop.
 const STOP_POLL: Duration = Duration::from_millis(50);
 
-/// One recorded edge, whatever its message type.
-trait RecordedInput: FileDescriptorBased + SynchronousMultiplexing + std::fmt::Debug {
-    /// Writes every queued message; returns whether END_OF_STREAM was seen.
-    fn drain(&self, writer: &mut RecordingWriter) -> Result<bool, LaunchError>;
-    fn acknowledge_end(&self) -> Result<(), LaunchError>;
-    fn recorded(&self) -> u64;
-}
-
+/// One recorded edge, whatever its message type, and how many of its
+/// messages were written.
 #[derive(Debug)]
-struct TypedInput<H: MessageHeader> {
+struct RecordedInput {
     edge: String,
-    subscriber: EdgeSubscriber<H>,
+    subscriber: Box<dyn UntypedSubscriber>,
     recorded: std::cell::Cell<u64>,
 }
 
-impl<H: MessageHeader> FileDescriptorBased for TypedInput<H> {
-    fn file_descriptor(&self) -> &iceoryx2::prelude::FileDescriptor {
-        self.subscriber.file_descriptor()
-    }
-}
-
-impl<H: MessageHeader> SynchronousMultiplexing for TypedInput<H> {}
-
-impl<H: MessageHeader> RecordedInput for TypedInput<H> {
+impl RecordedInput {
+    /// Writes every queued message; returns whether END_OF_STREAM was seen.
     fn drain(&self, writer: &mut RecordingWriter) -> Result<bool, LaunchError> {
         let ended = self.subscriber.take_events()?;
-        while let Some(message) = self.subscriber.receive()? {
-            writer.write(&RecordedMessage {
-                edge: self.edge.clone(),
-                received_ns: monotonic_ns(),
-                header: header_bytes(message.header()),
-                payload: message.payload().to_vec(),
+        loop {
+            let mut written = Ok(());
+            let received = self.subscriber.receive_with(&mut |header, payload| {
+                written = writer.write(&RecordedMessage {
+                    edge: self.edge.clone(),
+                    received_ns: monotonic_ns(),
+                    header: header.to_vec(),
+                    payload: payload.to_vec(),
+                });
             })?;
+            written?;
+            if !received {
+                return Ok(ended);
+            }
             self.recorded.set(self.recorded.get() + 1);
         }
-        Ok(ended)
-    }
-
-    fn acknowledge_end(&self) -> Result<(), LaunchError> {
-        Ok(self.subscriber.acknowledge_end()?)
-    }
-
-    fn recorded(&self) -> u64 {
-        self.recorded.get()
-    }
-}
-
-struct Subscribe<'a> {
-    node: &'a Node,
-    edge: &'a str,
-    service: String,
-    options: EdgeOptions,
-}
-
-impl MessageVisitor for Subscribe<'_> {
-    type Output = Result<Box<dyn RecordedInput>, LaunchError>;
-
-    fn visit<H: MessageHeader + Send + 'static>(self) -> Self::Output {
-        let subscriber = EdgeSubscriber::<H>::create(self.node, &self.service, &self.options)?;
-        Ok(Box::new(TypedInput { edge: self.edge.to_string(), subscriber, recorded: Default::default() }))
     }
 }
 
@@ -150,15 +119,19 @@ impl Recorder {
                 let mut inputs = Vec::new();
                 for (edge, service, options) in &specs {
                     let message = &info.edges.iter().find(|e| &e.edge == edge).expect("listed").message;
-                    let subscribe = Subscribe { node: &node, edge, service: service.clone(), options: *options };
-                    let unknown = || LaunchError::UnknownMessage { edge: edge.clone(), message: message.clone() };
-                    inputs.push(visit_message(message, subscribe).ok_or_else(unknown)??);
+                    let subscriber = untyped_subscriber(&node, message, service, options).map_err(|err| match err {
+                        TransportError::UnknownMessage { .. } => {
+                            LaunchError::UnknownMessage { edge: edge.clone(), message: message.clone() }
+                        }
+                        other => other.into(),
+                    })?;
+                    inputs.push(RecordedInput { edge: edge.clone(), subscriber, recorded: Default::default() });
                 }
                 let mut writer = RecordingWriter::create(&path, &info)?;
                 let _ = ready_tx.send(());
                 record(&inputs, &mut writer, &stop)?;
                 writer.finish()?;
-                Ok(inputs.iter().zip(&specs).map(|(input, (edge, _, _))| (edge.clone(), input.recorded())).collect())
+                Ok(inputs.iter().map(|input| (input.edge.clone(), input.recorded.get())).collect())
             }
         });
         if ready_rx.recv().is_err() {
@@ -180,11 +153,7 @@ impl Recorder {
     }
 }
 
-fn record(
-    inputs: &[Box<dyn RecordedInput>],
-    writer: &mut RecordingWriter,
-    stop: &AtomicBool,
-) -> Result<(), LaunchError> {
+fn record(inputs: &[RecordedInput], writer: &mut RecordingWriter, stop: &AtomicBool) -> Result<(), LaunchError> {
     // SIGINT/SIGTERM belong to the supervisor's loop; this WaitSet must not
     // consume them.
     let waitset = WaitSetBuilder::new()
@@ -193,7 +162,7 @@ fn record(
         .map_err(waitset_error)?;
     let guards = inputs
         .iter()
-        .map(|input| waitset.attach_notification(input.as_ref()).map_err(waitset_error))
+        .map(|input| waitset.attach_notification(input.subscriber.as_ref()).map_err(waitset_error))
         .collect::<Result<Vec<_>, _>>()?;
     let tick = waitset.attach_interval(STOP_POLL).map_err(waitset_error)?;
     let mut ended = vec![false; inputs.len()];
@@ -205,7 +174,7 @@ fn record(
                     let step = inputs[i].drain(writer).and_then(|end| {
                         if end && !ended[i] {
                             ended[i] = true;
-                            inputs[i].acknowledge_end()?;
+                            inputs[i].subscriber.acknowledge_end()?;
                         }
                         Ok(())
                     });

@@ -181,8 +181,16 @@ pub fn supervise(graph: &Graph, options: &LaunchOptions) -> Result<Report, Launc
         Some((path, edges)) => Some(crate::record::Recorder::start(graph, &options.instance, edges, path.clone())?),
         None => None,
     };
-    for stage in graph.stages.values() {
-        let mut wiring = graph.wiring(stage, &options.instance)?;
+    let host = options.host.as_deref();
+    // A host whose edges cross to other hosts runs the bridge that carries them.
+    let bridge = match host {
+        Some(host) => graph.bridge(host, &options.instance)?,
+        None => None,
+    };
+    let placed = graph.stages_on(host).map(|stage| Ok((stage, graph.wiring_on(stage, &options.instance, host)?)));
+    let bridged = bridge.iter().map(|(stage, wiring)| Ok((stage, wiring.clone())));
+    for placed in placed.chain(bridged) {
+        let (stage, mut wiring): (&Stage, StageWiring) = placed.map_err(LaunchError::Graph)?;
         // The recorder is one more reader for publishers to wait for.
         for output in &mut wiring.outputs {
             if recorded.contains(&output.edge) {
@@ -221,7 +229,7 @@ pub fn supervise(graph: &Graph, options: &LaunchOptions) -> Result<Report, Launc
     for s in &mut stages {
         s.spawn(options.log_format, stage_log.as_ref())?;
     }
-    tracing::info!(graph = %graph.name, instance = %options.instance, stages = stages.len(), "graph running");
+    tracing::info!(graph = %graph.name, instance = %options.instance, host, stages = stages.len(), "graph running");
 
     let waitset = WaitSetBuilder::new().create::<Ipc>().map_err(|e| LaunchError::WaitSet(Box::new(e)))?;
     let tick = waitset.attach_interval(TICK).map_err(|e| LaunchError::WaitSet(Box::new(e)))?;

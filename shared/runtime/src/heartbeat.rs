@@ -97,3 +97,48 @@ impl HeartbeatThread {
         let _ = self.handle.join();
     }
 }
+
+/// The heartbeat of a process that runs its own loop rather than one of
+/// the stage kinds (the Zenoh bridge), so its supervisor reports and
+/// watches it like any stage: counters, liveness, the final beat.
+#[derive(Debug)]
+pub struct ProcessHeartbeat {
+    liveness: Arc<Liveness>,
+    thread: HeartbeatThread,
+}
+
+impl ProcessHeartbeat {
+    /// Starts beating on the wiring's heartbeat service.
+    pub fn start(wiring: &poseflow_graph::StageWiring) -> Result<Self, RuntimeError> {
+        let liveness = Arc::new(Liveness::new());
+        liveness.mark_built();
+        let period = Duration::from_millis(wiring.heartbeat_ms);
+        let thread = HeartbeatThread::spawn(&wiring.stage, &wiring.heartbeat_service, period, liveness.clone())?;
+        Ok(Self { liveness, thread })
+    }
+
+    /// One message taken in.
+    pub fn received(&self) {
+        self.liveness.count_in();
+    }
+
+    /// One message passed on.
+    pub fn sent(&self) {
+        self.liveness.count_sent();
+    }
+
+    /// Messages known lost on the way in.
+    pub fn dropped(&self, n: u64) {
+        self.liveness.count_dropped(n);
+    }
+
+    /// One message refused (and logged by the caller).
+    pub fn error(&self) {
+        self.liveness.count_error();
+    }
+
+    /// Sends the final heartbeat and stops.
+    pub fn finish(self) {
+        self.thread.finish();
+    }
+}

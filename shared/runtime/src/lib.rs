@@ -24,6 +24,7 @@ pub mod timing;
 
 pub use call::{Call, CallError, connect};
 pub use error::{BuildError, RuntimeError, error_chain};
+pub use heartbeat::ProcessHeartbeat;
 pub use local::{Collector, DriveError, Feed, LocalGraph, LocalGraphError, LocalOverflow, LocalReport, RunningGraph};
 pub use logging::init_logging;
 pub use process::{run_joined, run_server, run_sink, run_source, run_transform, run_transform_or_joined};

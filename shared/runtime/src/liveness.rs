@@ -129,6 +129,16 @@ impl Liveness {
         }
     }
 
+    /// Counts an accepted input whose gaps the caller counts itself
+    /// ([`Self::count_dropped`]): a process reading several edges.
+    pub fn count_in(&self) {
+        self.frames_in.fetch_add(1, Relaxed);
+    }
+
+    pub fn count_dropped(&self, n: u64) {
+        self.dropped.fetch_add(n, Relaxed);
+    }
+
     pub fn work_started(&self) {
         self.work_send_ns.store(0, Relaxed);
         self.work_started_ns.store(monotonic_ns(), Relaxed);

@@ -20,6 +20,12 @@ pub enum TransportError {
     #[error("{operation} on `{target}` abandoned: the process was asked to stop")]
     Interrupted { operation: &'static str, target: String },
 
+    #[error("a {message} header has {expected} bytes, found {found}")]
+    HeaderSize { message: &'static str, expected: usize, found: usize },
+
+    #[error("{message:?} is not a contract message")]
+    UnknownMessage { message: String },
+
     #[error(transparent)]
     Contract(#[from] poseflow_contracts::ContractError),
 }

@@ -13,12 +13,14 @@ mod error;
 mod naming;
 mod pubsub;
 mod request;
+mod untyped;
 
 pub use cleanup::{remove_dead_nodes, shared_memory_files};
 pub use error::TransportError;
 pub use naming::{edge_service_name, heartbeat_service_name, validate_name};
 pub use pubsub::{EdgeOptions, EdgeSubscriber, EndOfStream, Overflow, Publisher, Received, events};
 pub use request::{Reply, RequestClient, RequestServer, Responder};
+pub use untyped::{UntypedPublisher, UntypedSubscriber, untyped_publisher, untyped_subscriber};
 
 /// The iceoryx2 service variant used across the project: inter-process.
 pub type Ipc = iceoryx2::service::ipc::Service;
@@ -27,7 +29,7 @@ pub type Node = iceoryx2::node::Node<Ipc>;
 
 /// Whether SIGINT/SIGTERM arrived, without hiding it from the stage's own
 /// loop: iceoryx2 clears the flag when it is read, so it is raised again.
-pub(crate) fn termination_requested() -> bool {
+pub fn termination_requested() -> bool {
     let requested = iceoryx2_bb_posix::signal::SignalHandler::termination_requested();
     if requested {
         // SAFETY: raise() only re-delivers SIGTERM to this thread, where

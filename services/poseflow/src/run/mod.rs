@@ -51,6 +51,13 @@ pub struct RunArgs {
     #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
     pub set: Vec<String>,
 
+    /// Run only the stages the graph places on host NAME (`[hosts.NAME]`),
+    /// with the Zenoh bridge that carries the edges crossing to and from
+    /// the other hosts. Start the same graph file with `--host` once on
+    /// each host. Without it, every stage runs here.
+    #[arg(long, value_name = "NAME")]
+    pub host: Option<String>,
+
     /// Validate the graph file and exit without starting anything.
     #[arg(long)]
     pub check: bool,
@@ -79,10 +86,27 @@ pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
             graph.edges.len(),
             stamps.join(", ")
         );
+        for host in graph.hosts.keys() {
+            let stages: Vec<&str> = graph.stages_on(Some(host)).map(|s| s.name.as_str()).collect();
+            println!(
+                "host {host}: stages {}; sends {:?}; receives {:?}",
+                stages.join(", "),
+                graph.sent_from(host),
+                graph.received_on(host)
+            );
+        }
         return Ok(ExitCode::SUCCESS);
     }
     let record = match &args.record {
-        Some(path) => Some((path.clone(), poseflow_launch::chosen_edges(&graph, &args.record_edges)?)),
+        Some(path) => {
+            let mut edges = poseflow_launch::chosen_edges(&graph, &args.record_edges)?;
+            // By default a host records the edges it has.
+            if let Some(host) = args.host.as_deref().filter(|_| args.record_edges.is_empty()) {
+                let here = graph.edges_on(host);
+                edges.retain(|edge| here.contains(&edge.as_str()));
+            }
+            Some((path.clone(), edges))
+        }
         None => None,
     };
     let options = LaunchOptions {
@@ -92,6 +116,7 @@ pub fn run(args: RunArgs, log_format: LogFormat) -> anyhow::Result<ExitCode> {
         log_format,
         stage_log: None,
         in_process: args.in_process,
+        host: args.host.clone(),
     };
     let report = poseflow_launch::launch(&graph, &options, &poseflow_stages::registry())?;
     if args.json {
