@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Stdio};
 use std::time::{Duration, Instant};
 
+use poseflow_bridge::netns::{ADDRESS_A, HostPair};
 use poseflow_e2e::harness::*;
-use poseflow_e2e::netns::{ADDRESS_A, HostPair};
 use poseflow_e2e::recordings::recorded_messages;
 use poseflow_transport::shared_memory_files;
 
@@ -155,5 +155,32 @@ fn a_stage_killed_on_one_host_is_restarted_there_and_the_other_host_counts_the_g
     assert_eq!(report.restart_notices, 1, "the restart notice crossed hosts: {report:?}");
     drop(scratch);
     drop(pair);
+    assert_nothing_leaked(&before);
+}
+
+/// `poseflow bench ipc --zenoh` measures the two-host hop (two bridges and
+/// the link between two namespaces) beside the local transports, and the
+/// ratios at 4 MiB.
+#[test]
+fn the_ipc_benchmark_measures_an_edge_between_two_hosts() {
+    let _serial = serial();
+    // The benchmark makes its own namespaces; skip where none can be made.
+    let Some(probe) = host_pair("pfp") else { return };
+    drop(probe);
+    let before = shared_memory_files();
+    let output = poseflow()
+        .args(["bench", "ipc", "--zenoh", "--json", "--samples", "20", "--warmup", "5", "--period-us", "2000"])
+        .output_within(RUN_DEADLINE);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).expect("one JSON object");
+    for bytes in ["4096", "65536", "1048576", "4194304"] {
+        let cell = &report["zenoh_two_hosts"][bytes];
+        assert_eq!(cell["samples"], 20, "{bytes}: {cell}\n{stderr}");
+        // Two bridges and a network link cost more than one shared-memory hop.
+        let local = report["iceoryx2"][bytes]["p50_us"].as_f64().unwrap();
+        assert!(cell["p50_us"].as_f64().unwrap() > local, "{bytes}: {report}");
+    }
+    assert!(report["zenoh_4mib_p50_ratio"]["vs_unix_socket"].as_f64().unwrap() > 0.0, "{report}");
     assert_nothing_leaked(&before);
 }

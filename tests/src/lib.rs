@@ -2,7 +2,6 @@
 
 pub mod deadline;
 pub mod harness;
-pub mod netns;
 pub mod recordings;
 
 use poseflow_geometry::sampling::{seeded_rng, uniform_rotation};

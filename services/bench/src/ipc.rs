@@ -3,10 +3,17 @@
 //! holds a usable message; the clock is shared by all processes of a
 //! machine. iceoryx2 and the Unix socket cross processes (the receiver is a
 //! child `poseflow bench ipc-receive`); the channel baseline crosses threads.
+//!
+//! With `--zenoh`, one more path: an edge between two hosts, simulated by
+//! two network namespaces joined by a veth pair (created for the run; it
+//! needs root). The sender publishes over iceoryx2 on host A, A's Zenoh
+//! bridge puts the message on the link, B's bridge publishes it over
+//! iceoryx2 to the receiver on B: the whole hop a graph's cross-host edge
+//! takes. The namespaces share this machine's clock.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -14,8 +21,15 @@ use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use hdrhistogram::Histogram;
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
+use poseflow_bridge::netns::{ADDRESS_A, HostPair};
 use poseflow_contracts::{Header, MessageHeader, TensorHeader, monotonic_ns};
-use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Overflow, Publisher, create_node, edge_service_name};
+use poseflow_graph::{
+    BRIDGE_EXE, BRIDGE_STAGE, BridgePlan, EdgeWiring, HostEndpoints, OverflowPolicy, StageWiring, WIRING_ENV,
+    ZenohMode, ZenohSettings,
+};
+use poseflow_transport::{
+    EdgeOptions, EdgeSubscriber, Ipc, Overflow, Publisher, create_node, edge_service_name, heartbeat_service_name,
+};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
@@ -26,6 +40,7 @@ pub enum Transport {
     Iceoryx2,
     InProcess,
     UnixSocketBincode,
+    ZenohTwoHosts,
 }
 
 impl Transport {
@@ -34,6 +49,7 @@ impl Transport {
             Transport::Iceoryx2 => "iceoryx2",
             Transport::InProcess => "in_process",
             Transport::UnixSocketBincode => "unix_socket_bincode",
+            Transport::ZenohTwoHosts => "zenoh_two_hosts",
         }
     }
 }
@@ -53,6 +69,11 @@ pub struct IpcArgs {
     /// path rather than behind a queue.
     #[arg(long, default_value_t = 1000)]
     pub period_us: u64,
+    /// Also measure an edge between two hosts through the Zenoh bridges,
+    /// with two network namespaces standing in for the hosts (needs root
+    /// and `ip`).
+    #[arg(long)]
+    pub zenoh: bool,
 }
 
 #[derive(Debug, Args)]
@@ -106,11 +127,22 @@ struct WireMessage {
 
 pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
     let mut results = serde_json::Map::new();
-    for transport in [Transport::Iceoryx2, Transport::InProcess, Transport::UnixSocketBincode] {
+    let mut transports = vec![Transport::Iceoryx2, Transport::InProcess, Transport::UnixSocketBincode];
+    let hosts = match args.zenoh {
+        true => {
+            transports.push(Transport::ZenohTwoHosts);
+            Some(
+                HostPair::create("pfb")
+                    .map_err(|reason| anyhow::anyhow!("--zenoh needs two network namespaces: {reason}"))?,
+            )
+        }
+        false => None,
+    };
+    for transport in transports {
         let mut per_size = serde_json::Map::new();
         for bytes in PAYLOAD_BYTES {
-            let summary =
-                measure(transport, bytes, args).with_context(|| format!("{} at {bytes} bytes", transport.name()))?;
+            let summary = measure(transport, bytes, args, hosts.as_ref())
+                .with_context(|| format!("{} at {bytes} bytes", transport.name()))?;
             tracing::info!(
                 transport = transport.name(),
                 bytes,
@@ -122,12 +154,26 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
         }
         results.insert(transport.name().to_string(), per_size.into());
     }
+    if let Some(ratios) = zenoh_ratios(&results) {
+        results.insert("zenoh_4mib_p50_ratio".into(), ratios);
+    }
     if args.json {
         println!("{}", serde_json::Value::Object(results));
     } else {
         println!("{}", table(&results, args));
     }
     Ok(())
+}
+
+/// The two-host hop's p50 at 4 MiB against local iceoryx2 and the Unix
+/// socket, measured in the same run.
+fn zenoh_ratios(results: &serde_json::Map<String, serde_json::Value>) -> Option<serde_json::Value> {
+    let p50 = |transport: Transport| results.get(transport.name())?[(4usize << 20).to_string()]["p50_us"].as_f64();
+    let zenoh = p50(Transport::ZenohTwoHosts)?;
+    Some(json!({
+        "vs_iceoryx2": zenoh / p50(Transport::Iceoryx2)?,
+        "vs_unix_socket": zenoh / p50(Transport::UnixSocketBincode)?,
+    }))
 }
 
 fn table(results: &serde_json::Map<String, serde_json::Value>, args: &IpcArgs) -> String {
@@ -140,7 +186,7 @@ fn table(results: &serde_json::Map<String, serde_json::Value>, args: &IpcArgs) -
         "{:<21} {:>9} {:>9} {:>9} {:>9} {:>9}\n",
         "transport", "payload", "p50", "p90", "p99", "max"
     ));
-    for (transport, sizes) in results {
+    for (transport, sizes) in results.iter().filter(|(name, _)| !name.ends_with("ratio")) {
         for bytes in PAYLOAD_BYTES {
             let s = &sizes[bytes.to_string()];
             let size = if bytes >= 1 << 20 { format!("{} MiB", bytes >> 20) } else { format!("{} KiB", bytes >> 10) };
@@ -153,23 +199,46 @@ fn table(results: &serde_json::Map<String, serde_json::Value>, args: &IpcArgs) -
             ));
         }
     }
+    if let Some(ratios) = results.get("zenoh_4mib_p50_ratio") {
+        out.push_str(&format!(
+            "two hosts over Zenoh at 4 MiB, p50: {:.1}x local iceoryx2, {:.1}x a Unix socket\n",
+            ratios["vs_iceoryx2"].as_f64().unwrap_or(f64::NAN),
+            ratios["vs_unix_socket"].as_f64().unwrap_or(f64::NAN)
+        ));
+    }
     out
 }
 
-fn measure(transport: Transport, bytes: usize, args: &IpcArgs) -> anyhow::Result<Summary> {
+fn measure(transport: Transport, bytes: usize, args: &IpcArgs, hosts: Option<&HostPair>) -> anyhow::Result<Summary> {
     let messages = args.warmup + args.samples;
     let period = Duration::from_micros(args.period_us);
     match transport {
         Transport::InProcess => Ok(in_process(bytes, messages, args.warmup, period)),
         Transport::Iceoryx2 => {
             let address = edge_service_name(&format!("bench-{}", std::process::id()), &format!("ipc-{bytes}"))?;
-            let child = spawn_receiver(transport, &address, bytes, messages, args.warmup)?;
+            let child = spawn_receiver(transport, &address, bytes, messages, args.warmup, None)?;
             send_iceoryx2(&address, bytes, messages, period)?;
             child.finish()
         }
+        Transport::ZenohTwoHosts => {
+            let hosts = hosts.expect("namespaces exist with --zenoh");
+            let bridges = TwoHostEdge::start(hosts, bytes)?;
+            let child = spawn_receiver(
+                Transport::Iceoryx2,
+                &bridges.receiving_service,
+                bytes,
+                messages,
+                args.warmup,
+                Some(&hosts.b),
+            )?;
+            send_iceoryx2(&bridges.sending_service, bytes, messages, period)?;
+            let summary = child.finish();
+            bridges.finish()?;
+            summary
+        }
         Transport::UnixSocketBincode => {
             let path = std::env::temp_dir().join(format!("poseflow-bench-{}-{bytes}.sock", std::process::id()));
-            let child = spawn_receiver(transport, &path.display().to_string(), bytes, messages, args.warmup)?;
+            let child = spawn_receiver(transport, &path.display().to_string(), bytes, messages, args.warmup, None)?;
             let result = send_socket(&path, bytes, messages, period);
             let _ = std::fs::remove_file(&path);
             result?;
@@ -193,14 +262,20 @@ impl Receiver {
     }
 }
 
+/// Starts the receiving process, inside network namespace `namespace` if given.
 fn spawn_receiver(
     transport: Transport,
     address: &str,
     bytes: usize,
     messages: u32,
     warmup: u32,
+    namespace: Option<&str>,
 ) -> anyhow::Result<Receiver> {
-    let mut child = Command::new(std::env::current_exe()?)
+    let mut command = Command::new(std::env::current_exe()?);
+    if let Some(namespace) = namespace {
+        command = HostPair::inside(namespace, &command);
+    }
+    let mut child = command
         .args(["bench", "ipc-receive", "--transport"])
         .arg(transport.to_possible_value().expect("named variant").get_name())
         .args(["--address", address, "--payload-bytes", &bytes.to_string()])
@@ -232,7 +307,8 @@ fn send_iceoryx2(address: &str, bytes: usize, messages: u32, period: Duration) -
     let node = create_node("bench-sender")?;
     let options = EdgeOptions { queue: 4, overflow: Overflow::Block, max_payload_len: floats(bytes) };
     let publisher = Publisher::<TensorHeader>::create(&node, address, &options)?;
-    if publisher.wait_for_receivers(1, Duration::from_secs(10))? < 1 {
+    // Long enough for two Zenoh bridges to find each other.
+    if publisher.wait_for_receivers(1, Duration::from_secs(30))? < 1 {
         bail!("the receiver never connected to {address}");
     }
     let len = floats(bytes);
@@ -300,7 +376,9 @@ pub fn receive(args: &ReceiveArgs) -> anyhow::Result<()> {
     match args.transport {
         Transport::Iceoryx2 => receive_iceoryx2(args, &mut h)?,
         Transport::UnixSocketBincode => receive_socket(args, &mut h)?,
-        Transport::InProcess => bail!("the in-process baseline has no receiving process"),
+        Transport::InProcess | Transport::ZenohTwoHosts => {
+            bail!("{} has no receiving process of its own", args.transport.name())
+        }
     }
     println!("{}", json!(summarize(&h)));
     Ok(())
@@ -371,4 +449,91 @@ fn receive_socket(args: &ReceiveArgs, h: &mut Histogram<u64>) -> anyhow::Result<
         }
     }
     Ok(())
+}
+
+/// One edge from host A to host B: a Zenoh bridge process in each
+/// namespace, wired as `poseflow run --host` wires them.
+struct TwoHostEdge {
+    sending_service: String,
+    receiving_service: String,
+    bridges: Vec<std::process::Child>,
+}
+
+impl TwoHostEdge {
+    fn start(hosts: &HostPair, bytes: usize) -> anyhow::Result<Self> {
+        let exe = poseflow_graph::resolve_executable(BRIDGE_EXE, Path::new("."), &poseflow_launch::search_path(&[]))
+            .map_err(|searched| anyhow::anyhow!("no `{BRIDGE_EXE}` executable; looked in {searched:?}"))?;
+        let id = format!("{}-{bytes}", std::process::id());
+        // A port per payload size: the previous size's listener may linger.
+        let port = 7447 + PAYLOAD_BYTES.iter().position(|b| *b == bytes).unwrap_or(0);
+        let endpoint = format!("tcp/{ADDRESS_A}:{port}");
+        let zenoh = ZenohSettings {
+            mode: ZenohMode::Peer,
+            router: None,
+            multicast_scouting: false,
+            key_prefix: format!("poseflow/bench-{id}"),
+        };
+        let mut services = Vec::new();
+        let mut bridges = Vec::new();
+        for (host, namespace, sends) in [("b", &hosts.b, false), ("a", &hosts.a, true)] {
+            let instance = format!("bench-{host}-{id}");
+            let service = edge_service_name(&instance, "ipc")?;
+            let edge = EdgeWiring {
+                edge: "ipc".into(),
+                service: service.clone(),
+                message: TensorHeader::NAME.into(),
+                queue: 4,
+                overflow: OverflowPolicy::Block,
+                max_payload_len: floats(bytes),
+                readers: usize::from(!sends),
+            };
+            let endpoints = match sends {
+                true => HostEndpoints { listen: vec![endpoint.clone()], connect: Vec::new() },
+                false => HostEndpoints { listen: Vec::new(), connect: vec![endpoint.clone()] },
+            };
+            let readers = match sends {
+                true => [("ipc".to_string(), vec!["b".to_string()])].into(),
+                false => Default::default(),
+            };
+            let plan = BridgePlan { host: host.into(), zenoh: zenoh.clone(), endpoints, readers };
+            let wiring = StageWiring {
+                instance: instance.clone(),
+                stage: BRIDGE_STAGE.into(),
+                inputs: if sends { vec![edge.clone()] } else { Vec::new() },
+                outputs: if sends { Vec::new() } else { vec![edge] },
+                heartbeat_service: heartbeat_service_name(&instance, BRIDGE_STAGE)?,
+                heartbeat_ms: 200,
+                params: serde_json::to_value(plan)?,
+                ..Default::default()
+            };
+            let mut command = Command::new(&exe);
+            command.env(WIRING_ENV, wiring.to_json()).env("RUST_LOG", "warn");
+            let child = HostPair::inside(namespace, &command).stdin(Stdio::null()).stdout(Stdio::null()).spawn()?;
+            bridges.push(child);
+            services.push(service);
+        }
+        let receiving_service = services.remove(0);
+        Ok(Self { sending_service: services.remove(0), receiving_service, bridges })
+    }
+
+    /// Waits for both bridges to end after the stream's end; kills any
+    /// still running after 10 s.
+    fn finish(mut self) -> anyhow::Result<()> {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        for bridge in &mut self.bridges {
+            loop {
+                match bridge.try_wait()? {
+                    Some(status) if status.success() => break,
+                    Some(status) => bail!("a Zenoh bridge failed ({status})"),
+                    None if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(20)),
+                    None => {
+                        let _ = bridge.kill();
+                        let _ = bridge.wait();
+                        bail!("a Zenoh bridge did not end after the stream's end");
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
 }

@@ -24,6 +24,7 @@
 //! End-of-stream crosses as a marker sample. Restart notices
 //! (`UPSTREAM_RESTARTED`) are header flags and cross unchanged.
 
+pub mod netns;
 pub mod wire;
 
 use std::sync::Arc;

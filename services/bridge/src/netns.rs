@@ -1,11 +1,13 @@
-//! Two hosts on one machine: two network namespaces joined by a veth pair,
-//! created by a test and removed when it ends. Processes in them share the
+//! Two hosts on one machine, for the bridge's tests and `poseflow bench ipc
+//! --zenoh`: two network namespaces joined by a veth pair, created on
+//! demand (as root) and removed when dropped. Processes in them share the
 //! file system and shared memory (graph instances keep their iceoryx2
 //! services apart) but reach each other only over the veth link.
 
 use std::process::{Command, Stdio};
 
 /// The addresses the pair's two ends get; deploy/two-hosts/ graphs name them.
+/// Only these namespaces can reach them.
 pub const ADDRESS_A: &str = "10.88.0.1";
 pub const ADDRESS_B: &str = "10.88.0.2";
 
