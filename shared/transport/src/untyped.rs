@@ -127,8 +127,7 @@ pub fn untyped_subscriber(
     service: &str,
     options: &EdgeOptions,
 ) -> Result<Box<dyn UntypedSubscriber>, TransportError> {
-    visit_message(message, Subscribe(Open { node, service, options }))
-        .unwrap_or_else(|| Err(TransportError::UnknownMessage { message: message.to_string() }))
+    by_name(message, Subscribe(Open { node, service, options }))
 }
 
 /// Publishes on `service`, an edge carrying contract message `message`.
@@ -138,6 +137,14 @@ pub fn untyped_publisher(
     service: &str,
     options: &EdgeOptions,
 ) -> Result<Box<dyn UntypedPublisher>, TransportError> {
-    visit_message(message, Publish(Open { node, service, options }))
+    by_name(message, Publish(Open { node, service, options }))
+}
+
+/// Runs `visitor` with the header type named `message`.
+fn by_name<T>(
+    message: &str,
+    visitor: impl MessageVisitor<Output = Result<T, TransportError>>,
+) -> Result<T, TransportError> {
+    visit_message(message, visitor)
         .unwrap_or_else(|| Err(TransportError::UnknownMessage { message: message.to_string() }))
 }
