@@ -184,3 +184,29 @@ fn the_ipc_benchmark_measures_an_edge_between_two_hosts() {
     assert!(report["zenoh_4mib_p50_ratio"]["vs_unix_socket"].as_f64().unwrap() > 0.0, "{report}");
     assert_nothing_leaked(&before);
 }
+
+/// `--host` mistakes are refused before anything starts, naming what was
+/// expected (no namespaces needed).
+#[test]
+fn host_mistakes_are_refused_before_anything_starts() {
+    let graph = repository().join("deploy/two-hosts/estimation.toml");
+    let scratch = Scratch::new("host-mistakes");
+    let recording = scratch.dir.join("x.rec");
+    for (args, expected) in [
+        (vec!["--host", "lab"], "--host lab"),
+        (vec!["--host", "robot", "--in-process"], "--in-process runs a whole graph on one machine"),
+        (
+            vec!["--host", "robot", "--record", recording.to_str().unwrap(), "--record-edges", "estimates"],
+            "`estimates` is neither written nor read on host `robot`",
+        ),
+    ] {
+        let output = run_graph(&args, &graph).current_dir(repository()).output_within(RUN_DEADLINE);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{args:?} ran");
+        assert!(stderr.contains(expected), "{args:?}: {stderr}");
+    }
+    let output = run_graph(&["--host", "lab"], &graph).current_dir(repository()).output_within(RUN_DEADLINE);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("[\"compute\", \"robot\"]"), "the hosts it has: {stderr}");
+    assert!(!recording.exists());
+}

@@ -324,18 +324,24 @@ fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
     assert_nothing_leaked(&before);
 }
 
-/// Every graph shipped in deploy/ validates, and the smoke graph runs clean.
+/// Every graph shipped in deploy/ (and deploy/two-hosts/) validates, and
+/// the smoke graph runs clean.
 #[test]
 fn deploy_graphs_are_valid_and_the_smoke_graph_runs() {
     let _serial = serial();
     let deploy = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy"));
-    for entry in std::fs::read_dir(deploy).unwrap().flatten() {
-        let path = entry.path();
-        if path.extension().is_some_and(|e| e == "toml") {
-            let output = run_graph(&["--check"], &path).output_within(RUN_DEADLINE);
-            assert!(output.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&output.stderr));
+    for dir in [deploy.to_path_buf(), deploy.join("two-hosts")] {
+        for entry in std::fs::read_dir(dir).unwrap().flatten() {
+            let path = entry.path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                let output = run_graph(&["--check"], &path).output_within(RUN_DEADLINE);
+                assert!(output.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&output.stderr));
+            }
         }
     }
+    let output = run_graph(&["--check"], &deploy.join("two-hosts/estimation.toml")).output_within(RUN_DEADLINE);
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(stdout.contains("host robot: stages frames, ingest; sends [\"observations\"]"), "{stdout}");
     let before = shared_memory_files();
     let output = run_graph(&["--json", "--status-ms", "0"], &deploy.join("smoke.toml")).output_within(RUN_DEADLINE);
     let summary = summary(&output);

@@ -23,13 +23,8 @@ use hdrhistogram::Histogram;
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use poseflow_bridge::netns::{ADDRESS_A, HostPair};
 use poseflow_contracts::{Header, MessageHeader, TensorHeader, monotonic_ns};
-use poseflow_graph::{
-    BRIDGE_EXE, BRIDGE_STAGE, BridgePlan, EdgeWiring, HostEndpoints, OverflowPolicy, StageWiring, WIRING_ENV,
-    ZenohMode, ZenohSettings,
-};
-use poseflow_transport::{
-    EdgeOptions, EdgeSubscriber, Ipc, Overflow, Publisher, create_node, edge_service_name, heartbeat_service_name,
-};
+use poseflow_graph::{BRIDGE_EXE, EdgeWiring, OverflowPolicy, WIRING_ENV};
+use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Overflow, Publisher, create_node, edge_service_name};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
@@ -466,54 +461,30 @@ impl TwoHostEdge {
         let id = format!("{}-{bytes}", std::process::id());
         // A port per payload size: the previous size's listener may linger.
         let port = 7447 + PAYLOAD_BYTES.iter().position(|b| *b == bytes).unwrap_or(0);
-        let endpoint = format!("tcp/{ADDRESS_A}:{port}");
-        let zenoh = ZenohSettings {
-            mode: ZenohMode::Peer,
-            router: None,
-            multicast_scouting: false,
-            key_prefix: format!("poseflow/bench-{id}"),
+        let edge = EdgeWiring {
+            edge: "ipc".into(),
+            service: String::new(),
+            message: TensorHeader::NAME.into(),
+            queue: 4,
+            overflow: OverflowPolicy::Block,
+            max_payload_len: floats(bytes),
+            readers: 0,
         };
-        let mut services = Vec::new();
+        let (sending, receiving) = poseflow_bridge::one_edge_wirings(
+            &edge,
+            &format!("tcp/{ADDRESS_A}:{port}"),
+            &format!("poseflow/bench-{id}"),
+            (&format!("bench-a-{id}"), &format!("bench-b-{id}")),
+        )?;
+        let (sending_service, receiving_service) =
+            (sending.inputs[0].service.clone(), receiving.outputs[0].service.clone());
         let mut bridges = Vec::new();
-        for (host, namespace, sends) in [("b", &hosts.b, false), ("a", &hosts.a, true)] {
-            let instance = format!("bench-{host}-{id}");
-            let service = edge_service_name(&instance, "ipc")?;
-            let edge = EdgeWiring {
-                edge: "ipc".into(),
-                service: service.clone(),
-                message: TensorHeader::NAME.into(),
-                queue: 4,
-                overflow: OverflowPolicy::Block,
-                max_payload_len: floats(bytes),
-                readers: usize::from(!sends),
-            };
-            let endpoints = match sends {
-                true => HostEndpoints { listen: vec![endpoint.clone()], connect: Vec::new() },
-                false => HostEndpoints { listen: Vec::new(), connect: vec![endpoint.clone()] },
-            };
-            let readers = match sends {
-                true => [("ipc".to_string(), vec!["b".to_string()])].into(),
-                false => Default::default(),
-            };
-            let plan = BridgePlan { host: host.into(), zenoh: zenoh.clone(), endpoints, readers };
-            let wiring = StageWiring {
-                instance: instance.clone(),
-                stage: BRIDGE_STAGE.into(),
-                inputs: if sends { vec![edge.clone()] } else { Vec::new() },
-                outputs: if sends { Vec::new() } else { vec![edge] },
-                heartbeat_service: heartbeat_service_name(&instance, BRIDGE_STAGE)?,
-                heartbeat_ms: 200,
-                params: serde_json::to_value(plan)?,
-                ..Default::default()
-            };
+        for (wiring, namespace) in [(receiving, &hosts.b), (sending, &hosts.a)] {
             let mut command = Command::new(&exe);
             command.env(WIRING_ENV, wiring.to_json()).env("RUST_LOG", "warn");
-            let child = HostPair::inside(namespace, &command).stdin(Stdio::null()).stdout(Stdio::null()).spawn()?;
-            bridges.push(child);
-            services.push(service);
+            bridges.push(HostPair::inside(namespace, &command).stdin(Stdio::null()).stdout(Stdio::null()).spawn()?);
         }
-        let receiving_service = services.remove(0);
-        Ok(Self { sending_service: services.remove(0), receiving_service, bridges })
+        Ok(Self { sending_service, receiving_service, bridges })
     }
 
     /// Waits for both bridges to end after the stream's end; kills any

@@ -139,6 +139,53 @@ pub fn zenoh_config(plan: &BridgePlan) -> Result<zenoh::Config, BridgeError> {
     Ok(config)
 }
 
+/// The wirings of two bridges carrying one edge from host `a` (which
+/// listens on `endpoint`) to host `b`, as `poseflow run --host` makes them:
+/// for benchmarks and tests that run bridges without a graph file. `edge`
+/// names the edge and its settings; its service and readers are set here,
+/// for graph instances `instances.0` (on `a`) and `instances.1` (on `b`,
+/// where one reader waits).
+pub fn one_edge_wirings(
+    edge: &EdgeWiring,
+    endpoint: &str,
+    key_prefix: &str,
+    instances: (&str, &str),
+) -> Result<(StageWiring, StageWiring), TransportError> {
+    let zenoh = poseflow_graph::ZenohSettings {
+        mode: ZenohMode::Peer,
+        router: None,
+        multicast_scouting: false,
+        key_prefix: key_prefix.to_string(),
+    };
+    let wiring = |host: &str, instance: &str, sends: bool| -> Result<StageWiring, TransportError> {
+        let edge = EdgeWiring {
+            service: poseflow_transport::edge_service_name(instance, &edge.edge)?,
+            readers: usize::from(!sends),
+            ..edge.clone()
+        };
+        let endpoints = match sends {
+            true => poseflow_graph::HostEndpoints { listen: vec![endpoint.to_string()], connect: Vec::new() },
+            false => poseflow_graph::HostEndpoints { listen: Vec::new(), connect: vec![endpoint.to_string()] },
+        };
+        let readers = match sends {
+            true => [(edge.edge.clone(), vec!["b".to_string()])].into(),
+            false => Default::default(),
+        };
+        let plan = BridgePlan { host: host.to_string(), zenoh: zenoh.clone(), endpoints, readers };
+        Ok(StageWiring {
+            instance: instance.to_string(),
+            stage: poseflow_graph::BRIDGE_STAGE.to_string(),
+            inputs: if sends { vec![edge.clone()] } else { Vec::new() },
+            outputs: if sends { Vec::new() } else { vec![edge] },
+            heartbeat_service: poseflow_transport::heartbeat_service_name(instance, poseflow_graph::BRIDGE_STAGE)?,
+            heartbeat_ms: 200,
+            params: serde_json::to_value(plan).expect("a bridge plan is plain data"),
+            ..Default::default()
+        })
+    };
+    Ok((wiring("a", instances.0, true)?, wiring("b", instances.1, false)?))
+}
+
 /// Runs the bridge of the wiring in `POSEFLOW_STAGE`.
 pub fn run_from_env() -> Result<BridgeCounts, BridgeError> {
     run(&StageWiring::from_env()?)
