@@ -211,9 +211,9 @@ pub fn run(wiring: &StageWiring) -> Result<BridgeCounts, BridgeError> {
         })
         .collect();
     let sending = send(&session, &plan, &wiring.inputs, &beat, &counters, &stop);
-    if sending.is_err() || !wiring.inputs.is_empty() {
-        // Sending ended by a signal or a failure: the receivers stop too.
-        stop.store(sending.is_err() || termination_requested(), Ordering::Relaxed);
+    // Sending ended by a failure or a signal: the receivers stop too.
+    if sending.is_err() || termination_requested() {
+        stop.store(true, Ordering::Relaxed);
     }
     let mut result = sending;
     for (edge, handle) in receivers {
