@@ -361,6 +361,11 @@ def monotonic_ns():
     return time.clock_gettime_ns(time.CLOCK_MONOTONIC)
 
 
+def stamp_clock_ns():
+    """The clock of message stamps: CLOCK_REALTIME, ns since the UNIX epoch."""
+    return time.clock_gettime_ns(time.CLOCK_REALTIME)
+
+
 def _float_view(payload):
     """A ctypes float array over a `Slice[c_float]` payload, in place.
 
@@ -587,7 +592,7 @@ def _stamp_slot(stage, default):
 
 def _stamped(header, slot):
     if slot is not None:
-        header.header.stamps.ns[slot] = monotonic_ns()
+        header.header.stamps.ns[slot] = stamp_clock_ns()
     return header
 
 

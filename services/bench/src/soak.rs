@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Args;
-use poseflow_contracts::{EstimateHeader, MessageHeader, flags, monotonic_ns};
+use poseflow_contracts::{EstimateHeader, MessageHeader, flags, stamp_clock_ns};
 use poseflow_geometry::Pose;
 use poseflow_graph::WIRING_ENV;
 use poseflow_runtime::progress::Progress;
@@ -119,7 +119,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
 
     let before = poseflow_transport::shared_memory_files();
     let started = Instant::now();
-    let started_ns = monotonic_ns();
+    let started_ns = stamp_clock_ns();
     let run = GraphRun {
         graph: &args.graph,
         instance: format!("soak-{}", std::process::id()),

@@ -117,24 +117,37 @@ pub fn ready_key(prefix: &str, edge: &str, host: &str) -> String {
 /// The Zenoh configuration of `plan`'s host: its mode, endpoints and
 /// scouting.
 pub fn zenoh_config(plan: &BridgePlan) -> Result<zenoh::Config, BridgeError> {
-    let mut config = zenoh::Config::default();
     let mode = match plan.zenoh.mode {
         ZenohMode::Peer => "peer",
         ZenohMode::Client => "client",
     };
     let mut connect = plan.endpoints.connect.clone();
     connect.extend(plan.zenoh.router.iter().cloned());
+    session_config(mode, &connect, &plan.endpoints.listen, plan.zenoh.multicast_scouting)
+        .map_err(|(key, err)| zenoh_error("configure", key)(err))
+}
+
+/// A Zenoh session configuration: `mode` (`peer` or `client`), the
+/// endpoints to connect to and listen on, multicast scouting on or off. A
+/// peer whose endpoints are not up yet keeps trying in the background
+/// rather than failing to open. Errors name the configuration key.
+pub fn session_config(
+    mode: &str,
+    connect: &[String],
+    listen: &[String],
+    multicast_scouting: bool,
+) -> Result<zenoh::Config, (&'static str, zenoh::Error)> {
+    let mut config = zenoh::Config::default();
     let json = |value: serde_json::Value| value.to_string();
     for (key, value) in [
         ("mode", json(mode.into())),
         ("connect/endpoints", json(connect.into())),
-        ("scouting/multicast/enabled", json(plan.zenoh.multicast_scouting.into())),
+        ("scouting/multicast/enabled", json(multicast_scouting.into())),
     ] {
-        config.insert_json5(key, &value).map_err(zenoh_error("configure", key))?;
+        config.insert_json5(key, &value).map_err(|err| (key, err))?;
     }
-    if !plan.endpoints.listen.is_empty() {
-        let listen = json(plan.endpoints.listen.clone().into());
-        config.insert_json5("listen/endpoints", &listen).map_err(zenoh_error("configure", "listen/endpoints"))?;
+    if !listen.is_empty() {
+        config.insert_json5("listen/endpoints", &json(listen.into())).map_err(|err| ("listen/endpoints", err))?;
     }
     Ok(config)
 }

@@ -27,7 +27,10 @@ impl FrameLayout {
             .map(|o| mask_box(&o.mask).0.map_or([0, 0, 1, 1], |(u0, v0, u1, v1)| [u0, v0, u1 - u0 + 1, v1 - v0 + 1]))
             .collect();
         let mut header = Header::new(loaded.frame.frame_id, 0);
-        header.stamps.stamp(poseflow_contracts::StampSlot::Source);
+        match loaded.captured_ns {
+            Some(ns) => header.stamps.ns[poseflow_contracts::StampSlot::Source as usize] = ns,
+            None => header.stamps.stamp(poseflow_contracts::StampSlot::Source),
+        }
         let header = FrameHeader {
             header,
             intrinsics: intrinsics(camera),
@@ -159,6 +162,7 @@ mod tests {
             skipped: Vec::new(),
             scene_id: 3,
             image_id: 11,
+            captured_ns: None,
         };
         let layout = FrameLayout::of(&loaded);
         assert_eq!(layout.header.mask_len, 3 * 3 + 1);

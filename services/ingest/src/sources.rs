@@ -21,11 +21,22 @@ pub struct LoadedFrame {
     /// Where the frame came from in its dataset.
     pub scene_id: u32,
     pub image_id: u32,
+    /// When a camera captured it (ns since the epoch, the stamps' clock),
+    /// for the frame's `Source` stamp; `None`: when it is published.
+    pub captured_ns: Option<u64>,
 }
 
 /// A stream of frames. `None` ends the stream.
 pub trait FrameSource: Send + std::fmt::Debug {
     fn next_frame(&mut self) -> Option<Result<LoadedFrame, IngestError>>;
+
+    /// A live source waits here, a short while at most, for its next frame;
+    /// false when none came yet (the stage reports itself idle and asks
+    /// again, so it stays responsive to signals). Files and the renderer are
+    /// always ready.
+    fn wait_ready(&mut self) -> bool {
+        true
+    }
 }
 
 /// One image of a BOP dataset and the instances to observe in it.
@@ -247,6 +258,7 @@ impl BopFrames {
             skipped,
             scene_id: target.scene_id,
             image_id: target.im_id,
+            captured_ns: None,
         })
     }
 }
@@ -341,6 +353,7 @@ impl FrameSource for SyntheticFrames {
             skipped: Vec::new(),
             scene_id,
             image_id: im_id,
+            captured_ns: None,
         }))
     }
 }

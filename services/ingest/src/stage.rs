@@ -178,6 +178,9 @@ impl Source for FrameSourceStage {
     const SLOT: Option<StampSlot> = Some(StampSlot::Source);
 
     fn next(&mut self, output: &mut dyn Emitter<FrameHeader>) -> Result<SourceStep, IngestError> {
+        if !self.frames.wait_ready() {
+            return Ok(SourceStep::Idle);
+        }
         let Some(loaded) = self.frames.next_frame() else {
             return Ok(SourceStep::Finished);
         };

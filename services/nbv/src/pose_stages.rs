@@ -59,6 +59,7 @@ impl PoseStages {
             skipped: Vec::new(),
             scene_id: 0,
             image_id: 0,
+            captured_ns: None,
         };
         let (header, payload) = frame_message(&view);
         let mut estimates = self.graph.process(header, payload)?;

@@ -14,6 +14,7 @@ pub fn registry() -> Registry {
         .with(poseflow_selector::registrations())
         .with(poseflow_grasp::registrations())
         .with(poseflow_nbv::registrations())
+        .with(poseflow_ros2::registrations())
 }
 
 #[cfg(test)]

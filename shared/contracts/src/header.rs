@@ -60,10 +60,18 @@ impl StampSlot {
     }
 }
 
-/// `CLOCK_MONOTONIC` nanoseconds at which each stage published its output
-/// for this frame; 0 means the stage has not seen the frame. The clock is
-/// shared by all processes on one machine, so differences between slots
-/// written by different processes are meaningful.
+/// Nanoseconds since the UNIX epoch ([`stamp_clock_ns`], `CLOCK_REALTIME`)
+/// at which each stage published its output for this frame; 0 means the
+/// stage has not seen the frame.
+///
+/// The wall clock rather than a monotonic one, for two reasons: it is the
+/// clock ROS 2 stamps messages with, so the `Source` slot of a frame from a
+/// ROS 2 camera is the image's own stamp and the poses published for it
+/// carry that stamp back; and it is shared by every process on a machine
+/// and, through NTP or PTP, across machines, so differences between slots
+/// written by different processes (or hosts) are meaningful. A clock step
+/// (NTP correcting a large error) can make one interval negative; intervals
+/// saturate at 0.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
 #[type_name("poseflow/StageStamps/v1")]
@@ -74,7 +82,7 @@ pub struct StageStamps {
 impl StageStamps {
     /// Writes the current time into `slot`.
     pub fn stamp(&mut self, slot: StampSlot) {
-        self.ns[slot as usize] = monotonic_ns();
+        self.ns[slot as usize] = stamp_clock_ns();
     }
 
     pub fn get(&self, slot: StampSlot) -> Option<u64> {
@@ -153,7 +161,18 @@ impl Header {
     }
 }
 
-/// `CLOCK_MONOTONIC` in nanoseconds.
+/// The clock of [`StageStamps`]: `CLOCK_REALTIME`, nanoseconds since the
+/// UNIX epoch (a ROS 2 `builtin_interfaces/Time` as `sec · 10⁹ + nanosec`).
+pub fn stamp_clock_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: `ts` is a valid, writable timespec; CLOCK_REALTIME is always
+    // available on Linux, so the call cannot fail.
+    unsafe { libc::clock_gettime(libc::CLOCK_REALTIME, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+/// `CLOCK_MONOTONIC` in nanoseconds: for durations inside one process
+/// (liveness, heartbeats), never for message stamps.
 pub fn monotonic_ns() -> u64 {
     let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
     // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC is always

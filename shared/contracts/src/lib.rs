@@ -27,7 +27,8 @@
 //! - angular velocities are body-frame (`R ← R exp(dt ω)`);
 //! - 6-vectors and 6×6 covariances are ordered translation first, rotation
 //!   second;
-//! - timestamps are `CLOCK_MONOTONIC` nanoseconds ([`monotonic_ns`]).
+//! - message timestamps are `CLOCK_REALTIME` nanoseconds since the UNIX
+//!   epoch ([`stamp_clock_ns`]), the clock of ROS 2 stamps.
 //!
 //! | message | header | payload (`f32`) | from → to |
 //! |---|---|---|---|
@@ -67,7 +68,7 @@ pub use error::ContractError;
 pub use estimate::{EstimateHeader, EstimateView, HypothesesHeader, SelectionMethod, WEIGHTED_POSE_LEN};
 pub use frame::{DETECTION_LEN, Detection, FrameHeader, FrameView};
 pub use grasps::{GRASP_LEN, GraspsHeader};
-pub use header::{Header, STAGE_SLOTS, StageStamps, StampSlot, flags, monotonic_ns};
+pub use header::{Header, STAGE_SLOTS, StageStamps, StampSlot, flags, monotonic_ns, stamp_clock_ns};
 pub use heartbeat::{Heartbeat, StageState};
 pub use message::{MessageHeader, POSE_LEN, VELOCITY_LEN, limits};
 pub use next_view::{CANDIDATE_LEN, NextViewHeader};

@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use poseflow_contracts::{MessageHeader, MessageVisitor, monotonic_ns, visit_message};
+use poseflow_contracts::{MessageHeader, MessageVisitor, stamp_clock_ns, visit_message};
 use poseflow_graph::{Graph, OverflowPolicy};
 use poseflow_runtime::recording::{RecordedMessage, RecordingError, RecordingWriter};
 use poseflow_runtime::{BuildError, Input, LocalGraph, LocalOverflow, Registry, Sink};
@@ -33,7 +33,7 @@ impl<H: MessageHeader> Sink for Tap<H> {
     fn consume(&mut self, input: Input<'_, H>) -> Result<(), RecordingError> {
         let message = RecordedMessage {
             edge: self.edge.clone(),
-            received_ns: monotonic_ns(),
+            received_ns: stamp_clock_ns(),
             header: poseflow_runtime::recording::header_bytes(input.header),
             payload: input.payload.to_vec(),
         };

@@ -8,7 +8,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use iceoryx2::prelude::{CallbackProgression, SignalHandlingMode, WaitSetBuilder};
-use poseflow_contracts::monotonic_ns;
+use poseflow_contracts::stamp_clock_ns;
 use poseflow_graph::{EdgePattern, Graph};
 use poseflow_runtime::recording::{RecordedEdge, RecordedMessage, RecordingInfo, RecordingWriter};
 use poseflow_transport::{
@@ -38,7 +38,7 @@ impl RecordedInput {
             let received = self.subscriber.receive_with(&mut |header, payload| {
                 written = writer.write(&RecordedMessage {
                     edge: self.edge.clone(),
-                    received_ns: monotonic_ns(),
+                    received_ns: stamp_clock_ns(),
                     header: header.to_vec(),
                     payload: payload.to_vec(),
                 });

@@ -150,6 +150,20 @@ impl Liveness {
         histogram.saturating_record(elapsed.as_micros().max(1) as u64);
     }
 
+    /// The unit of work turned out to be a wait with nothing to do: not
+    /// busy time, and not a latency sample.
+    pub fn work_abandoned(&self) {
+        self.work_started_ns.store(0, Relaxed);
+    }
+
+    /// Ends a source's call: a latency sample unless it was idle.
+    pub fn source_step_finished(&self, step: Option<crate::SourceStep>, elapsed: Duration) {
+        match step {
+            Some(crate::SourceStep::Idle) => self.work_abandoned(),
+            _ => self.work_finished(elapsed),
+        }
+    }
+
     pub fn send_started(&self) {
         self.send_started_ns.store(monotonic_ns(), Relaxed);
     }

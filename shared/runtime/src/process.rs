@@ -651,7 +651,7 @@ pub fn run_source<S: Source, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
             let started = Instant::now();
             liveness.work_started();
             let result = source.next(&mut emitter);
-            liveness.work_finished(started.elapsed());
+            liveness.source_step_finished(result.as_ref().ok().copied(), started.elapsed());
             liveness.count_errors(source.take_rejected());
             result.unwrap_or_else(|err| {
                 liveness.count_error();

@@ -58,7 +58,8 @@ pub struct RecordedEdge {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RecordedMessage {
     pub edge: String,
-    /// `CLOCK_MONOTONIC` ns at which the recorder received it.
+    /// When the recorder received it, on the stamps' clock
+    /// ([`poseflow_contracts::stamp_clock_ns`]).
     pub received_ns: u64,
     /// Raw bytes of the contract header.
     pub header: Vec<u8>,

@@ -181,6 +181,9 @@ pub enum SourceStep {
     Continue,
     /// The stream is over (end of a dataset or recording).
     Finished,
+    /// Nothing came within a short wait (a live camera between images); it
+    /// may be called again. Not counted as work.
+    Idle,
 }
 
 /// A stage with no input: a camera, a dataset reader, a replay.

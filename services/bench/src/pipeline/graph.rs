@@ -76,7 +76,7 @@ pub(super) type StampOwners = BTreeMap<StampSlot, String>;
 
 /// The intervals between consecutive stamps of an Estimate's path, in time
 /// order, named by the stages that wrote them (`frames→ingest`, …), the
-/// last ending when it was received (`received_ns`, monotonic).
+/// last ending when it was received (`received_ns`, the stamps' clock).
 pub(super) fn path_intervals(
     header: &EstimateHeader,
     received_ns: u64,

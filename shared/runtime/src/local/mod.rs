@@ -236,10 +236,10 @@ impl LocalGraph {
                     let started = Instant::now();
                     live.work_started();
                     let step = source.next(&mut emitter);
-                    live.work_finished(started.elapsed());
+                    live.source_step_finished(step.as_ref().ok().copied(), started.elapsed());
                     live.count_errors(source.take_rejected());
                     match step {
-                        Ok(SourceStep::Continue) => {}
+                        Ok(SourceStep::Continue | SourceStep::Idle) => {}
                         Ok(SourceStep::Finished) => break,
                         Err(err) => {
                             live.count_error();
