@@ -180,6 +180,9 @@ fn every_deploy_graph_gives_the_same_messages_as_processes_and_in_process() {
         .unwrap()
         .map(|entry| entry.unwrap().path())
         .filter(|path| path.extension().is_some_and(|e| e == "toml"))
+        // A live ROS 2 camera has no frames without a ROS 2 peer; its graph
+        // runs against one in tests/e2e/ros2.rs.
+        .filter(|path| !std::fs::read_to_string(path).unwrap().contains("exe = \"ros2-camera\""))
         .collect();
     graphs.sort();
     assert!(graphs.len() >= 6, "{graphs:?}");
