@@ -120,6 +120,12 @@ def play(split, domain, common, ROS2Publisher, timeout):
     pubs = {name: ROS2Publisher(topic, "sensor_msgs/msg/CameraInfo" if name == "info" else "sensor_msgs/msg/Image",
                                 **common) for name, topic in topics.items()}
     wait_for_subscriptions(pubs["color"].session_mgr.session, domain, topics.values(), timeout)
+    # A subscription's token can be seen before its data route is in place.
+    deadline = time.time() + timeout
+    while not all(p.pub.matching_status.matching for p in pubs.values()):
+        if time.time() > deadline:
+            sys.exit("the camera's subscriptions never matched the publishers")
+        time.sleep(0.05)
     types = pubs["color"].session_mgr.store.types
     Header, Time = types["std_msgs/msg/Header"], types["builtin_interfaces/msg/Time"]
     Roi = pubs["info"].session_mgr.store.types["sensor_msgs/msg/RegionOfInterest"]

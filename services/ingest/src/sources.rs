@@ -37,6 +37,13 @@ pub trait FrameSource: Send + std::fmt::Debug {
     fn wait_ready(&mut self) -> bool {
         true
     }
+
+    /// Input the source had to drop since the last call (a live camera's
+    /// messages left unpaired or refused); the stage counts them with its
+    /// rejected inputs.
+    fn take_dropped(&mut self) -> u64 {
+        0
+    }
 }
 
 /// One image of a BOP dataset and the instances to observe in it.

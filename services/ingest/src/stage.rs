@@ -201,7 +201,7 @@ impl Source for FrameSourceStage {
     }
 
     fn take_rejected(&mut self) -> u64 {
-        std::mem::take(&mut self.rejected)
+        std::mem::take(&mut self.rejected) + self.frames.take_dropped()
     }
 }
 

@@ -267,6 +267,11 @@ fn queue() -> usize {
 }
 
 impl CameraParams {
+    pub fn from_json(value: serde_json::Value) -> Result<Self, Ros2Error> {
+        serde_json::from_value(value)
+            .map_err(|err| Ros2Error::Params { key: "ros2-camera".into(), detail: err.to_string() })
+    }
+
     pub fn topics(&self) -> CameraTopics {
         CameraTopics {
             color: self.color_topic.clone(),
@@ -312,6 +317,8 @@ pub struct RosCamera {
     next_frame: u64,
     max_frames: Option<u64>,
     reported_unpaired: u64,
+    /// Whether the camera's distortion has been reported.
+    distortion_reported: bool,
     _subscriptions: Vec<RosSubscription>,
     _session: RosSession,
 }
@@ -366,6 +373,7 @@ impl RosCamera {
                 match Image::decode(&bytes) {
                     Ok(image) => {
                         let stamp_ns = image.header.stamp.as_ns();
+                        tracing::debug!(topic = %topic_name, stamp_ns, bytes = bytes.len(), "image received");
                         if let Some(frame) = inbox.pairing.push(stream, Received { stamp_ns, bytes }) {
                             // Frames the stage has not taken yet: the oldest go first.
                             if inbox.frames.len() == queue {
@@ -403,6 +411,7 @@ impl RosCamera {
             next_frame: 0,
             max_frames: params.max_frames,
             reported_unpaired: 0,
+            distortion_reported: false,
             _subscriptions: subscriptions,
             _session: session,
         })
@@ -414,7 +423,7 @@ impl RosCamera {
 
     /// Messages left unpaired or refused, and frames dropped behind the
     /// camera, since the last call.
-    pub fn take_unpaired(&mut self) -> u64 {
+    fn take_unpaired(&mut self) -> u64 {
         let inbox = self.inbox.0.lock().unwrap_or_else(|e| e.into_inner());
         let total = inbox.pairing.unpaired().iter().sum::<u64>() + inbox.undecodable + inbox.behind;
         let new = total - self.reported_unpaired;
@@ -432,6 +441,10 @@ impl RosCamera {
 }
 
 impl FrameSource for RosCamera {
+    fn take_dropped(&mut self) -> u64 {
+        self.take_unpaired()
+    }
+
     fn wait_ready(&mut self) -> bool {
         if self.ended() {
             return true;
@@ -456,6 +469,12 @@ impl FrameSource for RosCamera {
         self.next_frame += 1;
         let decoded = (|| {
             let info = CameraInfo::decode(&info).map_err(|err| message_error(&self.topics.info, err.to_string()))?;
+            if !self.distortion_reported && info.d.iter().any(|d| *d != 0.0) {
+                // Said once: PoseFlow back-projects through a pinhole.
+                tracing::warn!(topic = %self.topics.info, d = ?info.d, model = %info.distortion_model,
+                    "the camera reports lens distortion, which PoseFlow ignores: use its rectified image topics");
+                self.distortion_reported = true;
+            }
             let image = |k: usize, topic: &str| {
                 Image::decode(&images[k].bytes).map_err(|err| message_error(topic, err.to_string()))
             };
@@ -514,7 +533,7 @@ mod tests {
         bgr.step = 4;
         assert_eq!(colour_pixels(&bgr, "/c").unwrap(), [[3, 2, 1], [6, 5, 4]]);
         let err = colour_pixels(&image("rgba8", 1, 1, 4, vec![0; 4]), "/c").unwrap_err().to_string();
-        assert!(err.contains("/c") && err.contains("rgba8") && err.contains("rgb8"), "{err}");
+        assert_eq!(err, "/c: encoding \"rgba8\": expected \"rgb8\" or \"bgr8\"");
         let err = colour_pixels(&image("rgb8", 2, 2, 3, vec![0; 11]), "/c").unwrap_err().to_string();
         assert!(err.contains("11 bytes") && err.contains("expected 12"), "{err}");
     }
@@ -552,6 +571,15 @@ mod tests {
         assert_eq!(frame.objects.len(), 1);
         assert_eq!((frame.objects[0].obj_id, frame.frame.camera.fy), (7, 501.0));
 
+        let wide = image("rgb8", 640, 480, 3, vec![0; 640 * 480 * 3]);
+        let narrow = image("16UC1", 320, 240, 2, vec![0; 320 * 240 * 2]);
+        let defaults = CameraParams::from_json(serde_json::json!({})).unwrap().topics();
+        let err = frame_from_messages(&defaults, 3, &wide, &narrow, &info(640, 480), None).unwrap_err().to_string();
+        assert_eq!(
+            err,
+            "/camera/camera/aligned_depth_to_color/image_raw: 320×240: expected the colour image's size 640×480 \
+             (depth aligned to colour)"
+        );
         let small_depth = image("16UC1", 1, 1, 2, vec![0, 0]);
         let err = frame_from_messages(&topics(), 3, &color, &small_depth, &info(2, 1), None).unwrap_err().to_string();
         assert!(err.contains("/d") && err.contains("1×1") && err.contains("2×1"), "{err}");

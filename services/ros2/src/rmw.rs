@@ -20,10 +20,15 @@ pub const DEFAULT_QOS: &str = "::,10:,:,:,,";
 /// Bytes of a publisher's GID in the attachment.
 pub const GID_LEN: usize = 16;
 
+/// What ROS 2 Humble's rmw_zenoh writes where later releases write a
+/// type's RIHS01 hash.
+pub const NO_TYPE_HASH: &str = "TypeHashNotSupported";
+
 /// The key expression of `topic`'s messages of type `ty` in ROS domain
-/// `domain`.
-pub fn topic_key(domain: u32, topic: &str, ty: &RosType) -> String {
-    format!("{domain}/{}/{}/{}", topic.trim_start_matches('/'), ty.dds_name, ty.hash)
+/// `domain`; `type_hashes` false for Humble.
+pub fn topic_key(domain: u32, topic: &str, ty: &RosType, type_hashes: bool) -> String {
+    let hash = if type_hashes { ty.hash } else { NO_TYPE_HASH };
+    format!("{domain}/{}/{}/{hash}", topic.trim_start_matches('/'), ty.dds_name)
 }
 
 /// A name as liveliness tokens write it: `/` → `%`; the root namespace is `%`.
@@ -40,6 +45,9 @@ pub struct RosNode {
     pub node_id: u32,
     pub namespace: String,
     pub name: String,
+    /// Whether types are named with their hash (Jazzy and later) or not
+    /// (Humble).
+    pub type_hashes: bool,
 }
 
 /// What a topic endpoint does.
@@ -78,7 +86,7 @@ impl RosNode {
             mangle(&self.name),
             mangle(topic),
             ty.dds_name,
-            ty.hash
+            if self.type_hashes { ty.hash } else { NO_TYPE_HASH }
         )
     }
 }
@@ -137,14 +145,24 @@ mod tests {
 
     #[test]
     fn keys_and_tokens_follow_rmw_zenoh() {
-        let key = topic_key(0, "/poseflow/obj_000005/pose", &POSE_WITH_COVARIANCE_STAMPED);
+        let key = topic_key(0, "/poseflow/obj_000005/pose", &POSE_WITH_COVARIANCE_STAMPED, true);
         assert_eq!(
             key,
             "0/poseflow/obj_000005/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/\
              RIHS01_26432f9803e43727d3c8f668d1fdb3c630f548af631e2f4e31382371bfea3b6e"
         );
-        let node =
-            RosNode { domain: 7, session: "ab12".into(), node_id: 0, namespace: "/".into(), name: "poseflow".into() };
+        assert_eq!(
+            topic_key(0, "/a", &POSE_WITH_COVARIANCE_STAMPED, false),
+            "0/a/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/TypeHashNotSupported"
+        );
+        let node = RosNode {
+            domain: 7,
+            session: "ab12".into(),
+            node_id: 0,
+            namespace: "/".into(),
+            name: "poseflow".into(),
+            type_hashes: true,
+        };
         assert_eq!(node.token(), "@ros2_lv/7/ab12/0/0/NN/%/%/poseflow");
         let token = node.endpoint_token(3, EndpointKind::Publisher, "/a/b", &POSE_WITH_COVARIANCE_STAMPED);
         assert!(token.starts_with("@ros2_lv/7/ab12/0/3/MP/%/%/poseflow/%a%b/geometry_msgs::msg::dds_::"), "{token}");

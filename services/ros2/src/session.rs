@@ -22,6 +22,7 @@ use crate::rmw::{Attachment, EndpointKind, GID_LEN, RosNode, topic_key};
 /// | `domain_id` | `ROS_DOMAIN_ID`, else 0 | the ROS domain |
 /// | `namespace` | `"/"` | the node's namespace |
 /// | `node_name` | the stage's own | the node's name in `ros2 node list` |
+/// | `ros_distro` | `"jazzy"` | the ROS 2 release of the other nodes: `humble` names types without a hash (`TypeHashNotSupported`), `jazzy`, `kilted` and `rolling` with their RIHS01 hash; nodes of the two kinds do not see each other's topics |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Connection {
@@ -35,6 +36,12 @@ pub struct Connection {
     #[serde(default = "root")]
     pub namespace: String,
     pub node_name: Option<String>,
+    #[serde(default = "jazzy")]
+    pub ros_distro: String,
+}
+
+fn jazzy() -> String {
+    "jazzy".into()
 }
 
 fn peer() -> String {
@@ -48,7 +55,7 @@ fn root() -> String {
 }
 
 /// The keys of [`Connection`].
-const CONNECTION_KEYS: [&str; 6] = ["mode", "connect", "listen", "domain_id", "namespace", "node_name"];
+const CONNECTION_KEYS: [&str; 7] = ["mode", "connect", "listen", "domain_id", "namespace", "node_name", "ros_distro"];
 
 impl Connection {
     /// Takes the connection keys out of a stage's `params`, leaving the
@@ -74,6 +81,15 @@ impl Connection {
             return Err(Ros2Error::Params {
                 key: "connect".into(),
                 detail: "a client needs an endpoint to connect to (the rmw_zenoh router)".into(),
+            });
+        }
+        if !["humble", "jazzy", "kilted", "rolling"].contains(&connection.ros_distro.as_str()) {
+            return Err(Ros2Error::Params {
+                key: "ros_distro".into(),
+                detail: format!(
+                    "{:?}: expected \"humble\", \"jazzy\", \"kilted\" or \"rolling\" (the first with rmw_zenoh)",
+                    connection.ros_distro
+                ),
             });
         }
         if !connection.namespace.starts_with('/') {
@@ -135,6 +151,7 @@ impl RosSession {
             node_id: 0,
             namespace: connection.namespace.clone(),
             name: connection.node_name.clone().unwrap_or_else(|| default_name.to_string()),
+            type_hashes: connection.ros_distro != "humble",
         };
         let token =
             session.liveliness().declare_token(node.token()).wait().map_err(zenoh_error("declare", &node.token()))?;
@@ -162,7 +179,7 @@ impl RosSession {
 
     /// A publisher of `ty` on `topic`, announced to the ROS graph.
     pub fn publisher(&mut self, topic: &str, ty: &RosType) -> Result<RosPublisher, Ros2Error> {
-        let key = topic_key(self.node.domain, topic, ty);
+        let key = topic_key(self.node.domain, topic, ty, self.node.type_hashes);
         let publisher = self
             .session
             .declare_publisher(key.clone())
@@ -182,7 +199,7 @@ impl RosSession {
         ty: &RosType,
         deliver: impl Fn(Vec<u8>) + Send + Sync + 'static,
     ) -> Result<RosSubscription, Ros2Error> {
-        let key = topic_key(self.node.domain, topic, ty);
+        let key = topic_key(self.node.domain, topic, ty, self.node.type_hashes);
         let subscriber = self
             .session
             .declare_subscriber(key.clone())
@@ -254,6 +271,8 @@ mod tests {
         assert!(err.contains("mode") && err.contains("\"router\"") && err.contains("peer"), "{err}");
         let err = Connection::take(&mut serde_json::json!({ "mode": "client", "connect": [] })).unwrap_err();
         assert!(err.to_string().contains("connect"), "{err}");
+        let err = Connection::take(&mut serde_json::json!({ "ros_distro": "iron" })).unwrap_err().to_string();
+        assert!(err.contains("ros_distro") && err.contains("\"iron\"") && err.contains("humble"), "{err}");
         let err = Connection::take(&mut serde_json::json!({ "namespace": "robot" })).unwrap_err();
         assert!(err.to_string().contains("absolute"), "{err}");
     }

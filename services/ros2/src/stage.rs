@@ -139,8 +139,7 @@ impl CameraStage {
     pub fn from_params(params: &serde_json::Value) -> Result<Self, Ros2Error> {
         let mut params = params.clone();
         let connection = Connection::take(&mut params)?;
-        let params: CameraParams = serde_json::from_value(params)
-            .map_err(|err| Ros2Error::Params { key: "ros2-camera".into(), detail: err.to_string() })?;
+        let params = CameraParams::from_json(params)?;
         let camera = RosCamera::open(&connection, &params)?;
         Ok(Self { frames: FrameSourceStage::new(Box::new(camera)) })
     }
