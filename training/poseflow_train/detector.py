@@ -1,0 +1,225 @@
+"""The detector network: a small RGB-D U-Net that labels each pixel with
+the object seen there (or background), trained on the renders of
+`training/make-data-detect`. Instances are the connected regions of each
+label; the detector stage turns them into Frame detections.
+
+Input ("rgbd", float32, N×5×H×W at H×W = 120×160, a 640×480 frame
+downsampled 4×): RGB / 255, depth in metres / 2 (0 = no measurement), and
+the measured-depth mask. Output ("logits", N×(1+K)×H×W): class 0 is
+background, class k the k-th id of `object_ids`.
+
+    python -m poseflow_train.detector train --data data/detect-lmo10 --out checkpoints/detect-lmo10 [--max-minutes M]
+    python -m poseflow_train.detector evaluate --data data/detect-lmo10 --split heldout --out checkpoints/detect-lmo10
+    python -m poseflow_train.detector export --out checkpoints/detect-lmo10 --onnx ../models/detect-lmo10/detector.onnx
+
+Training checkpoints (weights, optimiser, step, elapsed seconds) every
+`--checkpoint-s` and resumes from the last checkpoint.
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from PIL import Image
+
+HEIGHT, WIDTH, DOWN = 120, 160, 4
+DEPTH_SCALE_M = 2.0
+
+
+def read_split(root, split, object_ids, cache=True):
+    """Every image of a BOP split as (rgbd float32 5×H×W, labels uint8 H×W);
+    cached next to the split as a .npz."""
+    split_dir = Path(root) / split
+    cached = Path(root) / f"{split}.detect.npz"
+    if cache and cached.exists():
+        data = np.load(cached)
+        return data["rgb"], data["depth_mm"], data["labels"]
+    class_of = {obj: k + 1 for k, obj in enumerate(object_ids)}
+    rgbs, depths, labels = [], [], []
+    for scene in sorted(p for p in split_dir.iterdir() if p.is_dir()):
+        cameras = json.loads((scene / "scene_camera.json").read_text())
+        gts = json.loads((scene / "scene_gt.json").read_text())
+        for im in sorted(cameras, key=int):
+            rgb = np.asarray(Image.open(scene / "rgb" / f"{int(im):06d}.png").convert("RGB"))
+            raw = np.asarray(Image.open(scene / "depth" / f"{int(im):06d}.png")).astype(np.float32)
+            depth_mm = raw * float(cameras[im]["depth_scale"])
+            label = np.zeros(rgb.shape[:2], np.uint8)
+            for k, gt in enumerate(gts[im]):
+                mask = scene / "mask_visib" / f"{int(im):06d}_{k:06d}.png"
+                if gt["obj_id"] in class_of and mask.exists():
+                    label[np.asarray(Image.open(mask)) > 0] = class_of[gt["obj_id"]]
+            rgbs.append(downsample(rgb))
+            depths.append(np.round(downsample(depth_mm)).clip(0, 65535).astype(np.uint16))
+            labels.append(label[DOWN // 2 :: DOWN, DOWN // 2 :: DOWN])
+    rgb, depth_mm, labels = np.stack(rgbs), np.stack(depths), np.stack(labels)
+    if cache:
+        np.savez(cached, rgb=rgb, depth_mm=depth_mm, labels=labels)
+    return rgb, depth_mm, labels
+
+
+def downsample(image):
+    """Every DOWN-th pixel (the centre one of each DOWN×DOWN block): what
+    the detector stage does, so depth edges stay sharp."""
+    return image[DOWN // 2 :: DOWN, DOWN // 2 :: DOWN]
+
+
+def to_input(rgb, depth_mm):
+    """uint8 N×H×W×3 and depth in mm N×H×W → float32 N×5×H×W."""
+    rgb = torch.as_tensor(rgb, dtype=torch.float32).permute(0, 3, 1, 2) / 255.0
+    depth = torch.as_tensor(depth_mm.astype(np.float32)).unsqueeze(1) / (1000.0 * DEPTH_SCALE_M)
+    return torch.cat([rgb, depth, (depth > 0).float()], dim=1)
+
+
+def block(cin, cout, stride=1):
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(cout, cout, 3, padding=1, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
+
+
+class Detector(nn.Module):
+    """A four-level U-Net, 120×160 in and out."""
+
+    def __init__(self, classes, width=16):
+        super().__init__()
+        w = [width, 2 * width, 4 * width, 8 * width]
+        self.enc = nn.ModuleList([block(5, w[0]), block(w[0], w[1], 2), block(w[1], w[2], 2), block(w[2], w[3], 2)])
+        self.dec = nn.ModuleList([block(w[3] + w[2], w[2]), block(w[2] + w[1], w[1]), block(w[1] + w[0], w[0])])
+        self.head = nn.Conv2d(w[0], classes, 1)
+
+    def forward(self, x):
+        skips = []
+        for stage in self.enc:
+            x = stage(x)
+            skips.append(x)
+        x = skips.pop()
+        for stage in self.dec:
+            skip = skips.pop()
+            x = F.interpolate(x, size=skip.shape[-2:], mode="nearest")
+            x = stage(torch.cat([x, skip], dim=1))
+        return self.head(x)
+
+
+def augment(rgb, depth_mm, labels, rng):
+    """Horizontal flips and colour jitter per image (the renders already
+    carry the sensor effects)."""
+    rgb, depth_mm, labels = rgb.copy(), depth_mm.copy(), labels.copy()
+    for i in range(len(rgb)):
+        if rng.random() < 0.5:
+            rgb[i], depth_mm[i], labels[i] = rgb[i, :, ::-1], depth_mm[i, :, ::-1], labels[i, :, ::-1]
+        gain = rng.uniform(0.7, 1.3, size=3)
+        rgb[i] = np.clip(rgb[i].astype(np.float32) * gain + rng.uniform(-20, 20), 0, 255).astype(np.uint8)
+    return rgb, depth_mm, labels
+
+
+def load_config(out):
+    return json.loads((Path(out) / "detector.json").read_text())
+
+
+def train(args):
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    info = json.loads((Path(args.data) / "models" / "models_info.json").read_text())
+    object_ids = sorted(int(k) for k in info)
+    config = {"object_ids": object_ids, "width": args.width, "height": HEIGHT, "width_px": WIDTH, "down": DOWN}
+    (out / "detector.json").write_text(json.dumps(config, indent=1))
+    torch.manual_seed(0)
+    torch.set_num_threads(args.threads)
+    splits = sorted(p.name for p in Path(args.data).iterdir() if p.is_dir() and p.name.startswith("train_"))
+    parts = [read_split(args.data, s, object_ids) for s in splits]
+    rgb, depth_mm, labels = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    val = read_split(args.data, "test", object_ids)
+    model = Detector(1 + len(object_ids), args.width)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    step, elapsed = 0, 0.0
+    checkpoint = out / "detector.pt"
+    if checkpoint.exists():
+        state = torch.load(checkpoint, map_location="cpu")
+        model.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimiser"])
+        step, elapsed = state["step"], state["elapsed_s"]
+        print(f"resumed at step {step} after {elapsed / 60:.1f} min", flush=True)
+    # Background dominates the pixels: weigh the objects up.
+    weights = torch.ones(1 + len(object_ids))
+    weights[0] = 0.2
+    rng = np.random.default_rng(step)
+    started, saved = time.time() - elapsed, time.time()
+    log = open(out / "detector-log.jsonl", "a")
+    print(f"{len(rgb)} training and {len(val[0])} validation images; {sum(p.numel() for p in model.parameters())} parameters", flush=True)
+    while args.max_minutes is None or (time.time() - started) < 60 * args.max_minutes + elapsed:
+        if args.steps and step >= args.steps:
+            break
+        model.train()
+        batch = rng.choice(len(rgb), size=args.batch, replace=False)
+        b_rgb, b_depth, b_labels = augment(rgb[batch], depth_mm[batch], labels[batch], rng)
+        logits = model(to_input(b_rgb, b_depth))
+        loss = F.cross_entropy(logits, torch.as_tensor(b_labels, dtype=torch.long), weight=weights)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        step += 1
+        if step % 50 == 0:
+            entry = {"step": step, "train_s": round(time.time() - started, 1), "loss": float(loss)}
+            if step % 500 == 0:
+                entry["validation"] = evaluate_arrays(model, *val, object_ids)
+            print(entry, flush=True)
+            log.write(json.dumps(entry) + "\n")
+            log.flush()
+        if time.time() - saved > args.checkpoint_s:
+            save(model, optimiser, step, time.time() - started, checkpoint)
+            saved = time.time()
+    save(model, optimiser, step, time.time() - started, checkpoint)
+
+
+def save(model, optimiser, step, elapsed, path):
+    tmp = path.with_suffix(".tmp")
+    torch.save({"model": model.state_dict(), "optimiser": optimiser.state_dict(), "step": step, "elapsed_s": elapsed}, tmp)
+    tmp.replace(path)
+
+
+def evaluate_arrays(model, rgb, depth_mm, labels, object_ids):
+    """Per-pixel mask IoU per object (the union over the split) and their mean."""
+    model.eval()
+    predicted = []
+    with torch.no_grad():
+        for i in range(0, len(rgb), 16):
+            predicted.append(model(to_input(rgb[i : i + 16], depth_mm[i : i + 16])).argmax(1).numpy())
+    predicted = np.concatenate(predicted)
+    ious = {}
+    for k, obj in enumerate(object_ids, start=1):
+        truth, guess = labels == k, predicted == k
+        union = (truth | guess).sum()
+        if truth.sum() > 0:
+            ious[str(obj)] = round(float((truth & guess).sum() / max(union, 1)), 4)
+    return {"mean_iou": round(float(np.mean(list(ious.values()))), 4), "iou": ious}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train")
+    t.add_argument("--data", required=True)
+    t.add_argument("--out", required=True)
+    t.add_argument("--width", type=int, default=16)
+    t.add_argument("--batch", type=int, default=16)
+    t.add_argument("--lr", type=float, default=2e-3)
+    t.add_argument("--steps", type=int, default=0)
+    t.add_argument("--max-minutes", type=float)
+    t.add_argument("--checkpoint-s", type=float, default=300)
+    t.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    if args.command == "train":
+        train(args)
+
+
+if __name__ == "__main__":
+    main()
