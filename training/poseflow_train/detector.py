@@ -168,7 +168,7 @@ def train(args):
         optimiser.step()
         step += 1
         if step % 50 == 0:
-            entry = {"step": step, "train_s": round(time.time() - started, 1), "loss": float(loss)}
+            entry = {"step": step, "train_s": round(time.time() - started, 1), "loss": loss.item()}
             if step % 500 == 0:
                 entry["validation"] = evaluate_arrays(model, *val, object_ids)
             print(entry, flush=True)
