@@ -9,8 +9,8 @@ the measured-depth mask. Output ("logits", N×(1+K)×H×W): class 0 is
 background, class k the k-th id of `object_ids`.
 
     python -m poseflow_train.detector train --data data/detect-lmo10 --out checkpoints/detect-lmo10 [--max-minutes M]
-    python -m poseflow_train.detector evaluate --data data/detect-lmo10 --split heldout --out checkpoints/detect-lmo10
-    python -m poseflow_train.detector export --out checkpoints/detect-lmo10 --onnx ../models/detect-lmo10/detector.onnx
+
+(Evaluation on the held-out split and ONNX export are not written yet.)
 
 Training checkpoints (weights, optimiser, step, elapsed seconds) every
 `--checkpoint-s` and resumes from the last checkpoint.
@@ -119,10 +119,6 @@ def augment(rgb, depth_mm, labels, rng):
         gain = rng.uniform(0.7, 1.3, size=3)
         rgb[i] = np.clip(rgb[i].astype(np.float32) * gain + rng.uniform(-20, 20), 0, 255).astype(np.uint8)
     return rgb, depth_mm, labels
-
-
-def load_config(out):
-    return json.loads((Path(out) / "detector.json").read_text())
 
 
 def train(args):

@@ -17,16 +17,13 @@ use std::time::Duration;
 use poseflow_ingest::sources::{FrameSource, LoadedFrame};
 use poseflow_ingest::{IngestError, ObjectMask, RgbdFrame};
 use poseflow_scene::Camera;
-use poseflow_scene::bop::Raster;
+use poseflow_scene::bop::{MM_PER_M, Raster};
 use serde::Deserialize;
 
 use crate::Ros2Error;
 use crate::msgs::{CAMERA_INFO, CameraInfo, IMAGE, Image};
 use crate::pairing::{Pairing, Stamped};
 use crate::session::{Connection, RosSession, RosSubscription};
-
-/// Millimetres per metre, as the BOP reader converts depth.
-const MM_PER_M: f64 = 1000.0;
 
 /// Why a camera message could not become a frame.
 #[derive(Debug, thiserror::Error, PartialEq)]

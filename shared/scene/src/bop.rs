@@ -19,7 +19,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::{Camera, SceneError};
 
-const MM_PER_M: f64 = 1000.0;
+/// BOP files give lengths in millimetres; PoseFlow works in metres.
+pub const MM_PER_M: f64 = 1000.0;
 /// Tolerance for rotation matrices read from JSON (max |RᵀR − I|). BOP
 /// files print about eight digits, but real datasets' annotations are
 /// orthonormal only to ~2e-3 (LM-O's `scene_gt.json`); those are projected
