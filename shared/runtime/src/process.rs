@@ -19,6 +19,8 @@ use crate::{BuildError, RuntimeError, init_logging};
 /// How long a finished stage waits for its receivers to drain before exiting
 /// anyway.
 const END_OF_STREAM_TIMEOUT: Duration = Duration::from_secs(30);
+/// How often an event loop looks at its input queue without being woken.
+const LOST_WAKEUP_CHECK: Duration = Duration::from_secs(1);
 /// How often a stage waiting at start-up for the stages reading its output
 /// says so (it waits until they connect or it is stopped).
 const READERS_WARN_EVERY: Duration = Duration::from_secs(10);
@@ -122,9 +124,46 @@ impl StageProcess {
             Some(a) => Some(waitset.attach_notification(a.source).map_err(waitset_error)?),
             None => None,
         };
+        // A wake-up that never comes would leave a full queue unread and its
+        // writer blocked on it forever: look at the queue now and then.
+        let safety_tick = waitset.attach_interval(LOST_WAKEUP_CHECK).map_err(waitset_error)?;
         let mut ended = false;
         let mut failure = None;
+        let mut input_events = false;
+        // Messages queued before the loop started woke no one.
+        match drain(input, &self.liveness, &mut on_input) {
+            Ok(true) => on_drained(),
+            Ok(false) => {}
+            Err(err) => return Err(err.into()),
+        }
         let run = waitset.wait_and_process(|id| {
+            if id.has_event_from(&safety_tick) {
+                let woken = std::mem::take(&mut input_events);
+                match input.has_messages() {
+                    Ok(true) => {
+                        if !woken {
+                            tracing::warn!(
+                                edge = input.name(),
+                                "messages waited a whole check without a wake-up; reading them"
+                            );
+                        }
+                        match drain(input, &self.liveness, &mut on_input) {
+                            Ok(true) => on_drained(),
+                            Ok(false) => {}
+                            Err(err) => {
+                                failure = Some(err.into());
+                                return CallbackProgression::Stop;
+                            }
+                        }
+                    }
+                    Ok(false) => {}
+                    Err(err) => {
+                        failure = Some(err.into());
+                        return CallbackProgression::Stop;
+                    }
+                }
+                return CallbackProgression::Continue;
+            }
             if let (Some(guard), Some(a)) = (&also_guard, &mut also)
                 && id.has_event_from(guard)
                 && let Err(err) = (a.on_event)()
@@ -133,6 +172,7 @@ impl StageProcess {
                 return CallbackProgression::Stop;
             }
             if id.has_event_from(&input_guard) {
+                input_events = true;
                 let step = input.take_events().and_then(|end| {
                     ended |= end;
                     drain(input, &self.liveness, &mut on_input)

@@ -163,6 +163,9 @@ pub struct Publisher<H: MessageHeader> {
     ready_acks: std::cell::Cell<usize>,
 }
 
+/// How long a blocked send waits before it is logged.
+const LONG_BLOCK: Duration = Duration::from_secs(2);
+
 /// How long a start-up wait may last.
 enum Patience {
     /// Give up at this instant.
@@ -251,7 +254,17 @@ impl<H: MessageHeader> Publisher<H> {
         fill(floats);
         // SAFETY: as above, the memory holds initialised f32 values.
         let sample = unsafe { sample.assume_init() };
-        let receivers = blocked::while_blocked(meanwhile, || sample.send())
+        // A send held back this long is logged, and again each time the wait
+        // doubles: a graph that stops moving says which edge it waits on.
+        let (blocked_since, mut report_at) = (Instant::now(), LONG_BLOCK);
+        let mut meanwhile = || {
+            if blocked_since.elapsed() >= report_at {
+                tracing::warn!(edge = %self.name, waited_s = report_at.as_secs(), "a send is held back by a reader's full queue");
+                report_at *= 2;
+            }
+            meanwhile();
+        };
+        let receivers = blocked::while_blocked(&mut meanwhile, || sample.send())
             .map_err(|e| TransportError::iceoryx("send on", &self.name, e))?;
         notify(&self.notifier, events::DATA, "notify on", &self.name)?;
         Ok(receivers)
@@ -325,6 +338,9 @@ impl<H: MessageHeader> Publisher<H> {
                 return Ok(ready);
             }
             let seen = self.wait_for_acks(events::READY, 1, SERVE_SLICE * 10, meanwhile)?;
+            if seen > 0 {
+                tracing::debug!(edge = %self.name, ready = self.ready_receivers(), expected = count, "a reader said READY");
+            }
             self.ready_acks.set(self.ready_acks.get() + seen);
         }
     }
@@ -445,12 +461,17 @@ impl<H: MessageHeader> SynchronousMultiplexing for EdgeSubscriber<H> {}
 
 impl<H: MessageHeader> EdgeSubscriber<H> {
     pub fn create(node: &Node, name: &str, options: &EdgeOptions) -> Result<Self, TransportError> {
+        // The listener exists before the subscriber: a running writer sends
+        // to a new subscriber at once, and a DATA event sent before the
+        // listener existed would be lost while the queue stays full: the
+        // writer blocked on it, this reader asleep (a restarted selector
+        // and its sampler, in the soak).
+        let listener = listener(node, name)?;
         let subscriber = open_pubsub::<H>(node, name, options)?
             .subscriber_builder()
             .buffer_size(options.queue)
             .create()
             .map_err(|e| TransportError::iceoryx("create subscriber on", name, e))?;
-        let listener = listener(node, name)?;
         let ack = notifier(node, &ack_name(name))?;
         let edge = Self { name: name.to_string(), subscriber, listener, ack };
         edge.connect()?;
@@ -480,6 +501,7 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
             })
             .map_err(|e| TransportError::iceoryx("wait on listener of", &self.name, e))?;
         if new_publisher {
+            tracing::debug!(edge = %self.name, "a writer appeared; answering its handshake");
             self.connect()?;
         }
         Ok(ended)
@@ -489,6 +511,11 @@ impl<H: MessageHeader> EdgeSubscriber<H> {
     /// end-of-stream.
     pub fn acknowledge_end(&self) -> Result<(), TransportError> {
         notify(&self.ack, events::END_ACKNOWLEDGED, "acknowledge end-of-stream on", &self.name)
+    }
+
+    /// Whether a message is queued (connecting to new writers on the way).
+    pub fn has_messages(&self) -> Result<bool, TransportError> {
+        self.subscriber.has_samples().map_err(|e| TransportError::iceoryx("look for messages on", &self.name, e))
     }
 
     /// The next queued message, if any. The header is not yet validated:

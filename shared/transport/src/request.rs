@@ -132,8 +132,14 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestClient<Req, Resp> {
         self.requests
             .notify_with_custom_event_id(events::DATA)
             .map_err(|e| TransportError::iceoryx("notify server on", &self.name, e))?;
-        let deadline = Instant::now() + timeout;
+        let sent_at = Instant::now();
+        let deadline = sent_at + timeout;
+        let mut report_at = LONG_WAIT;
         loop {
+            if sent_at.elapsed() >= report_at {
+                tracing::warn!(edge = %self.name, waited_s = report_at.as_secs(), "a request is still unanswered");
+                report_at *= 2;
+            }
             // Read before `receive`, which updates the connections: a response
             // sent just before its server went away is still taken below.
             let server_gone = !pending.is_connected();
@@ -165,6 +171,10 @@ impl<Req: MessageHeader, Resp: MessageHeader> RequestClient<Req, Resp> {
         }
     }
 }
+
+/// How long an unanswered request waits before it is logged (and again
+/// each time the wait doubles, until its timeout).
+const LONG_WAIT: Duration = Duration::from_secs(2);
 
 /// Sends one response to the request being handled.
 #[derive(Debug)]
