@@ -8,6 +8,7 @@
 mod bop_csv;
 mod dataset;
 pub mod demo;
+pub mod detection;
 pub(crate) mod estimates;
 pub mod recovery;
 mod score;
@@ -127,6 +128,29 @@ pub struct EvalArgs {
     /// Print one JSON object instead of the table.
     #[arg(long)]
     pub json: bool,
+    /// Find the objects with the detector instead of the ground-truth masks: scores the detector on the
+    /// split's images (AP50 and mask IoU per object) and runs the graph with a detector stage
+    /// (deploy/estimation-detect.toml unless --graph names another).
+    #[arg(long)]
+    pub detect: bool,
+    /// The detector's model directory (detector.onnx, detector.json), with --detect.
+    #[arg(long, default_value = "models/detector-lmo10")]
+    pub detector_model: PathBuf,
+}
+
+/// The graph `--detect` runs when `--graph` was left at its default.
+pub const DETECT_GRAPH: &str = "deploy/estimation-detect.toml";
+
+impl EvalArgs {
+    /// The graph file to run: `--graph`, or with `--detect` and the default
+    /// graph, its detecting twin.
+    fn graph_file(&self) -> PathBuf {
+        if self.detect && self.graph == Path::new("deploy/estimation.toml") {
+            PathBuf::from(DETECT_GRAPH)
+        } else {
+            self.graph.clone()
+        }
+    }
 }
 
 /// What produced the scored estimates.
@@ -170,6 +194,9 @@ struct EvalReport {
     videos: Vec<tracking::VideoSummary>,
     #[serde(skip_serializing_if = "Option::is_none")]
     per_image: Option<PathBuf>,
+    /// With --detect: the detector scored on the same images.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    detection: Option<detection::DetectionSummary>,
     #[serde(flatten)]
     summary: Summary,
 }
@@ -353,6 +380,7 @@ fn run_graph_on(
     args: &EvalArgs,
     images: &[TruthImage],
     objects_dir: &Path,
+    object_ids: Vec<u32>,
 ) -> anyhow::Result<(Vec<Estimated>, PathBuf, Method)> {
     let overrides = Overrides {
         dataset: &args.dataset,
@@ -367,10 +395,16 @@ fn run_graph_on(
         tracking_steps: args.tracking_steps,
         rate_hz: args.rate_hz,
         rgb: !args.no_rgb,
+        detector_model: args.detect.then_some(args.detector_model.as_path()),
+        detector_objects: args.detect.then_some(object_ids),
     };
-    let name = args.graph.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
+    let graph_file = args.graph_file();
+    let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
     let graph = args.out.join(name);
-    let run = graph_with_overrides(&args.graph, &overrides)?;
+    let run = graph_with_overrides(&graph_file, &overrides)?;
+    if args.detect && !run.stages.values().any(|stage| stage.exe_name() == "detector") {
+        bail!("--detect --graph {}: the graph has no stage with exe = \"detector\"", graph_file.display());
+    }
     std::fs::write(&graph, run.to_toml()?).with_context(|| format!("{}", graph.display()))?;
     let recording = graph.with_extension("rec");
     let detections: usize = images.iter().map(|image| image.instances.len()).sum();
@@ -382,7 +416,7 @@ fn run_graph_on(
     let csv = args.out.join(format!("poseflow_{dataset_name}-{}.csv", args.split));
     std::fs::write(&csv, to_csv(&bop_rows(&estimates))).with_context(|| format!("{}", csv.display()))?;
     let method = Method::Graph {
-        graph: args.graph.clone(),
+        graph: graph_file,
         model: args.model.clone(),
         selection: args.selection.name(),
         refine: args.refine,
@@ -491,10 +525,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         check_model_objects(&args.model, &library)?;
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
+    let detection = args.detect.then(|| score_detector(args)).transpose()?;
 
     let (estimates, csv, method) = match &args.results {
         Some(results) => (read_results(results)?, results.clone(), Method::Results { results: results.clone() }),
-        None => run_graph_on(args, &images, &objects_dir)?,
+        None => run_graph_on(args, &images, &objects_dir, objects.keys().copied().collect())?,
     };
     let stages = args.results.is_none().then(|| stage_counts(&args.out.join("run.json"))).transpose()?;
     let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
@@ -514,6 +549,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         stages,
         videos,
         per_image,
+        detection,
         summary: summarise(&outcomes),
     };
     let instances_path = args.out.join("instances.csv");
@@ -523,6 +559,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     std::fs::write(&summary_path, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("{}", summary_path.display()))?;
     print_report(&report, args.json, print_table)
+}
+
+/// The detector alone on the split's images (`--detect`).
+fn score_detector(args: &EvalArgs) -> anyhow::Result<detection::DetectionSummary> {
+    let params = poseflow_detector::DetectorParams::from_json(&serde_json::json!({"model": args.detector_model}))?;
+    let mut detector = poseflow_detector::Detector::new(params)
+        .with_context(|| format!("--detector-model {}", args.detector_model.display()))?;
+    detection::evaluate_split(&args.dataset.join(&args.split), &mut detector)
 }
 
 fn optional(value: Option<f64>, precision: usize) -> String {
@@ -596,6 +640,9 @@ fn print_table(report: &EvalReport) {
     if let Method::Graph { .. } = report.method {
         println!("BOP19 results: {}", report.csv.display());
     }
+    if let Some(d) = &report.detection {
+        print_detection(d);
+    }
     for video in &report.videos {
         println!(
             "\nscene {} as a video of {} images: 5°5cm {:.1} %, 10°5cm {:.1} % of object-images",
@@ -606,4 +653,23 @@ fn print_table(report: &EvalReport) {
     if let Some(per_image) = &report.per_image {
         println!("per image: {}", per_image.display());
     }
+}
+
+fn print_detection(d: &detection::DetectionSummary) {
+    println!(
+        "\ndetector on the same {} images (masks against the annotated visible masks; instances under 10 % visible ignored):",
+        d.images
+    );
+    println!("object  instances  detections  AP50 %  mask IoU %");
+    for (obj_id, o) in &d.per_object {
+        println!(
+            "{obj_id:>6}  {:>9}  {:>10}  {:>6}  {:>10}",
+            o.instances,
+            o.detections,
+            optional(o.ap50, 1),
+            optional(o.mask_iou, 1)
+        );
+    }
+    println!("{:>6}  {:>9}  {:>10}  {:>6}  {:>10}", "mean", "", "", optional(d.ap50, 1), optional(d.mask_iou, 1));
+    println!("detector ms per image p50/p99 {:.1}/{:.1} (in this process)", d.ms_p50, d.ms_p99);
 }

@@ -4,15 +4,8 @@ use std::path::PathBuf;
 /// output and what was expected.
 #[derive(Debug, thiserror::Error)]
 pub enum InferenceError {
-    #[error(
-        "ONNX Runtime not found. Set ORT_DYLIB_PATH to libonnxruntime.so (1.17 or newer), or install the Python \
-         package into the project's environment: `deploy/setup` (pip install onnxruntime==1.32.0 into \
-         target/python-venv). Searched: {searched}"
-    )]
-    RuntimeMissing { searched: String },
-
-    #[error("{path}: cannot load ONNX Runtime: {detail}")]
-    RuntimeLoad { path: PathBuf, detail: String },
+    #[error(transparent)]
+    Onnx(#[from] poseflow_onnx::OnnxError),
 
     #[error("{path}: {detail}")]
     Model { path: PathBuf, detail: String },

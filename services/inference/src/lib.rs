@@ -7,7 +7,6 @@
 mod error;
 mod grasp_model;
 mod model;
-pub mod onnx_library;
 pub mod stage;
 
 pub use error::InferenceError;

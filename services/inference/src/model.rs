@@ -22,8 +22,8 @@
 use std::path::{Path, PathBuf};
 
 use ort::session::Session;
-use ort::session::builder::GraphOptimizationLevel;
-use ort::value::{TensorElementType, TensorRef, ValueType};
+use ort::value::{TensorElementType, TensorRef};
+pub(crate) use poseflow_onnx::{check_ports, port};
 
 use crate::InferenceError;
 
@@ -155,70 +155,12 @@ struct Gathered {
     cross_kv: Vec<f32>,
 }
 
-/// An expected input or output: name, element type, dimensions (-1 = any).
-pub(crate) struct Port {
-    name: &'static str,
-    ty: TensorElementType,
-    dims: Vec<i64>,
-}
-
-pub(crate) fn port(name: &'static str, ty: TensorElementType, dims: &[i64]) -> Port {
-    Port { name, ty, dims: dims.to_vec() }
-}
-
-/// Checks a session's inputs or outputs against the contract.
-pub(crate) fn check_ports(
-    path: &Path,
-    what: &str,
-    found: &[ort::value::Outlet],
-    expected: &[Port],
-) -> Result<(), InferenceError> {
-    let bad = |detail: String| InferenceError::Model { path: path.to_path_buf(), detail };
-    let names: Vec<&str> = found.iter().map(|o| o.name()).collect();
-    if names.len() != expected.len() || expected.iter().any(|e| !names.contains(&e.name)) {
-        return Err(bad(format!(
-            "{what} are {names:?}, expected {:?}",
-            expected.iter().map(|e| e.name).collect::<Vec<_>>()
-        )));
-    }
-    for e in expected {
-        let outlet = found.iter().find(|o| o.name() == e.name).expect("checked above");
-        let ValueType::Tensor { ty, shape, .. } = outlet.dtype() else {
-            return Err(bad(format!("{what} `{}` is not a tensor", e.name)));
-        };
-        let dims: Vec<i64> = shape.iter().copied().collect();
-        let fits = *ty == e.ty
-            && dims.len() == e.dims.len()
-            && dims.iter().zip(&e.dims).all(|(&d, &want)| want < 0 || d < 0 || d == want);
-        if !fits {
-            return Err(bad(format!(
-                "{what} `{}` is {ty:?} {dims:?}, expected {:?} {:?} (-1 = any)",
-                e.name, e.ty, e.dims
-            )));
-        }
-    }
-    Ok(())
-}
-
 pub(crate) fn session(path: &Path, threads: usize) -> Result<Session, InferenceError> {
-    let model_error = |detail: String| InferenceError::Model { path: path.to_path_buf(), detail };
-    if !path.is_file() {
-        return Err(model_error(
-            "no such file (a PoseFlow model directory holds encoder.onnx and velocity.onnx, a grasp flow model grasp_encoder.onnx and grasp_velocity.onnx)".into(),
-        ));
-    }
-    let environment = crate::onnx_library::environment()?;
-    Session::builder(environment)
-        .and_then(|b| b.with_optimization_level(GraphOptimizationLevel::Level3).map_err(Into::into))
-        .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
-        // Idle pool threads sleep instead of spinning: a spinning pool of
-        // the encoder steals a core from the velocity network and from the
-        // other stages (2 cores: tracking 15.6 → 28.1 frames/s in-process,
-        // 23.0 → 30.5 through the graph; `poseflow bench pipeline`).
-        .and_then(|b| b.with_intra_op_spinning(false).map_err(Into::into))
-        .and_then(|b| b.with_inter_op_spinning(false).map_err(Into::into))
-        .and_then(|mut b| b.commit_from_file(path))
-        .map_err(|e| model_error(e.to_string()))
+    Ok(poseflow_onnx::session(
+        path,
+        threads,
+        "a PoseFlow model directory holds encoder.onnx and velocity.onnx, a grasp flow model grasp_encoder.onnx and grasp_velocity.onnx",
+    )?)
 }
 
 /// The fixed token count T of a velocity network's `condition` input
@@ -239,7 +181,7 @@ pub(crate) fn condition_tokens(velocity: &Session, path: &Path) -> Result<i64, I
 /// The two outputs every velocity network has: `v_rot` and `v_pos`, M × 3.
 pub(crate) fn check_velocity_outputs(velocity: &Session, path: &Path) -> Result<(), InferenceError> {
     use TensorElementType::Float32 as F;
-    check_ports(path, "outputs", velocity.outputs(), &[port("v_rot", F, &[-1, 3]), port("v_pos", F, &[-1, 3])])
+    Ok(check_ports(path, "outputs", velocity.outputs(), &[port("v_rot", F, &[-1, 3]), port("v_pos", F, &[-1, 3])])?)
 }
 
 /// A metadata value parsed as JSON into `T`.

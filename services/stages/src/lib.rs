@@ -9,6 +9,7 @@ pub fn registry() -> Registry {
         .with(poseflow_smoke::registrations())
         .with(poseflow_replay::registrations())
         .with(poseflow_ingest::registrations())
+        .with(poseflow_detector::registrations())
         .with(poseflow_inference::registrations())
         .with(poseflow_sampler::registrations())
         .with(poseflow_selector::registrations())

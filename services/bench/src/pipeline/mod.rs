@@ -48,6 +48,12 @@ pub struct PipelineArgs {
     #[arg(long, default_value = "deploy/tracking.toml")]
     pub tracking_graph: PathBuf,
 
+    /// Measure the graphs with the detector stage between the frame source and ingest
+    /// (deploy/estimation-detect.toml, deploy/tracking-detect.toml) where the graph options were left at
+    /// their defaults; the detector reports only the sequence's objects.
+    #[arg(long)]
+    pub detect: bool,
+
     /// What to measure (comma-separated).
     #[arg(long, value_delimiter = ',', default_values = ["estimation", "tracking"])]
     pub modes: Vec<Mode>,
@@ -266,19 +272,26 @@ fn sequence_sets(args: &PipelineArgs, graph: &poseflow_graph::Graph, source: &st
     .iter()
     .map(|assignment| format!("{source}.{assignment}"))
     .collect();
-    // Selectors that score against meshes need the sequence's.
+    // Selectors that score against meshes need the sequence's, and
+    // detectors report only the objects those meshes are of.
     for selector in graph.stages.values().filter(|s| s.exe_name() == "selector" && s.params.get("models").is_some()) {
         sets.push(format!("{}.models={models}", selector.name));
+    }
+    for detector in graph.stages.values().filter(|s| s.exe_name() == "detector") {
+        sets.push(format!("{}.objects=[{}]", detector.name, ids.join(", ")));
     }
     sets.extend(args.run.set.iter().cloned());
     Ok(sets)
 }
 
 fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::Result<ModeFigures> {
-    let graph_file = match mode {
+    let chosen = match mode {
         Mode::Estimation => &args.estimation_graph,
         Mode::Tracking => &args.tracking_graph,
     };
+    let default = PathBuf::from(format!("deploy/{}.toml", mode.name()));
+    let detect_twin = PathBuf::from(format!("deploy/{}-detect.toml", mode.name()));
+    let graph_file = if args.detect && *chosen == default { &detect_twin } else { chosen };
     let search = poseflow_launch::search_path(&args.run.stage_path);
     let mut graph = poseflow_graph::load(graph_file, &search)?;
     let source = graph

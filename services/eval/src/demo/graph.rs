@@ -28,6 +28,11 @@ pub struct Overrides<'a> {
     pub rate_hz: Option<f64>,
     /// `false`: the ingest stage hands the network no image.
     pub rgb: bool,
+    /// The model of the graph's detector stages, when set.
+    pub detector_model: Option<&'a Path>,
+    /// The objects the detector stages report (those the selector has
+    /// models of), when set.
+    pub detector_objects: Option<Vec<u32>>,
 }
 
 fn absolute(path: &Path) -> anyhow::Result<String> {
@@ -41,10 +46,20 @@ fn absolute(path: &Path) -> anyhow::Result<String> {
 pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> anyhow::Result<Graph> {
     let mut graph = poseflow_graph::load(graph_file, &poseflow_launch::search_path(&[]))
         .with_context(|| format!("{}: cannot load the graph (run from the repository root)", graph_file.display()))?;
-    let stages: Vec<(String, bool)> =
-        graph.stages.iter().map(|(name, stage)| (name.clone(), stage.exe_name() == "truth-prior")).collect();
-    for (name, truth_prior) in stages {
+    let stages: Vec<(String, String)> =
+        graph.stages.iter().map(|(name, stage)| (name.clone(), stage.exe_name().to_string())).collect();
+    for (name, exe) in stages {
         let stage = name.as_str();
+        if exe == "detector" {
+            if let Some(model) = overrides.detector_model {
+                graph.set(stage, &["model"], absolute(model)?.into())?;
+            }
+            if let Some(objects) = &overrides.detector_objects {
+                graph.set(stage, &["objects"], objects.clone().into())?;
+            }
+            continue;
+        }
+        let truth_prior = exe == "truth-prior";
         if truth_prior {
             // The priors name the frame source's images.
             graph.set(stage, &["dataset"], absolute(overrides.dataset)?.into())?;

@@ -74,9 +74,14 @@ pub struct DemoArgs {
     /// BOP models directory of the objects to render and score.
     #[arg(long, default_value = "objects/lmo")]
     pub objects: PathBuf,
-    /// The graph to run [default: deploy/estimation.toml, with --track deploy/tracking.toml].
+    /// The graph to run [default: deploy/estimation.toml, with --track deploy/tracking.toml; with --detect
+    /// their -detect twins].
     #[arg(long)]
     pub graph: Option<PathBuf>,
+    /// Find the objects with the detector stage (models/detector-lmo10) instead of the rendered ground-truth
+    /// masks.
+    #[arg(long)]
+    pub detect: bool,
     /// How the selector chooses the pose.
     #[arg(long, value_enum, default_value_t = SelectionArg::Sdf)]
     pub selection: SelectionArg,
@@ -316,6 +321,8 @@ fn render_and_run(
         tracking_steps: None,
         rate_hz: args.track.then_some(args.rate_hz),
         rgb: true,
+        detector_model: None,
+        detector_objects: Some(library.objects.iter().map(|o| o.obj_id).collect()),
     };
     let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
     let graph = args.out.join(name);
@@ -350,18 +357,23 @@ fn check(args: &DemoArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `deploy/<name>.toml`, or its detecting twin.
+fn default_graph(name: &str, detect: bool) -> PathBuf {
+    PathBuf::from(format!("deploy/{name}{}.toml", if detect { "-detect" } else { "" }))
+}
+
 pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     check(args)?;
     let library = ModelLibrary::load(&args.objects, &[])
         .with_context(|| format!("--objects {}: cannot load the object models", args.objects.display()))?;
     if args.track {
-        let graph = args.graph.clone().unwrap_or_else(|| PathBuf::from("deploy/tracking.toml"));
+        let graph = args.graph.clone().unwrap_or_else(|| default_graph("tracking", args.detect));
         let events = VideoEvents { occlusions: args.occlusions, teleports: args.teleports };
         let path = CameraPath::Orbit { step_deg: args.orbit_step_deg, events };
         let recording = render_and_run(args, &library, (args.frames, path), &graph, "estimates")?;
         return tracking::report(args, &library, &recording);
     }
-    let graph = args.graph.clone().unwrap_or_else(|| PathBuf::from("deploy/estimation.toml"));
+    let graph = args.graph.clone().unwrap_or_else(|| default_graph("estimation", args.detect));
     let recording = render_and_run(args, &library, (1, CameraPath::Random), &graph, "hypotheses,estimates")?;
     let recorded = read_recording(&recording)?;
 

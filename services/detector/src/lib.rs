@@ -1,0 +1,186 @@
+//! Detector stage: finds the known objects in an RGB-D frame and publishes
+//! the frame again with its detections (object id, instance, score, box and
+//! visible mask), the Frame contract that ingest reads. It stands between a
+//! frame source that has no masks (a camera, a dataset without ground
+//! truth) and ingest.
+//!
+//! `mode = "network"` (the default) runs a small RGB-D segmentation network
+//! exported to ONNX ([`network`]), trained on the project's renders by
+//! `training/poseflow_train/detector.py`. Each object's pixels become
+//! detections by [`instances::detections`].
+
+pub mod instances;
+pub mod network;
+pub mod stage;
+
+mod error;
+
+use std::path::PathBuf;
+
+pub use error::DetectorError;
+pub use instances::{Found, InstanceRules, LabelMap};
+pub use network::{ImageView, SegmentationNetwork};
+use serde::Deserialize;
+
+/// One detection in frame pixels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DetectedObject {
+    pub obj_id: u32,
+    /// 0 for an object's first (largest) instance, 1 for its second, …
+    pub instance: u32,
+    /// Mean probability of the object over its mask, 0–1.
+    pub score: f32,
+    /// `x, y, width, height` in pixels.
+    pub bbox: [u32; 4],
+    /// `width · height` values, row-major over the box: whether the object
+    /// is seen at that pixel.
+    pub mask: Vec<bool>,
+}
+
+/// Parameters of the detector stage (`config/detector.toml` and a graph's
+/// `params`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DetectorParams {
+    /// `network`: the learned detector.
+    #[serde(default)]
+    pub mode: Mode,
+    /// Directory of the network (`detector.onnx`, `detector.json`).
+    #[serde(default = "default_model")]
+    pub model: PathBuf,
+    /// ONNX Runtime threads.
+    #[serde(default = "one")]
+    pub threads: usize,
+    /// Only these objects are reported (empty: every object the network
+    /// knows).
+    #[serde(default)]
+    pub objects: Vec<u32>,
+    /// Regions smaller than this many frame pixels are dropped.
+    #[serde(default = "default_min_pixels")]
+    pub min_pixels: usize,
+    /// Regions of one object at most this many pixels apart are one instance.
+    #[serde(default = "default_merge_gap")]
+    pub merge_gap_px: usize,
+    /// Instances reported per object, largest first.
+    #[serde(default = "one")]
+    pub max_instances: usize,
+    /// Instances whose mean probability is lower are dropped.
+    #[serde(default = "default_min_score")]
+    pub min_score: f32,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Mode {
+    #[default]
+    Network,
+}
+
+fn default_model() -> PathBuf {
+    PathBuf::from("models/detector-lmo10")
+}
+fn one() -> usize {
+    1
+}
+fn default_min_pixels() -> usize {
+    64
+}
+fn default_merge_gap() -> usize {
+    16
+}
+fn default_min_score() -> f32 {
+    0.5
+}
+
+impl DetectorParams {
+    pub fn from_json(value: &serde_json::Value) -> Result<Self, DetectorError> {
+        let params: Self =
+            serde_json::from_value(value.clone()).map_err(|e| DetectorError::ParamsFormat(e.to_string()))?;
+        let bad = |key: &str, detail: String| Err(DetectorError::Params { key: key.into(), detail });
+        if !(1..=64).contains(&params.threads) {
+            return bad("threads", format!("expected 1 to 64, got {}", params.threads));
+        }
+        if params.max_instances == 0 {
+            return bad("max_instances", "expected at least 1".into());
+        }
+        if !(0.0..=1.0).contains(&params.min_score) {
+            return bad("min_score", format!("expected a probability from 0 to 1, got {}", params.min_score));
+        }
+        Ok(params)
+    }
+
+    pub fn rules(&self) -> InstanceRules {
+        InstanceRules {
+            min_pixels: self.min_pixels,
+            merge_gap_px: self.merge_gap_px,
+            max_instances: self.max_instances,
+            min_score: self.min_score,
+        }
+    }
+}
+
+/// A ready detector: the network and the rules that turn its labels into
+/// detections.
+#[derive(Debug)]
+pub struct Detector {
+    network: SegmentationNetwork,
+    params: DetectorParams,
+}
+
+impl Detector {
+    pub fn new(params: DetectorParams) -> Result<Self, DetectorError> {
+        let network = SegmentationNetwork::load(&params.model, params.threads)?;
+        let known = network.meta().object_ids.clone();
+        let unknown: Vec<u32> = params.objects.iter().copied().filter(|id| !known.contains(id)).collect();
+        if !unknown.is_empty() {
+            tracing::warn!(
+                objects = ?unknown,
+                model = %params.model.display(),
+                known = ?known,
+                "objects the network does not know are never detected"
+            );
+        }
+        let mut params = params;
+        params.objects.retain(|id| known.contains(id));
+        if params.objects.is_empty() && !unknown.is_empty() {
+            return Err(DetectorError::Params {
+                key: "objects".into(),
+                detail: format!(
+                    "none of {unknown:?} is known to the network at {} ({known:?})",
+                    params.model.display()
+                ),
+            });
+        }
+        tracing::info!(model = %params.model.display(), objects = ?params.objects, "detector ready");
+        Ok(Self { network, params })
+    }
+
+    /// The objects this detector can report.
+    pub fn object_ids(&self) -> Vec<u32> {
+        let known = &self.network.meta().object_ids;
+        if self.params.objects.is_empty() { known.clone() } else { self.params.objects.clone() }
+    }
+
+    /// The detections of one frame: the heart of the stage.
+    pub fn detect(&mut self, image: &ImageView<'_>) -> Result<Found, DetectorError> {
+        let map = self.network.segment(image)?;
+        let mut found = instances::detections(
+            &map,
+            &self.network.meta().object_ids,
+            image.width,
+            image.height,
+            &self.params.rules(),
+        );
+        if !self.params.objects.is_empty() {
+            found.objects.retain(|o| self.params.objects.contains(&o.obj_id));
+        }
+        Ok(found)
+    }
+}
+
+/// The stages of this crate, by executable name.
+pub fn registrations() -> Vec<poseflow_runtime::Registration> {
+    vec![poseflow_runtime::Registration::transform("detector", |wiring| {
+        DetectorParams::from_json(&wiring.params).and_then(stage::DetectorStage::new)
+    })]
+}

@@ -1,0 +1,208 @@
+//! The learned detector: a small RGB-D segmentation network (ONNX) that
+//! labels each pixel of a downsampled frame with the object seen there.
+//!
+//! A model directory holds `detector.onnx` and `detector.json`:
+//!
+//! - input `rgbd`, float32 N × 5 × H × W, channels RGB / 255, depth in
+//!   metres / `depth_scale_m` (0 = no measurement), and 1 where depth was
+//!   measured; H × W is the frame sampled at the centre pixel of each
+//!   `down` × `down` block (a 640 × 480 frame: 120 × 160 with `down` 4);
+//! - output `probabilities`, float32 N × (1 + K) × H × W: class 0 is
+//!   background, class k the k-th of `object_ids`.
+
+use std::path::{Path, PathBuf};
+
+use ort::session::Session;
+use ort::value::{TensorElementType, TensorRef};
+use serde::Deserialize;
+
+use crate::DetectorError;
+use crate::instances::LabelMap;
+
+/// The format `detector.json` must declare.
+pub const FORMAT: &str = "poseflow-detector/1";
+
+/// `detector.json`.
+#[derive(Debug, Clone, Deserialize)]
+pub struct DetectorMeta {
+    pub format: String,
+    pub object_ids: Vec<u32>,
+    pub input: InputSpec,
+}
+
+/// The network's input size and scaling.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq)]
+pub struct InputSpec {
+    pub height: usize,
+    pub width: usize,
+    pub down: usize,
+    pub depth_scale_m: f32,
+}
+
+/// One RGB-D frame as the Frame contract carries it: `rgb` 3·W·H
+/// row-major interleaved 0–255, `depth` W·H metres (0 = none).
+#[derive(Debug, Clone, Copy)]
+pub struct ImageView<'a> {
+    pub rgb: &'a [f32],
+    pub depth: &'a [f32],
+    pub width: usize,
+    pub height: usize,
+}
+
+/// The network's input for one frame, channel-major (5 × H × W). Each input
+/// pixel is the frame pixel at the centre of its block, the frame stretched
+/// to H × W when its size is not `down` times the input's. Depth is rounded
+/// to whole millimetres, as the training data stores it.
+pub fn network_input(image: &ImageView<'_>, spec: &InputSpec) -> Vec<f32> {
+    let (h, w) = (spec.height, spec.width);
+    let plane = h * w;
+    let mut out = vec![0.0; 5 * plane];
+    for y in 0..h {
+        let v = ((2 * y + 1) * image.height / (2 * h)).min(image.height - 1);
+        for x in 0..w {
+            let u = ((2 * x + 1) * image.width / (2 * w)).min(image.width - 1);
+            let pixel = v * image.width + u;
+            let i = y * w + x;
+            for c in 0..3 {
+                out[c * plane + i] = image.rgb[3 * pixel + c] / 255.0;
+            }
+            let depth = image.depth[pixel];
+            let depth_mm = if depth.is_finite() && depth > 0.0 { (depth * 1000.0).round().min(65535.0) } else { 0.0 };
+            out[3 * plane + i] = depth_mm / (1000.0 * spec.depth_scale_m);
+            out[4 * plane + i] = if depth_mm > 0.0 { 1.0 } else { 0.0 };
+        }
+    }
+    out
+}
+
+/// Each pixel's most probable class and its probability, from `N = 1`
+/// probabilities of `classes` planes.
+pub fn label_map(probabilities: &[f32], classes: usize, spec: &InputSpec) -> LabelMap {
+    let plane = spec.height * spec.width;
+    let mut labels = vec![0u8; plane];
+    let mut confidence = vec![0.0f32; plane];
+    for i in 0..plane {
+        let (mut best, mut p) = (0usize, f32::NEG_INFINITY);
+        for c in 0..classes {
+            let q = probabilities[c * plane + i];
+            if q > p {
+                (best, p) = (c, q);
+            }
+        }
+        labels[i] = best as u8;
+        confidence[i] = p;
+    }
+    LabelMap { width: spec.width, height: spec.height, labels, confidence }
+}
+
+/// A loaded detector network.
+#[derive(Debug)]
+pub struct SegmentationNetwork {
+    session: Session,
+    meta: DetectorMeta,
+    path: PathBuf,
+}
+
+impl SegmentationNetwork {
+    /// Loads `dir/detector.onnx` described by `dir/detector.json`, checking
+    /// both against the contract above.
+    pub fn load(dir: &Path, threads: usize) -> Result<Self, DetectorError> {
+        let meta_path = dir.join("detector.json");
+        let bad = |detail: String| DetectorError::Model { path: meta_path.clone(), detail };
+        let text = std::fs::read_to_string(&meta_path).map_err(|e| {
+            bad(format!("cannot read ({e}); a detector model directory holds detector.json and detector.onnx"))
+        })?;
+        let meta: DetectorMeta = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        if meta.format != FORMAT {
+            return Err(bad(format!("format is `{}`, expected `{FORMAT}`", meta.format)));
+        }
+        let classes = meta.object_ids.len() + 1;
+        if meta.object_ids.is_empty() || classes > 256 {
+            return Err(bad(format!("object_ids: expected 1 to 255 ids, found {}", meta.object_ids.len())));
+        }
+        let spec = meta.input;
+        if spec.height == 0
+            || spec.width == 0
+            || spec.down == 0
+            || spec.depth_scale_m.is_nan()
+            || spec.depth_scale_m <= 0.0
+        {
+            return Err(bad(format!("input: expected positive height, width, down and depth_scale_m, found {spec:?}")));
+        }
+        let path = dir.join("detector.onnx");
+        let session = poseflow_onnx::session(&path, threads, "the detector network beside detector.json")?;
+        use TensorElementType::Float32 as F;
+        let (h, w) = (spec.height as i64, spec.width as i64);
+        poseflow_onnx::check_ports(
+            &path,
+            "inputs",
+            session.inputs(),
+            &[poseflow_onnx::port("rgbd", F, &[-1, 5, h, w])],
+        )?;
+        poseflow_onnx::check_ports(
+            &path,
+            "outputs",
+            session.outputs(),
+            &[poseflow_onnx::port("probabilities", F, &[-1, classes as i64, h, w])],
+        )?;
+        Ok(Self { session, meta, path })
+    }
+
+    pub fn meta(&self) -> &DetectorMeta {
+        &self.meta
+    }
+
+    /// Labels every input pixel of one frame.
+    pub fn segment(&mut self, image: &ImageView<'_>) -> Result<LabelMap, DetectorError> {
+        let spec = self.meta.input;
+        let input = network_input(image, &spec);
+        let run_error = |e: ort::Error| DetectorError::Run { path: self.path.clone(), detail: e.to_string() };
+        let tensor = TensorRef::from_array_view(([1, 5, spec.height, spec.width], &input[..])).map_err(run_error)?;
+        let outputs = self.session.run(ort::inputs!["rgbd" => tensor]).map_err(run_error)?;
+        let (_, probabilities) = outputs["probabilities"].try_extract_tensor::<f32>().map_err(run_error)?;
+        Ok(label_map(probabilities, self.meta.object_ids.len() + 1, &spec))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SPEC: InputSpec = InputSpec { height: 2, width: 3, down: 2, depth_scale_m: 2.0 };
+
+    #[test]
+    fn the_input_takes_each_blocks_centre_pixel_and_scales_it() {
+        // A 6 × 4 frame whose pixel (u, v) has red u, green v, blue 255 and
+        // depth (u + 10v) mm, except pixel (3, 1) which has none.
+        let (fw, fh) = (6, 4);
+        let mut rgb = Vec::new();
+        let mut depth = Vec::new();
+        for v in 0..fh {
+            for u in 0..fw {
+                rgb.extend([u as f32, v as f32, 255.0]);
+                depth.push(if (u, v) == (3, 1) { 0.0 } else { (u + 10 * v) as f32 / 1000.0 });
+            }
+        }
+        let input = network_input(&ImageView { rgb: &rgb, depth: &depth, width: fw, height: fh }, &SPEC);
+        let plane = 6;
+        // Input pixel (x, y) samples frame pixel (2x + 1, 2y + 1).
+        assert_eq!(&input[..plane], &[1.0, 3.0, 5.0, 1.0, 3.0, 5.0].map(|u: f32| u / 255.0));
+        assert_eq!(&input[plane..2 * plane], &[1.0, 1.0, 1.0, 3.0, 3.0, 3.0].map(|v: f32| v / 255.0));
+        assert!(input[2 * plane..3 * plane].iter().all(|&b| b == 1.0));
+        assert_eq!(input[3 * plane + 3], 31.0 / 2000.0);
+        assert_eq!((input[3 * plane + 1], input[4 * plane + 1]), (0.0, 0.0), "no depth at (3, 1)");
+        assert_eq!(input[4 * plane], 1.0);
+    }
+
+    #[test]
+    fn labels_are_the_most_probable_class() {
+        // Three classes over six pixels; pixel i's winner is i % 3.
+        let mut probabilities = vec![0.1; 3 * 6];
+        for i in 0..6 {
+            probabilities[(i % 3) * 6 + i] = 0.8;
+        }
+        let map = label_map(&probabilities, 3, &SPEC);
+        assert_eq!(map.labels, [0, 1, 2, 0, 1, 2]);
+        assert!(map.confidence.iter().all(|&c| c == 0.8));
+    }
+}

@@ -1,0 +1,292 @@
+//! `poseflow eval --detect`, the detector's half: the detector run over
+//! every image of a BOP split, its masks scored against the visible masks
+//! of the annotated instances.
+//!
+//! A detection matches the unmatched instance of its object with the
+//! highest mask IoU; at IoU ≥ 0.5 it is a true positive (AP50), else a
+//! false positive. Instances under 10 % visible (BOP19's threshold) are
+//! ignored: a detection matching one is neither. AP is the area under the
+//! precision–recall curve with precision made monotone (all points, as
+//! PASCAL VOC 2010+). Mask IoU per object is the mean over its instances
+//! of the best IoU any detection of the object reached with it (0 when
+//! none overlaps): how well the masks fit, misses included.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::Context;
+use poseflow_detector::{DetectedObject, Detector, ImageView};
+use poseflow_scene::bop::{
+    ByImage, CameraEntry, GtEntry, GtInfoEntry, SceneDir, read_depth_png, read_json, read_mask_png, read_rgb_png,
+};
+use serde::Serialize;
+
+use crate::dataset::MIN_VISIB_FRACT;
+
+/// One annotated instance's visible mask over the whole image.
+#[derive(Debug, Clone)]
+pub struct TruthMask {
+    pub obj_id: u32,
+    pub mask: Vec<bool>,
+    /// Under [`MIN_VISIB_FRACT`] visible: neither hit nor missed.
+    pub ignored: bool,
+}
+
+/// IoU of a detection (its box and mask) with a whole-image mask of
+/// `width` columns.
+pub fn mask_iou(detection: &DetectedObject, truth: &[bool], width: usize) -> f64 {
+    let [x, y, w, h] = detection.bbox.map(|v| v as usize);
+    let (mut both, mut detected) = (0usize, 0usize);
+    for row in 0..h {
+        for col in 0..w {
+            if detection.mask[row * w + col] {
+                detected += 1;
+                both += usize::from(truth[(y + row) * width + x + col]);
+            }
+        }
+    }
+    let truth_count = truth.iter().filter(|&&t| t).count();
+    let union = detected + truth_count - both;
+    if union == 0 { 0.0 } else { both as f64 / union as f64 }
+}
+
+/// Per object: detections as (score, true positive), instances counted and
+/// the IoU of each counted instance with its match (0 if missed).
+#[derive(Debug, Clone, Default)]
+pub struct ObjectTally {
+    pub detections: Vec<(f32, bool)>,
+    pub instances: usize,
+    pub ious: Vec<f64>,
+}
+
+/// Matches one image's detections against its instances and adds them to
+/// `tallies`.
+pub fn tally_image(
+    detections: &[DetectedObject],
+    truths: &[TruthMask],
+    width: usize,
+    tallies: &mut BTreeMap<u32, ObjectTally>,
+) {
+    let mut order: Vec<usize> = (0..detections.len()).collect();
+    order.sort_by(|&a, &b| detections[b].score.total_cmp(&detections[a].score));
+    let mut best_iou = vec![0.0f64; truths.len()];
+    let mut taken = vec![false; truths.len()];
+    for truth in truths.iter().filter(|t| !t.ignored) {
+        tallies.entry(truth.obj_id).or_default().instances += 1;
+    }
+    for i in order {
+        let detection = &detections[i];
+        let best = truths
+            .iter()
+            .enumerate()
+            .filter(|(k, t)| t.obj_id == detection.obj_id && !taken[*k])
+            .map(|(k, t)| (k, mask_iou(detection, &t.mask, width)))
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        let tally = tallies.entry(detection.obj_id).or_default();
+        match best {
+            Some((k, iou)) if iou >= 0.5 => {
+                taken[k] = true;
+                best_iou[k] = iou;
+                if !truths[k].ignored {
+                    tally.detections.push((detection.score, true));
+                }
+            }
+            Some((k, _)) if truths[k].ignored => {}
+            _ => tally.detections.push((detection.score, false)),
+        }
+        if let Some((k, iou)) = best
+            && !taken[k]
+        {
+            best_iou[k] = best_iou[k].max(iou);
+        }
+    }
+    for (k, truth) in truths.iter().enumerate().filter(|(_, t)| !t.ignored) {
+        tallies.entry(truth.obj_id).or_default().ious.push(best_iou[k]);
+    }
+}
+
+/// Average precision of detections `(score, true positive)` over
+/// `positives` instances; `None` when there are none to find.
+pub fn average_precision(detections: &[(f32, bool)], positives: usize) -> Option<f64> {
+    if positives == 0 {
+        return None;
+    }
+    let mut sorted = detections.to_vec();
+    sorted.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let (mut tp, mut fp) = (0usize, 0usize);
+    let mut curve = Vec::with_capacity(sorted.len());
+    for (_, hit) in sorted {
+        if hit {
+            tp += 1
+        } else {
+            fp += 1
+        }
+        curve.push((tp as f64 / positives as f64, tp as f64 / (tp + fp) as f64));
+    }
+    // Precision made monotone from the right, then summed over recall steps.
+    for i in (0..curve.len().saturating_sub(1)).rev() {
+        curve[i].1 = curve[i].1.max(curve[i + 1].1);
+    }
+    let mut ap = 0.0;
+    let mut last_recall = 0.0;
+    for (recall, precision) in curve {
+        ap += (recall - last_recall) * precision;
+        last_recall = recall;
+    }
+    Some(ap)
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ObjectDetection {
+    pub instances: usize,
+    pub detections: usize,
+    /// AP at mask IoU 0.5, %.
+    pub ap50: Option<f64>,
+    /// Mean over the instances of the best IoU of a detection with it
+    /// (0 when none overlaps), %.
+    pub mask_iou: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct DetectionSummary {
+    pub images: usize,
+    pub per_object: BTreeMap<u32, ObjectDetection>,
+    /// Means over the objects with instances, %.
+    pub ap50: Option<f64>,
+    pub mask_iou: Option<f64>,
+    /// Detector milliseconds per image, median and 99th percentile (this
+    /// process, one image at a time).
+    pub ms_p50: f64,
+    pub ms_p99: f64,
+}
+
+pub fn summarise(tallies: &BTreeMap<u32, ObjectTally>, images: usize, mut times_ms: Vec<f64>) -> DetectionSummary {
+    let per_object: BTreeMap<u32, ObjectDetection> = tallies
+        .iter()
+        .map(|(&obj, t)| {
+            let mask_iou = (!t.ious.is_empty()).then(|| 100.0 * t.ious.iter().sum::<f64>() / t.ious.len() as f64);
+            let ap50 = average_precision(&t.detections, t.instances).map(|ap| 100.0 * ap);
+            (obj, ObjectDetection { instances: t.instances, detections: t.detections.len(), ap50, mask_iou })
+        })
+        .collect();
+    let mean = |values: Vec<f64>| (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64);
+    times_ms.sort_by(f64::total_cmp);
+    let quantile = |q: f64| times_ms.get(((times_ms.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(0.0);
+    DetectionSummary {
+        images,
+        ap50: mean(per_object.values().filter_map(|o| o.ap50).collect()),
+        mask_iou: mean(per_object.values().filter_map(|o| o.mask_iou).collect()),
+        ms_p50: quantile(0.5),
+        ms_p99: quantile(0.99),
+        per_object,
+    }
+}
+
+/// Runs `detector` over every image of `split_dir` (a BOP split) and scores
+/// it against the annotated visible masks of the objects it knows.
+pub fn evaluate_split(split_dir: &Path, detector: &mut Detector) -> anyhow::Result<DetectionSummary> {
+    let known = detector.object_ids();
+    let mut scenes: Vec<u32> = std::fs::read_dir(split_dir)
+        .with_context(|| format!("{}: cannot list the split", split_dir.display()))?
+        .flatten()
+        .filter_map(|e| e.file_name().to_str().and_then(|n| n.parse().ok()))
+        .collect();
+    scenes.sort_unstable();
+    let mut tallies = BTreeMap::new();
+    let mut times = Vec::new();
+    for scene_id in scenes {
+        let scene = SceneDir::new(split_dir, scene_id);
+        let cameras: ByImage<CameraEntry> = read_json(&scene.scene_camera())?;
+        let gts: ByImage<Vec<GtEntry>> = read_json(&scene.scene_gt())?;
+        let infos: ByImage<Vec<GtInfoEntry>> = read_json(&scene.scene_gt_info())?;
+        for (&im_id, camera) in &cameras {
+            let rgb = read_rgb_png(&scene.rgb(im_id))?;
+            let depth = read_depth_png(&scene.depth(im_id), camera.depth_scale)?;
+            let (width, height) = (rgb.width as usize, rgb.height as usize);
+            let rgb_f32: Vec<f32> = rgb.pixels.iter().flat_map(|p| p.map(f32::from)).collect();
+            let image = ImageView { rgb: &rgb_f32, depth: &depth.pixels, width, height };
+            let started = std::time::Instant::now();
+            let found = detector.detect(&image)?;
+            times.push(started.elapsed().as_secs_f64() * 1e3);
+            let mut truths = Vec::new();
+            for (k, gt) in gts.get(&im_id).into_iter().flatten().enumerate() {
+                if !known.contains(&gt.obj_id) {
+                    continue;
+                }
+                let visible = infos.get(&im_id).and_then(|i| i.get(k)).map_or(1.0, |i| i.visib_fract);
+                let mask = read_mask_png(&scene.mask_visib(im_id, k))?;
+                truths.push(TruthMask { obj_id: gt.obj_id, mask: mask.pixels, ignored: visible < MIN_VISIB_FRACT });
+            }
+            tally_image(&found.objects, &truths, width, &mut tallies);
+        }
+    }
+    Ok(summarise(&tallies, times.len(), times))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn detection(obj_id: u32, score: f32, bbox: [u32; 4]) -> DetectedObject {
+        DetectedObject { obj_id, instance: 0, score, bbox, mask: vec![true; (bbox[2] * bbox[3]) as usize] }
+    }
+
+    fn truth(obj_id: u32, width: usize, height: usize, bbox: [usize; 4], ignored: bool) -> TruthMask {
+        let mut mask = vec![false; width * height];
+        for y in bbox[1]..bbox[1] + bbox[3] {
+            for x in bbox[0]..bbox[0] + bbox[2] {
+                mask[y * width + x] = true;
+            }
+        }
+        TruthMask { obj_id, mask, ignored }
+    }
+
+    #[test]
+    fn mask_iou_of_overlapping_squares_is_their_closed_form() {
+        // 4×4 squares offset by 2 columns: 8 shared pixels of 24.
+        let t = truth(1, 10, 10, [0, 0, 4, 4], false);
+        assert!((mask_iou(&detection(1, 1.0, [2, 0, 4, 4]), &t.mask, 10) - 8.0 / 24.0).abs() < 1e-12);
+        assert_eq!(mask_iou(&detection(1, 1.0, [0, 0, 4, 4]), &t.mask, 10), 1.0);
+    }
+
+    #[test]
+    fn average_precision_of_known_rankings() {
+        // All found before any false alarm: 1.
+        assert_eq!(average_precision(&[(0.9, true), (0.8, true), (0.1, false)], 2), Some(1.0));
+        // Half the instances found, first: 0.5.
+        assert_eq!(average_precision(&[(0.9, true)], 2), Some(0.5));
+        // A false alarm first, then both hits: precision 2/3 at recall 1
+        // carried back to recall 0.5: 2/3.
+        let ap = average_precision(&[(0.9, false), (0.8, true), (0.7, true)], 2).unwrap();
+        assert!((ap - 2.0 / 3.0).abs() < 1e-12);
+        assert_eq!(average_precision(&[], 0), None);
+        assert_eq!(average_precision(&[(0.5, false)], 3), Some(0.0));
+    }
+
+    #[test]
+    fn matching_counts_hits_misses_false_alarms_and_ignores_the_barely_visible() {
+        let (w, h) = (20, 10);
+        let truths = [
+            truth(1, w, h, [0, 0, 4, 4], false),
+            truth(2, w, h, [10, 0, 4, 4], false),
+            truth(3, w, h, [15, 5, 2, 2], true),
+        ];
+        let detections = [
+            detection(1, 0.9, [0, 0, 4, 4]),  // hit, IoU 1
+            detection(1, 0.8, [0, 5, 4, 4]),  // the same object again: a false alarm
+            detection(3, 0.7, [15, 5, 2, 2]), // an ignored instance: neither
+            detection(2, 0.6, [12, 0, 4, 4]), // IoU 1/3: a false alarm; the instance missed
+        ];
+        let mut tallies = BTreeMap::new();
+        tally_image(&detections, &truths, w, &mut tallies);
+        let summary = summarise(&tallies, 1, vec![1.0]);
+        let one = &summary.per_object[&1];
+        assert_eq!((one.instances, one.detections, one.ap50, one.mask_iou), (1, 2, Some(100.0), Some(100.0)));
+        let two = &summary.per_object[&2];
+        assert_eq!((two.instances, two.ap50), (1, Some(0.0)));
+        assert!((two.mask_iou.unwrap() - 100.0 / 3.0).abs() < 1e-9, "a near miss keeps its IoU");
+        let three = &summary.per_object[&3];
+        assert_eq!((three.instances, three.detections, three.ap50), (0, 0, None));
+        assert_eq!(summary.ap50, Some(50.0));
+    }
+}
