@@ -25,6 +25,7 @@ Training checkpoints (weights, optimiser, step, elapsed seconds) every
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -162,6 +163,8 @@ def train(args):
         if args.steps and step >= args.steps:
             break
         model.train()
+        for group in optimiser.param_groups:
+            group["lr"] = learning_rate(args.lr, step, args.lr_decay_steps)
         batch = rng.choice(len(rgb), size=args.batch, replace=False)
         b_rgb, b_depth, b_labels = augment(rgb[batch], depth_mm[batch], labels[batch], rng)
         logits = model(to_input(b_rgb, b_depth))
@@ -181,6 +184,15 @@ def train(args):
             save(model, optimiser, step, time.time() - started, checkpoint)
             saved = time.time()
     save(model, optimiser, step, time.time() - started, checkpoint)
+
+
+def learning_rate(base, step, decay_steps):
+    """Constant without `decay_steps`; else a cosine from `base` down to 5 %
+    of it at `decay_steps`, held there after."""
+    if not decay_steps:
+        return base
+    progress = min(step / decay_steps, 1.0)
+    return base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * progress)))
 
 
 def save(model, optimiser, step, elapsed, path):
@@ -295,6 +307,7 @@ def main():
     t.add_argument("--width", type=int, default=16)
     t.add_argument("--batch", type=int, default=16)
     t.add_argument("--lr", type=float, default=2e-3)
+    t.add_argument("--lr-decay-steps", type=int, default=0, help="cosine decay to 5 %% of --lr at this step (0: constant)")
     t.add_argument("--steps", type=int, default=0)
     t.add_argument("--max-minutes", type=float)
     t.add_argument("--checkpoint-s", type=float, default=300)

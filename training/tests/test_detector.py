@@ -47,3 +47,13 @@ def test_a_trained_detector_finds_the_objects_an_untrained_one_misses():
         optimiser.step()
     trained = evaluate_arrays(model, rgb, depth, labels, [1, 2])["mean_iou"]
     assert untrained < 0.3 and trained > 0.7, (untrained, trained)
+
+
+def test_learning_rate_decays_by_a_cosine_to_five_percent():
+    from poseflow_train.detector import learning_rate
+
+    assert learning_rate(1.0, 123, 0) == 1.0
+    assert learning_rate(1.0, 0, 100) == 1.0
+    assert abs(learning_rate(1.0, 50, 100) - (0.05 + 0.95 * 0.5)) < 1e-12
+    assert abs(learning_rate(1.0, 100, 100) - 0.05) < 1e-12
+    assert abs(learning_rate(1.0, 1000, 100) - 0.05) < 1e-12

@@ -151,7 +151,13 @@ pub fn detections(
             dropped += 1;
             continue;
         }
-        objects.push(to_frame(map, &instance, obj_id, *count as u32, score, frame_width, frame_height));
+        let object = to_frame(map, &instance, obj_id, *count as u32, score, frame_width, frame_height);
+        // A frame smaller than the map leaves some cells without a pixel.
+        if !object.mask.contains(&true) {
+            dropped += 1;
+            continue;
+        }
+        objects.push(object);
         *count += 1;
     }
     Found { objects, dropped }
@@ -248,7 +254,7 @@ mod tests {
         #[test]
         fn masks_are_the_labelled_cells_scaled_up(
             cells in proptest::collection::vec(0u8..3, 8 * 6),
-            (fw, fh) in (8usize..64, 6usize..48),
+            (fw, fh) in (1usize..64, 1usize..48),
         ) {
             let map = LabelMap { width: 8, height: 6, confidence: vec![1.0; 48], labels: cells };
             let rules = InstanceRules { min_pixels: 1, merge_gap_px: 0, max_instances: 100, min_score: 0.0 };
@@ -266,10 +272,15 @@ mod tests {
                     }
                 }
             }
-            for (cell, &label) in map.labels.iter().enumerate() {
-                // A cell owns at least one frame pixel when the frame is at
-                // least as large as the map.
-                prop_assert!(label == 0 || covered[cell], "cell {} of label {} not covered", cell, label);
+            for o in &found.objects {
+                prop_assert!(o.bbox[2] > 0 && o.bbox[3] > 0 && o.mask.contains(&true), "an empty detection: {:?}", o);
+            }
+            // A cell owns at least one frame pixel when the frame is at
+            // least as large as the map.
+            if fw >= 8 && fh >= 6 {
+                for (cell, &label) in map.labels.iter().enumerate() {
+                    prop_assert!(label == 0 || covered[cell], "cell {} of label {} not covered", cell, label);
+                }
             }
         }
     }
