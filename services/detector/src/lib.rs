@@ -12,6 +12,7 @@
 pub mod instances;
 pub mod network;
 pub mod stage;
+pub mod tabletop;
 
 mod error;
 
