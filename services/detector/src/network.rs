@@ -52,11 +52,12 @@ pub struct ImageView<'a> {
 /// The network's input for one frame, channel-major (5 × H × W). Each input
 /// pixel is the frame pixel at the centre of its block, the frame stretched
 /// to H × W when its size is not `down` times the input's. Depth is rounded
-/// to whole millimetres, as the training data stores it.
-pub fn network_input(image: &ImageView<'_>, spec: &InputSpec) -> Vec<f32> {
+/// to whole millimetres, as the training data stores it. `out` is resized
+/// and overwritten.
+pub fn network_input(image: &ImageView<'_>, spec: &InputSpec, out: &mut Vec<f32>) {
     let (h, w) = (spec.height, spec.width);
     let plane = h * w;
-    let mut out = vec![0.0; 5 * plane];
+    out.resize(5 * plane, 0.0);
     for y in 0..h {
         let v = ((2 * y + 1) * image.height / (2 * h)).min(image.height - 1);
         for x in 0..w {
@@ -72,7 +73,6 @@ pub fn network_input(image: &ImageView<'_>, spec: &InputSpec) -> Vec<f32> {
             out[4 * plane + i] = if depth_mm > 0.0 { 1.0 } else { 0.0 };
         }
     }
-    out
 }
 
 /// Each pixel's most probable class and its probability, from `N = 1`
@@ -101,6 +101,8 @@ pub struct SegmentationNetwork {
     session: Session,
     meta: DetectorMeta,
     path: PathBuf,
+    /// The input tensor, reused from frame to frame.
+    input: Vec<f32>,
 }
 
 impl SegmentationNetwork {
@@ -145,7 +147,7 @@ impl SegmentationNetwork {
             session.outputs(),
             &[poseflow_onnx::port("probabilities", F, &[-1, classes as i64, h, w])],
         )?;
-        Ok(Self { session, meta, path })
+        Ok(Self { session, meta, path, input: Vec::new() })
     }
 
     pub fn meta(&self) -> &DetectorMeta {
@@ -155,9 +157,10 @@ impl SegmentationNetwork {
     /// Labels every input pixel of one frame.
     pub fn segment(&mut self, image: &ImageView<'_>) -> Result<LabelMap, DetectorError> {
         let spec = self.meta.input;
-        let input = network_input(image, &spec);
+        network_input(image, &spec, &mut self.input);
         let run_error = |e: ort::Error| DetectorError::Run { path: self.path.clone(), detail: e.to_string() };
-        let tensor = TensorRef::from_array_view(([1, 5, spec.height, spec.width], &input[..])).map_err(run_error)?;
+        let tensor =
+            TensorRef::from_array_view(([1, 5, spec.height, spec.width], &self.input[..])).map_err(run_error)?;
         let outputs = self.session.run(ort::inputs!["rgbd" => tensor]).map_err(run_error)?;
         let (_, probabilities) = outputs["probabilities"].try_extract_tensor::<f32>().map_err(run_error)?;
         Ok(label_map(probabilities, self.meta.object_ids.len() + 1, &spec))
@@ -183,7 +186,8 @@ mod tests {
                 depth.push(if (u, v) == (3, 1) { 0.0 } else { (u + 10 * v) as f32 / 1000.0 });
             }
         }
-        let input = network_input(&ImageView { rgb: &rgb, depth: &depth, width: fw, height: fh }, &SPEC);
+        let mut input = Vec::new();
+        network_input(&ImageView { rgb: &rgb, depth: &depth, width: fw, height: fh }, &SPEC, &mut input);
         let plane = 6;
         // Input pixel (x, y) samples frame pixel (2x + 1, 2y + 1).
         assert_eq!(&input[..plane], &[1.0, 3.0, 5.0, 1.0, 3.0, 5.0].map(|u: f32| u / 255.0));

@@ -25,8 +25,7 @@ impl Drop for DetectorStage {
     }
 }
 
-/// The Frame of `header` and `rgb`, `depth` with `objects` as its
-/// detections: its header and payload length, and a writer of the payload.
+/// The header of `header`'s frame carrying `objects` as its detections.
 pub fn frame_with_detections(header: &FrameHeader, objects: &[DetectedObject]) -> FrameHeader {
     FrameHeader {
         detection_count: objects.len() as u32,

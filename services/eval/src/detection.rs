@@ -28,25 +28,26 @@ use crate::dataset::MIN_VISIB_FRACT;
 pub struct TruthMask {
     pub obj_id: u32,
     pub mask: Vec<bool>,
+    /// Pixels inside `mask`.
+    pub area: usize,
     /// Under [`MIN_VISIB_FRACT`] visible: neither hit nor missed.
     pub ignored: bool,
 }
 
-/// IoU of a detection (its box and mask) with a whole-image mask of
+/// IoU of a detection (its box and mask) with a truth's whole-image mask of
 /// `width` columns.
-pub fn mask_iou(detection: &DetectedObject, truth: &[bool], width: usize) -> f64 {
+pub fn mask_iou(detection: &DetectedObject, truth: &TruthMask, width: usize) -> f64 {
     let [x, y, w, h] = detection.bbox.map(|v| v as usize);
     let (mut both, mut detected) = (0usize, 0usize);
     for row in 0..h {
         for col in 0..w {
             if detection.mask[row * w + col] {
                 detected += 1;
-                both += usize::from(truth[(y + row) * width + x + col]);
+                both += usize::from(truth.mask[(y + row) * width + x + col]);
             }
         }
     }
-    let truth_count = truth.iter().filter(|&&t| t).count();
-    let union = detected + truth_count - both;
+    let union = detected + truth.area - both;
     if union == 0 { 0.0 } else { both as f64 / union as f64 }
 }
 
@@ -80,7 +81,7 @@ pub fn tally_image(
             .iter()
             .enumerate()
             .filter(|(k, t)| t.obj_id == detection.obj_id && !taken[*k])
-            .map(|(k, t)| (k, mask_iou(detection, &t.mask, width)))
+            .map(|(k, t)| (k, mask_iou(detection, t, width)))
             .max_by(|a, b| a.1.total_cmp(&b.1));
         let tally = tallies.entry(detection.obj_id).or_default();
         match best {
@@ -215,7 +216,13 @@ pub fn evaluate_split(split_dir: &Path, detector: &mut Detector) -> anyhow::Resu
                 }
                 let visible = infos.get(&im_id).and_then(|i| i.get(k)).map_or(1.0, |i| i.visib_fract);
                 let mask = read_mask_png(&scene.mask_visib(im_id, k))?;
-                truths.push(TruthMask { obj_id: gt.obj_id, mask: mask.pixels, ignored: visible < MIN_VISIB_FRACT });
+                let area = mask.pixels.iter().filter(|&&inside| inside).count();
+                truths.push(TruthMask {
+                    obj_id: gt.obj_id,
+                    mask: mask.pixels,
+                    area,
+                    ignored: visible < MIN_VISIB_FRACT,
+                });
             }
             tally_image(&found.objects, &truths, width, &mut tallies);
         }
@@ -238,15 +245,15 @@ mod tests {
                 mask[y * width + x] = true;
             }
         }
-        TruthMask { obj_id, mask, ignored }
+        TruthMask { obj_id, area: mask.iter().filter(|&&m| m).count(), mask, ignored }
     }
 
     #[test]
     fn mask_iou_of_overlapping_squares_is_their_closed_form() {
         // 4×4 squares offset by 2 columns: 8 shared pixels of 24.
         let t = truth(1, 10, 10, [0, 0, 4, 4], false);
-        assert!((mask_iou(&detection(1, 1.0, [2, 0, 4, 4]), &t.mask, 10) - 8.0 / 24.0).abs() < 1e-12);
-        assert_eq!(mask_iou(&detection(1, 1.0, [0, 0, 4, 4]), &t.mask, 10), 1.0);
+        assert!((mask_iou(&detection(1, 1.0, [2, 0, 4, 4]), &t, 10) - 8.0 / 24.0).abs() < 1e-12);
+        assert_eq!(mask_iou(&detection(1, 1.0, [0, 0, 4, 4]), &t, 10), 1.0);
     }
 
     #[test]

@@ -130,37 +130,31 @@ impl StageProcess {
         let mut ended = false;
         let mut failure = None;
         let mut input_events = false;
+        // Runs the handler on whatever is queued, then the drained hook.
+        let drain_queued = |on_input: &mut _, on_drained: &mut dyn FnMut()| {
+            drain(input, &self.liveness, on_input).map(|handled| {
+                if handled {
+                    on_drained()
+                }
+            })
+        };
         // Messages queued before the loop started woke no one.
-        match drain(input, &self.liveness, &mut on_input) {
-            Ok(true) => on_drained(),
-            Ok(false) => {}
-            Err(err) => return Err(err.into()),
-        }
+        drain_queued(&mut on_input, &mut on_drained)?;
         let run = waitset.wait_and_process(|id| {
             if id.has_event_from(&safety_tick) {
                 let woken = std::mem::take(&mut input_events);
-                match input.has_messages() {
-                    Ok(true) => {
-                        if !woken {
-                            tracing::warn!(
-                                edge = input.name(),
-                                "messages waited a whole check without a wake-up; reading them"
-                            );
-                        }
-                        match drain(input, &self.liveness, &mut on_input) {
-                            Ok(true) => on_drained(),
-                            Ok(false) => {}
-                            Err(err) => {
-                                failure = Some(err.into());
-                                return CallbackProgression::Stop;
-                            }
-                        }
+                let step = input.has_messages().and_then(|queued| {
+                    if queued && !woken {
+                        tracing::warn!(
+                            edge = input.name(),
+                            "messages waited a whole check without a wake-up; reading them"
+                        );
                     }
-                    Ok(false) => {}
-                    Err(err) => {
-                        failure = Some(err.into());
-                        return CallbackProgression::Stop;
-                    }
+                    if queued { drain_queued(&mut on_input, &mut on_drained) } else { Ok(()) }
+                });
+                if let Err(err) = step {
+                    failure = Some(err.into());
+                    return CallbackProgression::Stop;
                 }
                 return CallbackProgression::Continue;
             }
