@@ -349,3 +349,33 @@ fn the_detect_graph_estimates_rendered_objects_without_ground_truth_masks() {
         .collect();
     assert!(within.len() >= 2, "objects within 10°5cm: {within:?} of {report}");
 }
+
+/// `poseflow demo --detect --detector-mode classical`: the detector stage
+/// with no network, only the objects' meshes, in the same process graph.
+/// Each of the three rendered objects must be found and named, its
+/// estimate at its place (the classical masks are coarse, so the rotation
+/// is not asserted: docs/detector.md has its accuracy).
+#[test]
+fn the_classical_detector_finds_and_names_the_rendered_objects_in_the_graph() {
+    let _serial = serial();
+    let scratch = Scratch::new("demo-classical");
+    let out = scratch.dir.join("demo");
+    let output = poseflow()
+        .args(["demo", "--detect", "--detector-mode", "classical", "--json", "--out", out.to_str().unwrap()])
+        .current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
+        .output_within(RUN_DEADLINE);
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let graph = std::fs::read_to_string(out.join("estimation-detect.toml")).unwrap();
+    assert!(graph.contains("mode = \"classical\""), "{graph}");
+    let mut placed: Vec<(u64, f64)> = report["objects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| (o["obj_id"].as_u64().unwrap(), o["translation_error_cm"].as_f64().unwrap()))
+        .collect();
+    placed.sort_by_key(|&(id, _)| id);
+    let ids: Vec<u64> = placed.iter().map(|&(id, _)| id).collect();
+    assert_eq!(ids, [1, 10, 11], "{report}");
+    assert!(placed.iter().all(|&(_, cm)| cm < 12.0), "translation errors (cm): {placed:?}");
+}

@@ -7,6 +7,13 @@ pub enum DetectorError {
     #[error("{path}: {detail}")]
     Model { path: PathBuf, detail: String },
 
+    #[error("{path}: cannot load the objects' meshes")]
+    Models {
+        path: PathBuf,
+        #[source]
+        source: poseflow_scene::SceneError,
+    },
+
     #[error(transparent)]
     Onnx(#[from] poseflow_onnx::OnnxError),
 

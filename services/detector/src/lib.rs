@@ -8,7 +8,12 @@
 //! exported to ONNX ([`network`]), trained on the project's renders by
 //! `training/poseflow_train/detector.py`. Each object's pixels become
 //! detections by [`instances::detections`].
+//!
+//! `mode = "classical"` needs no training, only the objects' meshes: the
+//! support plane removed, the depth clustered, and each cluster identified
+//! by fitting the known objects to it ([`classical`]).
 
+pub mod classical;
 pub mod instances;
 pub mod network;
 pub mod stage;
@@ -18,6 +23,7 @@ mod error;
 
 use std::path::PathBuf;
 
+pub use classical::{ClassicalDetector, ClassicalParams};
 pub use error::DetectorError;
 pub use instances::{Found, InstanceRules, LabelMap};
 pub use network::{ImageView, SegmentationNetwork};
@@ -43,7 +49,8 @@ pub struct DetectedObject {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DetectorParams {
-    /// `network`: the learned detector.
+    /// `network`: the learned detector; `classical`: plane, clusters and
+    /// model fits (the `classical` table).
     #[serde(default)]
     pub mode: Mode,
     /// Directory of the network (`detector.onnx`, `detector.json`).
@@ -68,6 +75,9 @@ pub struct DetectorParams {
     /// Instances whose mean probability is lower are dropped.
     #[serde(default = "default_min_score")]
     pub min_score: f32,
+    /// Settings of `mode = "classical"`.
+    #[serde(default)]
+    pub classical: ClassicalParams,
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Deserialize)]
@@ -75,6 +85,7 @@ pub struct DetectorParams {
 pub enum Mode {
     #[default]
     Network,
+    Classical,
 }
 
 fn default_model() -> PathBuf {
@@ -107,6 +118,9 @@ impl DetectorParams {
         if !(0.0..=1.0).contains(&params.min_score) {
             return bad("min_score", format!("expected a probability from 0 to 1, got {}", params.min_score));
         }
+        if params.mode == Mode::Classical {
+            params.classical.check()?;
+        }
         Ok(params)
     }
 
@@ -120,25 +134,44 @@ impl DetectorParams {
     }
 }
 
-/// A ready detector: the network and the rules that turn its labels into
-/// detections.
+/// What finds the objects' pixels.
+#[derive(Debug)]
+enum Backend {
+    Network(SegmentationNetwork),
+    Classical(ClassicalDetector),
+}
+
+/// A ready detector: the network (or the classical fits) and the rules that
+/// turn its labels into detections.
 #[derive(Debug)]
 pub struct Detector {
-    network: SegmentationNetwork,
+    backend: Backend,
     params: DetectorParams,
 }
 
 impl Detector {
     pub fn new(params: DetectorParams) -> Result<Self, DetectorError> {
-        let network = SegmentationNetwork::load(&params.model, params.threads)?;
-        let known = network.meta().object_ids.clone();
+        let (backend, source) = match params.mode {
+            Mode::Network => {
+                (Backend::Network(SegmentationNetwork::load(&params.model, params.threads)?), params.model.clone())
+            }
+            Mode::Classical => {
+                let classical = ClassicalDetector::new(params.classical.clone(), &params.objects)?;
+                let dir = classical.models_dir().to_path_buf();
+                (Backend::Classical(classical), dir)
+            }
+        };
+        let known = match &backend {
+            Backend::Network(network) => network.meta().object_ids.clone(),
+            Backend::Classical(classical) => classical.object_ids().to_vec(),
+        };
         let unknown: Vec<u32> = params.objects.iter().copied().filter(|id| !known.contains(id)).collect();
         if !unknown.is_empty() {
             tracing::warn!(
                 objects = ?unknown,
-                model = %params.model.display(),
+                model = %source.display(),
                 known = ?known,
-                "objects the network does not know are never detected"
+                "objects the detector does not know are never detected"
             );
         }
         let mut params = params;
@@ -146,32 +179,34 @@ impl Detector {
         if params.objects.is_empty() && !unknown.is_empty() {
             return Err(DetectorError::Params {
                 key: "objects".into(),
-                detail: format!(
-                    "none of {unknown:?} is known to the network at {} ({known:?})",
-                    params.model.display()
-                ),
+                detail: format!("none of {unknown:?} is known to the detector at {} ({known:?})", source.display()),
             });
         }
-        tracing::info!(model = %params.model.display(), objects = ?params.objects, "detector ready");
-        Ok(Self { network, params })
+        tracing::info!(mode = ?params.mode, model = %source.display(), objects = ?params.objects, "detector ready");
+        Ok(Self { backend, params })
+    }
+
+    /// The objects of the label map, label k being the k-th.
+    fn labelled_ids(&self) -> &[u32] {
+        match &self.backend {
+            Backend::Network(network) => &network.meta().object_ids,
+            Backend::Classical(classical) => classical.object_ids(),
+        }
     }
 
     /// The objects this detector can report.
     pub fn object_ids(&self) -> Vec<u32> {
-        let known = &self.network.meta().object_ids;
-        if self.params.objects.is_empty() { known.clone() } else { self.params.objects.clone() }
+        if self.params.objects.is_empty() { self.labelled_ids().to_vec() } else { self.params.objects.clone() }
     }
 
     /// The detections of one frame: the heart of the stage.
     pub fn detect(&mut self, image: &ImageView<'_>) -> Result<Found, DetectorError> {
-        let map = self.network.segment(image)?;
-        let mut found = instances::detections(
-            &map,
-            &self.network.meta().object_ids,
-            image.width,
-            image.height,
-            &self.params.rules(),
-        );
+        let map = match &mut self.backend {
+            Backend::Network(network) => network.segment(image)?,
+            Backend::Classical(classical) => classical.segment(image),
+        };
+        let mut found =
+            instances::detections(&map, self.labelled_ids(), image.width, image.height, &self.params.rules());
         if !self.params.objects.is_empty() {
             found.objects.retain(|o| self.params.objects.contains(&o.obj_id));
         }

@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 
 use ort::session::Session;
 use ort::value::{TensorElementType, TensorRef};
+use poseflow_geometry::metrics::Pinhole;
 use serde::Deserialize;
 
 use crate::DetectorError;
@@ -40,13 +41,15 @@ pub struct InputSpec {
 }
 
 /// One RGB-D frame as the Frame contract carries it: `rgb` 3·W·H
-/// row-major interleaved 0–255, `depth` W·H metres (0 = none).
+/// row-major interleaved 0–255, `depth` W·H metres (0 = none), and the
+/// camera's intrinsics (pixels).
 #[derive(Debug, Clone, Copy)]
 pub struct ImageView<'a> {
     pub rgb: &'a [f32],
     pub depth: &'a [f32],
     pub width: usize,
     pub height: usize,
+    pub camera: Pinhole,
 }
 
 /// The network's input for one frame, channel-major (5 × H × W). Each input
@@ -187,7 +190,8 @@ mod tests {
             }
         }
         let mut input = Vec::new();
-        network_input(&ImageView { rgb: &rgb, depth: &depth, width: fw, height: fh }, &SPEC, &mut input);
+        let camera = Pinhole { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0 };
+        network_input(&ImageView { rgb: &rgb, depth: &depth, width: fw, height: fh, camera }, &SPEC, &mut input);
         let plane = 6;
         // Input pixel (x, y) samples frame pixel (2x + 1, 2y + 1).
         assert_eq!(&input[..plane], &[1.0, 3.0, 5.0, 1.0, 3.0, 5.0].map(|u: f32| u / 255.0));

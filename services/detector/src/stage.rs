@@ -2,6 +2,7 @@
 //! detector's detections in place of any it came with.
 
 use poseflow_contracts::{DETECTION_LEN, FrameHeader, MessageHeader, StampSlot};
+use poseflow_geometry::metrics::Pinhole;
 use poseflow_runtime::{Emitter, Input, Transform};
 
 use crate::{DetectedObject, Detector, DetectorError, DetectorParams, ImageView};
@@ -83,6 +84,12 @@ impl Transform for DetectorStage {
             depth: view.depth,
             width: header.intrinsics.width as usize,
             height: header.intrinsics.height as usize,
+            camera: Pinhole {
+                fx: f64::from(header.intrinsics.fx),
+                fy: f64::from(header.intrinsics.fy),
+                cx: f64::from(header.intrinsics.cx),
+                cy: f64::from(header.intrinsics.cy),
+            },
         };
         let found = self.detector.detect(&image)?;
         self.dropped_regions += found.dropped as u64;

@@ -5,6 +5,7 @@
 use std::path::Path;
 
 use poseflow_detector::{ImageView, SegmentationNetwork};
+use poseflow_geometry::metrics::Pinhole;
 
 struct Parity {
     rgb: Vec<f32>,
@@ -41,7 +42,9 @@ fn the_shipped_detector_reproduces_its_export_and_finds_the_objects() {
     let pixels = spec.width * spec.height;
     let parity = read_parity(pixels);
     // The stored image is already at the network's size: sampling is the identity.
-    let image = ImageView { rgb: &parity.rgb, depth: &parity.depth, width: spec.width, height: spec.height };
+    // The network does not use the intrinsics.
+    let camera = Pinhole { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0 };
+    let image = ImageView { rgb: &parity.rgb, depth: &parity.depth, width: spec.width, height: spec.height, camera };
     let map = network.segment(&image).expect("the network runs");
     let agree = map.labels.iter().zip(&parity.labels).filter(|(a, b)| a == b).count();
     assert!(agree as f64 >= 0.995 * pixels as f64, "labels agree on {agree} of {pixels} pixels");

@@ -25,6 +25,7 @@ use poseflow_geometry::metrics::NearestPoints;
 use poseflow_geometry::sampling::sample_seed;
 use poseflow_geometry::symmetry::BOP_MAX_SYMMETRY_STEP;
 use poseflow_geometry::{Pose, SymmetrySet};
+use poseflow_graph::Graph;
 use poseflow_ingest::sources::{BopFrames, Masks};
 use poseflow_scene::ModelLibrary;
 use serde::Serialize;
@@ -34,8 +35,8 @@ use self::dataset::{TruthImage, read_truth};
 use self::estimates::{Estimated, bop_rows, count_estimates, read_recording, read_results};
 use self::score::{EstimatedInstance, ScoredObject, score_instance};
 use self::summary::{InstanceOutcome, Summary, instances_csv, summarise};
-use crate::demo::SelectionArg;
 use crate::demo::graph::{Overrides, graph_with_overrides};
+use crate::demo::{DetectorMode, SelectionArg};
 use crate::demo::{print_report, run_graph};
 use poseflow_runtime::progress::Progress;
 
@@ -136,6 +137,9 @@ pub struct EvalArgs {
     /// The detector's model directory (detector.onnx, detector.json), with --detect.
     #[arg(long, default_value = "models/detector-lmo10")]
     pub detector_model: PathBuf,
+    /// How the detector finds the objects, with --detect (classical: the objects of --objects).
+    #[arg(long, value_enum, default_value_t = DetectorMode::Network)]
+    pub detector_mode: DetectorMode,
 }
 
 /// The graph `--detect` runs when `--graph` was left at its default.
@@ -374,14 +378,9 @@ fn score_images(
     Ok((outcomes, unmatched))
 }
 
-/// Runs the graph over the dataset; its estimates and the results file
-/// written from them.
-fn run_graph_on(
-    args: &EvalArgs,
-    images: &[TruthImage],
-    objects_dir: &Path,
-    object_ids: Vec<u32>,
-) -> anyhow::Result<(Vec<Estimated>, PathBuf, Method)> {
+/// The graph the evaluation runs: `--graph` (or its detecting twin) with
+/// the dataset, model and options set on its stages.
+fn eval_graph(args: &EvalArgs, objects_dir: &Path, object_ids: Vec<u32>) -> anyhow::Result<Graph> {
     let overrides = Overrides {
         dataset: &args.dataset,
         split: &args.split,
@@ -396,20 +395,32 @@ fn run_graph_on(
         rate_hz: args.rate_hz,
         rgb: !args.no_rgb,
         detector_model: args.detect.then_some(args.detector_model.as_path()),
+        detector_mode: args.detect.then_some(args.detector_mode),
         detector_objects: args.detect.then_some(object_ids),
     };
     let graph_file = args.graph_file();
-    let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
-    let graph = args.out.join(name);
     let run = graph_with_overrides(&graph_file, &overrides)?;
     if args.detect && !run.stages.values().any(|stage| stage.exe_name() == "detector") {
         bail!("--detect --graph {}: the graph has no stage with exe = \"detector\"", graph_file.display());
     }
+    Ok(run)
+}
+
+/// Runs `run` over the dataset; its estimates and the results file written
+/// from them.
+fn run_graph_on(
+    args: &EvalArgs,
+    images: &[TruthImage],
+    run: &Graph,
+) -> anyhow::Result<(Vec<Estimated>, PathBuf, Method)> {
+    let graph_file = args.graph_file();
+    let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
+    let graph = args.out.join(name);
     std::fs::write(&graph, run.to_toml()?).with_context(|| format!("{}", graph.display()))?;
     let recording = graph.with_extension("rec");
     let detections: usize = images.iter().map(|image| image.instances.len()).sum();
     let mut progress = Progress::new("eval", detections as u64);
-    run_graph(&run, &recording, "estimates", || progress.update(count_estimates(&recording), "estimates"))?;
+    run_graph(run, &recording, "estimates", || progress.update(count_estimates(&recording), "estimates"))?;
     progress.update(detections as u64, "estimates");
     let estimates = read_recording(&recording, images)?;
     let dataset_name = args.dataset.file_name().map_or("dataset".into(), |n| n.to_string_lossy().into_owned());
@@ -525,11 +536,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         check_model_objects(&args.model, &library)?;
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
-    let detection = args.detect.then(|| score_detector(args)).transpose()?;
+    let graph = (args.results.is_none() || args.detect)
+        .then(|| eval_graph(args, &objects_dir, objects.keys().copied().collect()))
+        .transpose()?;
+    let detection = match (&graph, args.detect) {
+        (Some(graph), true) => Some(score_detector(args, graph)?),
+        _ => None,
+    };
 
-    let (estimates, csv, method) = match &args.results {
-        Some(results) => (read_results(results)?, results.clone(), Method::Results { results: results.clone() }),
-        None => run_graph_on(args, &images, &objects_dir, objects.keys().copied().collect())?,
+    let (estimates, csv, method) = match (&args.results, &graph) {
+        (Some(results), _) => (read_results(results)?, results.clone(), Method::Results { results: results.clone() }),
+        (None, Some(graph)) => run_graph_on(args, &images, graph)?,
+        (None, None) => unreachable!("the graph is built unless --results"),
     };
     let stages = args.results.is_none().then(|| stage_counts(&args.out.join("run.json"))).transpose()?;
     let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
@@ -561,11 +579,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     print_report(&report, args.json, print_table)
 }
 
-/// The detector alone on the split's images (`--detect`).
-fn score_detector(args: &EvalArgs) -> anyhow::Result<detection::DetectionSummary> {
-    let params = poseflow_detector::DetectorParams::from_json(&serde_json::json!({"model": args.detector_model}))?;
-    let mut detector = poseflow_detector::Detector::new(params)
-        .with_context(|| format!("--detector-model {}", args.detector_model.display()))?;
+/// The detector alone on the split's images (`--detect`), with the
+/// parameters of the graph's (first) detector stage.
+fn score_detector(args: &EvalArgs, graph: &Graph) -> anyhow::Result<detection::DetectionSummary> {
+    let stage =
+        graph.stages.values().find(|stage| stage.exe_name() == "detector").context("the graph has no detector")?;
+    let params = poseflow_detector::DetectorParams::from_json(&stage.params)
+        .with_context(|| format!("{}: the detector stage `{}`", args.graph_file().display(), stage.name))?;
+    let mut detector = poseflow_detector::Detector::new(params).with_context(|| match args.detector_mode {
+        DetectorMode::Network => format!("--detector-model {}", args.detector_model.display()),
+        DetectorMode::Classical => "--detector-mode classical".to_string(),
+    })?;
     detection::evaluate_split(&args.dataset.join(&args.split), &mut detector)
 }
 

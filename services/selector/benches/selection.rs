@@ -10,11 +10,10 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::{Point3, Vector3};
 use poseflow_geometry::sampling::seeded_rng;
 use poseflow_geometry::{Pose, so3};
-use poseflow_scene::load_mesh;
-use poseflow_selector::ObjectGeometry;
+use poseflow_scene::sdf_refine::{Likelihood, refine};
+use poseflow_scene::{ObjectGeometry, load_mesh};
 use poseflow_selector::cluster::{Neighbourhood, dbscan};
-use poseflow_selector::refine::refine;
-use poseflow_selector::score::{Likelihood, Residuals};
+use poseflow_selector::score::Residuals;
 use rand::Rng;
 
 const HYPOTHESES: usize = 50;

@@ -1,21 +1,9 @@
-use std::path::PathBuf;
-
 /// Why a selection or the stage's set-up failed; each names the parameter,
 /// file, frame or object concerned.
 #[derive(Debug, thiserror::Error)]
 pub enum SelectorError {
     #[error("param `{key}`: {detail}")]
     Params { key: &'static str, detail: String },
-
-    #[error("{path}: {detail}")]
-    Model { path: PathBuf, detail: String },
-
-    #[error("{path}: cannot read the objects' information")]
-    ModelsInfo {
-        path: PathBuf,
-        #[source]
-        source: Box<poseflow_geometry::GeometryError>,
-    },
 
     #[error(transparent)]
     ObjectModel(#[from] poseflow_scene::SceneError),

@@ -6,27 +6,24 @@
 //!   its Karcher mean ([`cluster`]);
 //! - model-based: how well the observed points fit the object under each
 //!   hypothesis, by exact point-to-mesh distance (Chamfer) or by a signed
-//!   distance grid precomputed once per object ([`sdf`], [`score`]);
+//!   distance grid precomputed once per object
+//!   ([`poseflow_scene::sdf`], [`score`]);
 //! - refinement (beyond the paper): Levenberg-Marquardt on SE(3) pulling
 //!   the kept hypotheses onto the observed points through the same grid
-//!   ([`refine`]).
+//!   ([`poseflow_scene::sdf_refine`]).
 //!
 //! [`select`] is the plain function; [`stage::SelectorStage`] the stage.
 
 pub mod cluster;
 mod error;
-mod object_models;
 mod params;
-pub mod refine;
 pub mod score;
-pub mod sdf;
 mod select;
 pub mod stage;
 pub mod track;
 pub mod visibility;
 
 pub use error::SelectorError;
-pub use object_models::{ObjectGeometry, ObjectLibrary};
 pub use params::{Distribution, Method, SelectorParams};
 pub use select::{Observed, Selection, select};
 

@@ -16,8 +16,9 @@ use nalgebra::Point3;
 use parry3d::query::PointQuery;
 use poseflow_geometry::Pose;
 use poseflow_geometry::metrics::Pinhole;
+use poseflow_scene::ObjectGeometry;
+use poseflow_scene::sdf_refine::Likelihood;
 
-use crate::ObjectGeometry;
 use crate::visibility::{DepthGrid, FreeSpace, FreeSpaceSettings, free_space};
 
 /// Where residuals come from.
@@ -28,13 +29,6 @@ pub enum Residuals<'a> {
     Chamfer(&'a ObjectGeometry),
     /// The signed distance grid, trilinear.
     Sdf(&'a ObjectGeometry),
-}
-
-/// Likelihood settings, metres.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Likelihood {
-    pub noise_std: f64,
-    pub outlier_distance: f64,
 }
 
 impl<'a> Residuals<'a> {
@@ -61,13 +55,6 @@ impl<'a> Residuals<'a> {
         let cap = likelihood.outlier_distance * likelihood.outlier_distance;
         let sum: f64 = points.iter().map(|x| self.residual(&inverse.transform_point(x)).powi(2).min(cap)).sum();
         -sum / (points.len().max(1) as f64 * 2.0 * likelihood.noise_std * likelihood.noise_std)
-    }
-}
-
-impl Likelihood {
-    /// The log-likelihood of an outlier point: `−τ²/(2σ²)`.
-    pub fn outlier_score(&self) -> f64 {
-        -(self.outlier_distance * self.outlier_distance) / (2.0 * self.noise_std * self.noise_std)
     }
 }
 

@@ -7,12 +7,13 @@ use poseflow_contracts::limits;
 use poseflow_geometry::mean::karcher_mean_poses;
 use poseflow_geometry::metrics::Pinhole;
 use poseflow_geometry::{KarcherOptions, Pose, PoseStatistics};
+use poseflow_scene::ObjectGeometry;
+use poseflow_scene::sdf_refine::{Likelihood, refine};
 
 use crate::cluster::{Clusters, Neighbourhood, dbscan};
-use crate::refine::refine;
-use crate::score::{FreeSpaceTerm, Likelihood, Residuals, Scorer};
+use crate::score::{FreeSpaceTerm, Residuals, Scorer};
 use crate::visibility::{DepthGrid, FreeSpaceSettings, INSIDE_DEPTH};
-use crate::{Distribution, Method, ObjectGeometry, SelectorError, SelectorParams};
+use crate::{Distribution, Method, SelectorError, SelectorParams};
 
 /// What the model-based scores compare poses with, camera frame.
 #[derive(Debug, Clone, Copy)]

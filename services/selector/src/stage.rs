@@ -10,11 +10,12 @@ use poseflow_contracts::{
 };
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
+use poseflow_scene::{ObjectGeometry, ObjectLibrary};
 
 use crate::select::{Observed, scorer};
 use crate::track::{Evidence, TrackMonitor, Verdict};
 use crate::visibility::{DepthGrid, FitSettings, INSIDE_DEPTH, point_fit, silhouette};
-use crate::{Method, ObjectGeometry, ObjectLibrary, Selection, SelectorError, SelectorParams, select};
+use crate::{Method, Selection, SelectorError, SelectorParams, select};
 use poseflow_geometry::metrics::Pinhole;
 
 /// One Observation's points (camera frame, metres) and depth grid, kept

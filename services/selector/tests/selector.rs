@@ -6,12 +6,13 @@ use parry3d::shape::Cuboid;
 use poseflow_contracts::{Header, MessageHeader, SelectionMethod};
 use poseflow_geometry::metrics::Pinhole;
 use poseflow_geometry::{Pose, so3};
+use poseflow_scene::ObjectGeometry;
+use poseflow_scene::sdf_refine::{Likelihood, refine};
 use poseflow_selector::cluster::{Neighbourhood, dbscan};
-use poseflow_selector::refine::refine;
-use poseflow_selector::score::{Likelihood, Residuals};
+use poseflow_selector::score::Residuals;
 use poseflow_selector::stage::{estimate_header, estimate_payload_len, write_estimate_payload};
 use poseflow_selector::visibility::DepthGrid;
-use poseflow_selector::{Distribution, Method, ObjectGeometry, Observed, SelectorParams, select};
+use poseflow_selector::{Distribution, Method, Observed, SelectorParams, select};
 
 /// A 6 × 4 × 2 cm box (distinct side lengths: no symmetry but the box's own
 /// half turns), model frame centred.

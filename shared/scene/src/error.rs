@@ -28,6 +28,16 @@ pub enum SceneError {
     #[error("{path}: {location}: {detail}")]
     Malformed { path: PathBuf, location: String, detail: String },
 
+    #[error("{path}: cannot read the objects' information")]
+    ModelsInfo {
+        path: PathBuf,
+        #[source]
+        source: Box<poseflow_geometry::GeometryError>,
+    },
+
+    #[error("{path}: {detail}")]
+    NoModels { path: PathBuf, detail: String },
+
     #[error("{path}: unknown mesh format (expected a .ply or .obj file)")]
     UnknownFormat { path: PathBuf },
 

@@ -9,6 +9,8 @@ use anyhow::Context;
 use poseflow_graph::Graph;
 use serde_json::json;
 
+use super::DetectorMode;
+
 /// Per-stage inline parameters the demo sets on top of the graph file's.
 pub struct Overrides<'a> {
     pub dataset: &'a Path,
@@ -30,6 +32,9 @@ pub struct Overrides<'a> {
     pub rgb: bool,
     /// The model of the graph's detector stages, when set.
     pub detector_model: Option<&'a Path>,
+    /// The mode of the graph's detector stages, when set; `classical` finds
+    /// the objects of `object_models`.
+    pub detector_mode: Option<DetectorMode>,
     /// The objects the detector stages report (those the selector has
     /// models of), when set.
     pub detector_objects: Option<Vec<u32>>,
@@ -53,6 +58,12 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
         if exe == "detector" {
             if let Some(model) = overrides.detector_model {
                 graph.set(stage, &["model"], absolute(model)?.into())?;
+            }
+            if let Some(mode) = overrides.detector_mode {
+                graph.set(stage, &["mode"], mode.name().into())?;
+                if mode == DetectorMode::Classical {
+                    graph.set(stage, &["classical", "models"], absolute(overrides.object_models)?.into())?;
+                }
             }
             if let Some(objects) = &overrides.detector_objects {
                 graph.set(stage, &["objects"], objects.clone().into())?;

@@ -51,6 +51,25 @@ impl SelectionArg {
     }
 }
 
+/// How the detector stage finds the objects (`--detect`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum DetectorMode {
+    /// The learned RGB-D segmentation network (`--detector-model`).
+    Network,
+    /// No training: the support plane removed, the depth clustered, each cluster identified by fitting the
+    /// objects' meshes.
+    Classical,
+}
+
+impl DetectorMode {
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Self::Network => "network",
+            Self::Classical => "classical",
+        }
+    }
+}
+
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root after `cargo build --release --workspace` (the stages are \
     separate executables). Writes <out>/scene (the rendered BOP scene), <out>/estimation.toml (the graph run), \
@@ -82,6 +101,9 @@ pub struct DemoArgs {
     /// masks.
     #[arg(long)]
     pub detect: bool,
+    /// How the detector finds the objects, with --detect.
+    #[arg(long, value_enum, default_value_t = DetectorMode::Network)]
+    pub detector_mode: DetectorMode,
     /// How the selector chooses the pose.
     #[arg(long, value_enum, default_value_t = SelectionArg::Sdf)]
     pub selection: SelectionArg,
@@ -322,6 +344,7 @@ fn render_and_run(
         rate_hz: args.track.then_some(args.rate_hz),
         rgb: true,
         detector_model: None,
+        detector_mode: Some(args.detector_mode),
         detector_objects: Some(library.objects.iter().map(|o| o.obj_id).collect()),
     };
     let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());

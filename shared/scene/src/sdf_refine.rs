@@ -10,8 +10,21 @@
 use nalgebra::{Matrix6, Point3, Vector3, Vector6};
 use poseflow_geometry::{Pose, so3};
 
-use crate::score::Likelihood;
 use crate::sdf::SignedDistanceGrid;
+
+/// Likelihood settings, metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Likelihood {
+    pub noise_std: f64,
+    pub outlier_distance: f64,
+}
+
+impl Likelihood {
+    /// The log-likelihood of an outlier point: `−τ²/(2σ²)`.
+    pub fn outlier_score(&self) -> f64 {
+        -(self.outlier_distance * self.outlier_distance) / (2.0 * self.noise_std * self.noise_std)
+    }
+}
 
 /// What a refinement did.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -11,11 +11,10 @@ use nalgebra::{Point3, Rotation3, Vector3};
 use parry3d::shape::{TriMesh, TriMeshBuilderError};
 use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_geometry::sampling::seeded_rng;
-use poseflow_scene::symmetry::principal_axes;
-use poseflow_scene::{SceneError, load_bop_model, model_file_name, oriented_trimesh, surface_points};
 
-use crate::SelectorError;
 use crate::sdf::SignedDistanceGrid;
+use crate::symmetry::principal_axes;
+use crate::{SceneError, load_bop_model, model_file_name, oriented_trimesh, surface_points};
 
 /// Surface points per object for the silhouette check: a few per cell of
 /// its grid even where the object is thin.
@@ -121,10 +120,10 @@ pub struct ObjectLibrary {
 
 impl ObjectLibrary {
     /// Loads every object of `dir/models_info.json` that has a model file.
-    pub fn load(dir: &Path, sdf_resolution: usize) -> Result<Self, SelectorError> {
+    pub fn load(dir: &Path, sdf_resolution: usize) -> Result<Self, SceneError> {
         let info_path = dir.join("models_info.json");
         let info = ModelsInfo::from_path(&info_path)
-            .map_err(|source| SelectorError::ModelsInfo { path: info_path.clone(), source: Box::new(source) })?;
+            .map_err(|source| SceneError::ModelsInfo { path: info_path.clone(), source: Box::new(source) })?;
         let mut objects = BTreeMap::new();
         for (&obj_id, entry) in &info.objects {
             let path = dir.join(model_file_name(obj_id));
@@ -137,7 +136,7 @@ impl ObjectLibrary {
             objects.insert(obj_id, object);
         }
         if objects.is_empty() {
-            return Err(SelectorError::Model {
+            return Err(SceneError::NoModels {
                 path: dir.to_path_buf(),
                 detail: "no object of models_info.json has a model file (expected obj_NNNNNN.ply beside it)".into(),
             });

@@ -1,0 +1,493 @@
+//! The classical detector (`mode = "classical"`): no training, only the
+//! known objects' meshes. For a tabletop scene:
+//!
+//! 1. the frame's depth sampled at the centre of each `down` × `down` block
+//!    and back-projected (camera frame, metres);
+//! 2. the support plane found by RANSAC ([`ransac_plane`]); points on it or
+//!    behind it are dropped;
+//! 3. the rest grouped into depth clusters ([`clusters`]);
+//! 4. each cluster identified by fitting every known object to it: from
+//!    `starts` rotations about the cluster, Levenberg-Marquardt on the
+//!    object's signed distance grid ([`refine`]), the best fits refined
+//!    further. A fit is judged by what the posed object predicts the camera
+//!    sees ([`Fit::agreement`]): the share of its surface points in view
+//!    that lie on the measured depth, rather than in front of it, where
+//!    the camera saw past. The object explaining the most points with an
+//!    agreement of at least `min_fit` claims them; what is left of the
+//!    cluster is tried again (touching objects), up to
+//!    [`MAX_OBJECTS_PER_CLUSTER`] times.
+//!
+//! The result is a label map of the sampled grid, turned into detections
+//! by the same rules as the network's ([`crate::instances::detections`]).
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Point3, Rotation3, Vector3};
+use poseflow_geometry::Pose;
+use poseflow_geometry::metrics::Pinhole;
+use poseflow_geometry::sampling::{seeded_rng, uniform_rotation};
+use poseflow_scene::sdf_refine::{Likelihood, refine};
+use poseflow_scene::{ObjectGeometry, ObjectLibrary};
+use serde::Deserialize;
+
+use crate::instances::LabelMap;
+use crate::tabletop::{Plane, clusters, ransac_plane};
+use crate::{DetectorError, ImageView};
+
+/// Objects sought in one cluster: its largest, then what remains.
+pub const MAX_OBJECTS_PER_CLUSTER: usize = 3;
+
+/// Points a coarse fit uses, and a fine one.
+const COARSE_POINTS: usize = 64;
+const FINE_POINTS: usize = 256;
+const COARSE_ITERATIONS: usize = 6;
+const FINE_ITERATIONS: usize = 20;
+/// Coarse fits refined further, per object.
+const FINE_FITS: usize = 3;
+/// RANSAC triples for the support plane.
+const PLANE_ITERATIONS: usize = 300;
+
+/// Settings of the classical mode (the detector's `classical` table).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ClassicalParams {
+    /// BOP models directory of the objects to identify.
+    #[serde(default)]
+    pub models: Option<PathBuf>,
+    /// The frame is sampled at one pixel per `down` × `down` block.
+    #[serde(default = "default_down")]
+    pub down: usize,
+    /// Points farther than this from the camera are ignored, metres.
+    #[serde(default = "default_max_depth")]
+    pub max_depth_m: f64,
+    /// Points this close to the support plane belong to it, metres.
+    #[serde(default = "default_plane_tolerance")]
+    pub plane_tolerance_m: f64,
+    /// Neighbouring points this close in depth join one cluster, metres.
+    #[serde(default = "default_cluster_gap")]
+    pub cluster_gap_m: f64,
+    /// Smaller clusters (in sampled points) are not tried.
+    #[serde(default = "default_min_points")]
+    pub min_points: usize,
+    /// Starting rotations per object and cluster.
+    #[serde(default = "default_starts")]
+    pub starts: usize,
+    /// A point within this distance of the posed surface is explained by
+    /// it, and a surface point within this distance of the measured depth
+    /// agrees with it, metres.
+    #[serde(default = "default_inlier_distance")]
+    pub inlier_distance_m: f64,
+    /// The least agreement ([`Fit::agreement`]) of an identified object.
+    #[serde(default = "default_min_fit")]
+    pub min_fit: f64,
+    /// Signed distance grid cells along an object's longest side.
+    #[serde(default = "default_sdf_resolution")]
+    pub sdf_resolution: usize,
+    /// Seed of the plane's RANSAC and the starting rotations: the same
+    /// frame gives the same detections.
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_down() -> usize {
+    4
+}
+fn default_max_depth() -> f64 {
+    2.0
+}
+fn default_plane_tolerance() -> f64 {
+    0.01
+}
+fn default_cluster_gap() -> f64 {
+    0.04
+}
+fn default_min_points() -> usize {
+    12
+}
+fn default_starts() -> usize {
+    40
+}
+fn default_inlier_distance() -> f64 {
+    0.004
+}
+fn default_min_fit() -> f64 {
+    0.5
+}
+fn default_sdf_resolution() -> usize {
+    32
+}
+
+impl Default for ClassicalParams {
+    fn default() -> Self {
+        Self {
+            models: None,
+            down: default_down(),
+            max_depth_m: default_max_depth(),
+            plane_tolerance_m: default_plane_tolerance(),
+            cluster_gap_m: default_cluster_gap(),
+            min_points: default_min_points(),
+            starts: default_starts(),
+            inlier_distance_m: default_inlier_distance(),
+            min_fit: default_min_fit(),
+            sdf_resolution: default_sdf_resolution(),
+            seed: 0,
+        }
+    }
+}
+
+impl ClassicalParams {
+    pub fn check(&self) -> Result<(), DetectorError> {
+        let bad = |key: &str, detail: String| Err(DetectorError::Params { key: format!("classical.{key}"), detail });
+        if !(1..=16).contains(&self.down) {
+            return bad("down", format!("expected 1 to 16 pixels, got {}", self.down));
+        }
+        for (key, value) in [
+            ("max_depth_m", self.max_depth_m),
+            ("plane_tolerance_m", self.plane_tolerance_m),
+            ("cluster_gap_m", self.cluster_gap_m),
+            ("inlier_distance_m", self.inlier_distance_m),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return bad(key, format!("expected a positive distance in metres, got {value}"));
+            }
+        }
+        if !(0.0..=1.0).contains(&self.min_fit) {
+            return bad("min_fit", format!("expected a share from 0 to 1, got {}", self.min_fit));
+        }
+        if !(1..=1000).contains(&self.starts) {
+            return bad("starts", format!("expected 1 to 1000 rotations, got {}", self.starts));
+        }
+        if !(8..=256).contains(&self.sdf_resolution) {
+            return bad("sdf_resolution", format!("expected 8 to 256 cells, got {}", self.sdf_resolution));
+        }
+        if self.models.is_none() {
+            return bad(
+                "models",
+                "mode \"classical\" needs the objects' meshes: set it to a BOP models directory".into(),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// One object posed on a cluster and how well it explains it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fit {
+    pub obj_id: u32,
+    /// Object to camera.
+    pub pose: Pose,
+    /// Of the points tried, how many lie within `inlier_distance_m` of the
+    /// posed surface.
+    pub inliers: usize,
+    /// Of the posed object's surface points that the camera would see, the
+    /// share at the measured depth rather than in front of it: 1 when the
+    /// object fits the view, low when it sticks out where the camera saw
+    /// the table or the room behind. Points behind the measured depth are
+    /// hidden and not counted.
+    pub agreement: f64,
+}
+
+/// The sampled depth grid of one frame: camera-frame points, `None` where
+/// nothing was measured.
+#[derive(Debug, Clone)]
+pub struct SampledDepth {
+    pub width: usize,
+    pub height: usize,
+    pub points: Vec<Option<Point3<f64>>>,
+    /// The camera of the sampled grid (the frame's, scaled by 1/down).
+    pub camera: Pinhole,
+}
+
+impl SampledDepth {
+    /// The frame's depth at the centre pixel of each `down` × `down` block.
+    pub fn of(image: &ImageView<'_>, down: usize, max_depth: f64) -> Self {
+        let (width, height) = (image.width / down, image.height / down);
+        let c = &image.camera;
+        let mut points = Vec::with_capacity(width * height);
+        for y in 0..height {
+            let v = y * down + down / 2;
+            for x in 0..width {
+                let u = x * down + down / 2;
+                let z = f64::from(image.depth[v * image.width + u]);
+                points.push(
+                    (z.is_finite() && z > 0.0 && z <= max_depth)
+                        .then(|| Point3::new((u as f64 - c.cx) / c.fx * z, (v as f64 - c.cy) / c.fy * z, z)),
+                );
+            }
+        }
+        // Pixel u of the frame is grid column (u − down/2) / down.
+        let offset = (down / 2) as f64;
+        let scale = 1.0 / down as f64;
+        let camera =
+            Pinhole { fx: c.fx * scale, fy: c.fy * scale, cx: (c.cx - offset) * scale, cy: (c.cy - offset) * scale };
+        Self { width, height, points, camera }
+    }
+
+    /// The measured depth at the grid cell a camera-frame point projects
+    /// to, if any.
+    fn depth_at(&self, p: &Point3<f64>) -> Option<f64> {
+        let (u, v) = self.camera.pixel(p)?;
+        let (x, y) = (u.round(), v.round());
+        if x < 0.0 || y < 0.0 || x >= self.width as f64 || y >= self.height as f64 {
+            return None;
+        }
+        self.points[y as usize * self.width + x as usize].map(|q| q.z)
+    }
+}
+
+/// The classical detector: the objects' geometry and the settings.
+#[derive(Debug)]
+pub struct ClassicalDetector {
+    library: ObjectLibrary,
+    objects: Vec<u32>,
+    params: ClassicalParams,
+    starts: Vec<Rotation3<f64>>,
+}
+
+impl ClassicalDetector {
+    /// Loads the objects of `params.models` (only `objects`, unless empty)
+    /// and builds their signed distance grids.
+    pub fn new(params: ClassicalParams, objects: &[u32]) -> Result<Self, DetectorError> {
+        params.check()?;
+        let dir = params.models.clone().unwrap_or_default();
+        let library = ObjectLibrary::load(&dir, params.sdf_resolution)
+            .map_err(|source| DetectorError::Models { path: dir.clone(), source })?;
+        let known = library.ids();
+        let objects: Vec<u32> = if objects.is_empty() {
+            known.clone()
+        } else {
+            objects.iter().copied().filter(|id| known.contains(id)).collect()
+        };
+        if objects.is_empty() {
+            return Err(DetectorError::Params {
+                key: "objects".into(),
+                detail: format!("none has a model in {} ({known:?})", dir.display()),
+            });
+        }
+        for &id in &objects {
+            library.get(id).expect("known").grid();
+        }
+        let mut rng = seeded_rng(params.seed ^ 0x5eed_c1a5);
+        let starts = (0..params.starts).map(|_| uniform_rotation(&mut rng)).collect();
+        Ok(Self { library, objects, params, starts })
+    }
+
+    pub fn models_dir(&self) -> &Path {
+        &self.library.dir
+    }
+
+    /// The objects this detector identifies.
+    pub fn object_ids(&self) -> &[u32] {
+        &self.objects
+    }
+
+    /// The label map of one frame on the sampled grid: label k for the k-th
+    /// of [`Self::object_ids`], confidence the fit's agreement.
+    pub fn segment(&self, image: &ImageView<'_>) -> LabelMap {
+        let grid = SampledDepth::of(image, self.params.down, self.params.max_depth_m);
+        let above = self.above_support(&grid);
+        let mut labels = vec![0u8; grid.points.len()];
+        let mut confidence = vec![1.0f32; grid.points.len()];
+        for cluster in clusters(&above, grid.width, self.params.cluster_gap_m) {
+            if cluster.len() < self.params.min_points {
+                break;
+            }
+            let mut remaining = cluster;
+            for _ in 0..MAX_OBJECTS_PER_CLUSTER {
+                if remaining.len() < self.params.min_points {
+                    break;
+                }
+                let points: Vec<Point3<f64>> = remaining.iter().map(|&i| grid.points[i].expect("clustered")).collect();
+                let Some(fit) = self.identify(&points, &grid) else { break };
+                let class = 1 + self.objects.iter().position(|&id| id == fit.obj_id).expect("known") as u8;
+                let object = self.library.get(fit.obj_id).expect("known");
+                let inverse = fit.pose.inverse();
+                let explained = |p: &Point3<f64>| {
+                    object.grid().value(&inverse.transform_point(p)).abs() <= self.params.inlier_distance_m
+                };
+                let (claimed, rest): (Vec<usize>, Vec<usize>) =
+                    remaining.iter().partition(|&&i| explained(&grid.points[i].expect("clustered")));
+                for &i in &claimed {
+                    labels[i] = class;
+                    confidence[i] = fit.agreement as f32;
+                }
+                tracing::debug!(
+                    object = fit.obj_id,
+                    points = claimed.len(),
+                    agreement = fit.agreement,
+                    "cluster identified"
+                );
+                remaining = rest;
+            }
+        }
+        LabelMap { width: grid.width, height: grid.height, labels, confidence }
+    }
+
+    /// The grid without the support plane and what lies behind it; the
+    /// whole grid when no plane holds a tenth of the points.
+    fn above_support(&self, grid: &SampledDepth) -> Vec<Option<Point3<f64>>> {
+        let measured: Vec<Point3<f64>> = grid.points.iter().flatten().copied().collect();
+        let mut rng = seeded_rng(self.params.seed);
+        let tolerance = self.params.plane_tolerance_m;
+        let plane: Option<Plane> = ransac_plane(&measured, tolerance, PLANE_ITERATIONS, &mut rng).filter(|plane| {
+            measured.iter().filter(|p| plane.distance(p).abs() <= tolerance).count() * 10 >= measured.len()
+        });
+        match plane {
+            Some(plane) => grid.points.iter().map(|p| p.filter(|p| plane.distance(p) > tolerance)).collect(),
+            None => grid.points.clone(),
+        }
+    }
+
+    /// The object that explains most of `points` with an agreement of at
+    /// least `min_fit`, if any.
+    pub fn identify(&self, points: &[Point3<f64>], grid: &SampledDepth) -> Option<Fit> {
+        let extent = bounding_diagonal(points);
+        self.objects
+            .iter()
+            .filter_map(|&id| {
+                let object = self.library.get(id).expect("known");
+                // A cluster wider than the object holds more than it; its
+                // best part is still tried, but not one the object cannot span.
+                let (_, radius) = object.bounding_sphere();
+                (extent <= 4.0 * radius).then(|| self.fit(object, points, grid))
+            })
+            .filter(|fit| fit.agreement >= self.params.min_fit && fit.inliers >= self.params.min_points)
+            .max_by(|a, b| {
+                (a.inliers as f64 * a.agreement)
+                    .total_cmp(&(b.inliers as f64 * b.agreement))
+                    .then(b.obj_id.cmp(&a.obj_id))
+            })
+    }
+
+    /// The best pose of `object` on `points` from every start.
+    pub fn fit(&self, object: &ObjectGeometry, points: &[Point3<f64>], grid: &SampledDepth) -> Fit {
+        let likelihood = Likelihood { noise_std: self.params.inlier_distance_m / 2.0, outlier_distance: 0.03 };
+        let coarse_points = spread(points, COARSE_POINTS);
+        let fine_points = spread(points, FINE_POINTS);
+        let (centre, radius) = object.bounding_sphere();
+        let centroid = points.iter().fold(Vector3::zeros(), |s, p| s + p.coords) / points.len().max(1) as f64;
+        // The camera sees the near side: the object's centre lies behind
+        // the points' centroid.
+        let target = centroid + centroid.normalize() * (0.5 * radius);
+        let mut coarse: Vec<(f64, Pose)> = self
+            .starts
+            .iter()
+            .map(|rotation| {
+                let start = Pose::new(*rotation, target - rotation * centre.coords);
+                let pose = refine(object.grid(), &start, &coarse_points, &likelihood, COARSE_ITERATIONS).pose;
+                (truncated_cost(object, &pose, &coarse_points, likelihood.outlier_distance), pose)
+            })
+            .collect();
+        coarse.sort_by(|a, b| a.0.total_cmp(&b.0));
+        coarse
+            .iter()
+            .take(FINE_FITS)
+            .map(|(_, pose)| {
+                let pose = refine(object.grid(), pose, &fine_points, &likelihood, FINE_ITERATIONS).pose;
+                self.judge(object, pose, points, grid)
+            })
+            .max_by(|a, b| (a.inliers as f64 * a.agreement).total_cmp(&(b.inliers as f64 * b.agreement)))
+            .expect("at least one start")
+    }
+
+    fn judge(&self, object: &ObjectGeometry, pose: Pose, points: &[Point3<f64>], grid: &SampledDepth) -> Fit {
+        let tolerance = self.params.inlier_distance_m;
+        let inverse = pose.inverse();
+        let inliers =
+            points.iter().filter(|p| object.grid().value(&inverse.transform_point(p)).abs() <= tolerance).count();
+        let (mut agree, mut in_front) = (0usize, 0usize);
+        for y in object.surface() {
+            let p = pose.transform_point(y);
+            // Unmeasured or outside the view: no evidence either way.
+            let Some(depth) = grid.depth_at(&p) else { continue };
+            if p.z < depth - 2.0 * tolerance {
+                in_front += 1;
+            } else if p.z <= depth + tolerance {
+                agree += 1;
+            }
+        }
+        let seen = agree + in_front;
+        let agreement = if seen == 0 { 0.0 } else { agree as f64 / seen as f64 };
+        Fit { obj_id: object.obj_id, pose, inliers, agreement }
+    }
+}
+
+/// Mean squared distance to the posed surface, each capped at `cap`.
+fn truncated_cost(object: &ObjectGeometry, pose: &Pose, points: &[Point3<f64>], cap: f64) -> f64 {
+    let inverse = pose.inverse();
+    let sum: f64 = points.iter().map(|p| object.grid().value(&inverse.transform_point(p)).abs().min(cap).powi(2)).sum();
+    sum / points.len().max(1) as f64
+}
+
+/// At most `count` of `points`, evenly strided.
+fn spread(points: &[Point3<f64>], count: usize) -> Vec<Point3<f64>> {
+    let stride = points.len().div_ceil(count.max(1)).max(1);
+    points.iter().step_by(stride).copied().collect()
+}
+
+/// The diagonal of the points' axis-aligned bounding box.
+fn bounding_diagonal(points: &[Point3<f64>]) -> f64 {
+    let Some(first) = points.first() else { return 0.0 };
+    let (min, max) =
+        points.iter().fold((first.coords, first.coords), |(lo, hi), p| (lo.inf(&p.coords), hi.sup(&p.coords)));
+    (max - min).norm()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn view<'a>(depth: &'a [f32], rgb: &'a [f32], width: usize, height: usize, camera: Pinhole) -> ImageView<'a> {
+        ImageView { rgb, depth, width, height, camera }
+    }
+
+    #[test]
+    fn a_sampled_point_is_its_pixel_back_projected() {
+        let camera = Pinhole { fx: 500.0, fy: 400.0, cx: 10.0, cy: 6.0 };
+        let (width, height) = (16, 12);
+        let mut depth = vec![0.0f32; width * height];
+        // Block (1, 2) of a 4×4 sampling has its centre at pixel (6, 10).
+        depth[10 * width + 6] = 0.8;
+        let rgb = vec![0.0; 3 * width * height];
+        let grid = SampledDepth::of(&view(&depth, &rgb, width, height, camera), 4, 2.0);
+        assert_eq!((grid.width, grid.height), (4, 3));
+        let p = grid.points[2 * 4 + 1].expect("measured");
+        let expected = Point3::new((6.0 - 10.0) / 500.0 * 0.8, (10.0 - 6.0) / 400.0 * 0.8, 0.8);
+        assert!((p - expected).norm() < 1e-6, "{p} vs {expected}");
+        assert_eq!(grid.points.iter().flatten().count(), 1, "unmeasured pixels give no point");
+    }
+
+    #[test]
+    fn depth_beyond_the_limit_is_ignored() {
+        let camera = Pinhole { fx: 100.0, fy: 100.0, cx: 4.0, cy: 4.0 };
+        let depth = vec![2.5f32; 64];
+        let rgb = vec![0.0; 3 * 64];
+        let grid = SampledDepth::of(&view(&depth, &rgb, 8, 8, camera), 2, 2.0);
+        assert!(grid.points.iter().all(Option::is_none));
+    }
+
+    proptest! {
+        /// The sampled grid's own camera maps every point back to its cell,
+        /// so the fit's view test reads the depth the point came from.
+        #[test]
+        fn each_point_projects_back_to_its_own_cell(
+            fx in 200.0f64..900.0,
+            fy in 200.0f64..900.0,
+            cx in 0.0f64..64.0,
+            cy in 0.0f64..48.0,
+            down in 1usize..6,
+            depths in proptest::collection::vec(0.2f32..1.9, 64 * 48),
+        ) {
+            let camera = Pinhole { fx, fy, cx, cy };
+            let rgb = vec![0.0; 3 * 64 * 48];
+            let grid = SampledDepth::of(&view(&depths, &rgb, 64, 48, camera), down, 2.0);
+            for (i, point) in grid.points.iter().enumerate() {
+                let p = point.expect("every pixel measured");
+                let (u, v) = grid.camera.pixel(&p).expect("in front");
+                prop_assert_eq!((u.round() as usize, v.round() as usize), (i % grid.width, i / grid.width));
+                prop_assert_eq!(grid.depth_at(&p), Some(p.z));
+            }
+        }
+    }
+}
