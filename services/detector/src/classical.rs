@@ -285,7 +285,13 @@ impl ClassicalDetector {
     /// of [`Self::object_ids`], confidence the fit's agreement.
     pub fn segment(&self, image: &ImageView<'_>) -> LabelMap {
         let grid = SampledDepth::of(image, self.params.down, self.params.max_depth_m);
-        let above = self.above_support(&grid);
+        // Points on the table or behind it are not objects.
+        let above: Vec<Option<Point3<f64>>> = match self.support_plane(&grid) {
+            Some(plane) => {
+                grid.points.iter().map(|p| p.filter(|p| plane.distance(p) > self.params.plane_tolerance_m)).collect()
+            }
+            None => grid.points.clone(),
+        };
         let mut labels = vec![0u8; grid.points.len()];
         let mut confidence = vec![1.0f32; grid.points.len()];
         for cluster in clusters(&above, grid.width, self.params.cluster_gap_m) {
@@ -323,19 +329,15 @@ impl ClassicalDetector {
         LabelMap { width: grid.width, height: grid.height, labels, confidence }
     }
 
-    /// The grid without the support plane and what lies behind it; the
-    /// whole grid when no plane holds a tenth of the points.
-    fn above_support(&self, grid: &SampledDepth) -> Vec<Option<Point3<f64>>> {
+    /// The support plane, if one holds a tenth of the points.
+    fn support_plane(&self, grid: &SampledDepth) -> Option<Plane> {
         let measured: Vec<Point3<f64>> = grid.points.iter().flatten().copied().collect();
         let mut rng = seeded_rng(self.params.seed);
         let tolerance = self.params.plane_tolerance_m;
-        let plane: Option<Plane> = ransac_plane(&measured, tolerance, PLANE_ITERATIONS, &mut rng).filter(|plane| {
-            measured.iter().filter(|p| plane.distance(p).abs() <= tolerance).count() * 10 >= measured.len()
-        });
-        match plane {
-            Some(plane) => grid.points.iter().map(|p| p.filter(|p| plane.distance(p) > tolerance)).collect(),
-            None => grid.points.clone(),
-        }
+        let plane = ransac_plane(&measured, tolerance, PLANE_ITERATIONS, &mut rng)?;
+        let support = measured.iter().filter(|p| plane.distance(p).abs() <= tolerance).count();
+        tracing::debug!(normal = ?plane.normal.as_slice(), offset = plane.offset, support, points = measured.len(), "support plane");
+        (support * 10 >= measured.len()).then_some(plane)
     }
 
     /// The object that explains most of `points` with an agreement of at
