@@ -187,6 +187,13 @@ pub struct Fit {
     pub agreement: f64,
 }
 
+impl Fit {
+    /// How much of the cluster the fit explains, and how well.
+    pub fn merit(&self) -> f64 {
+        self.inliers as f64 * self.agreement
+    }
+}
+
 /// The sampled depth grid of one frame: camera-frame points, `None` where
 /// nothing was measured.
 #[derive(Debug, Clone)]
@@ -354,11 +361,7 @@ impl ClassicalDetector {
                 (extent <= 4.0 * radius).then(|| self.fit(object, points, grid))
             })
             .filter(|fit| fit.agreement >= self.params.min_fit && fit.inliers >= self.params.min_points)
-            .max_by(|a, b| {
-                (a.inliers as f64 * a.agreement)
-                    .total_cmp(&(b.inliers as f64 * b.agreement))
-                    .then(b.obj_id.cmp(&a.obj_id))
-            })
+            .max_by(|a, b| a.merit().total_cmp(&b.merit()).then(b.obj_id.cmp(&a.obj_id)))
     }
 
     /// The best pose of `object` on `points` from every start.
@@ -388,7 +391,7 @@ impl ClassicalDetector {
                 let pose = refine(object.grid(), pose, &fine_points, &likelihood, FINE_ITERATIONS).pose;
                 self.judge(object, pose, points, grid)
             })
-            .max_by(|a, b| (a.inliers as f64 * a.agreement).total_cmp(&(b.inliers as f64 * b.agreement)))
+            .max_by(|a, b| a.merit().total_cmp(&b.merit()))
             .expect("at least one start")
     }
 
