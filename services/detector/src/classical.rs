@@ -351,6 +351,7 @@ impl ClassicalDetector {
     /// least `min_fit`, if any.
     pub fn identify(&self, points: &[Point3<f64>], grid: &SampledDepth) -> Option<Fit> {
         let extent = bounding_diagonal(points);
+        let cluster = Cluster::of(points);
         self.objects
             .iter()
             .filter_map(|&id| {
@@ -358,29 +359,27 @@ impl ClassicalDetector {
                 // A cluster wider than the object holds more than it; its
                 // best part is still tried, but not one the object cannot span.
                 let (_, radius) = object.bounding_sphere();
-                (extent <= 4.0 * radius).then(|| self.fit(object, points, grid))
+                (extent <= 4.0 * radius).then(|| self.fit(object, &cluster, grid))
             })
             .filter(|fit| fit.agreement >= self.params.min_fit && fit.inliers >= self.params.min_points)
             .max_by(|a, b| a.merit().total_cmp(&b.merit()).then(b.obj_id.cmp(&a.obj_id)))
     }
 
-    /// The best pose of `object` on `points` from every start.
-    pub fn fit(&self, object: &ObjectGeometry, points: &[Point3<f64>], grid: &SampledDepth) -> Fit {
+    /// The best pose of `object` on `cluster` from every start.
+    pub fn fit(&self, object: &ObjectGeometry, cluster: &Cluster<'_>, grid: &SampledDepth) -> Fit {
         let likelihood = Likelihood { noise_std: self.params.inlier_distance_m / 2.0, outlier_distance: 0.03 };
-        let coarse_points = spread(points, COARSE_POINTS);
-        let fine_points = spread(points, FINE_POINTS);
+        let (coarse_points, fine_points) = (&cluster.coarse, &cluster.fine);
         let (centre, radius) = object.bounding_sphere();
-        let centroid = points.iter().fold(Vector3::zeros(), |s, p| s + p.coords) / points.len().max(1) as f64;
         // The camera sees the near side: the object's centre lies behind
         // the points' centroid.
-        let target = centroid + centroid.normalize() * (0.5 * radius);
+        let target = cluster.centroid + cluster.centroid.normalize() * (0.5 * radius);
         let mut coarse: Vec<(f64, Pose)> = self
             .starts
             .iter()
             .map(|rotation| {
                 let start = Pose::new(*rotation, target - rotation * centre.coords);
-                let pose = refine(object.grid(), &start, &coarse_points, &likelihood, COARSE_ITERATIONS).pose;
-                (truncated_cost(object, &pose, &coarse_points, likelihood.outlier_distance), pose)
+                let pose = refine(object.grid(), &start, coarse_points, &likelihood, COARSE_ITERATIONS).pose;
+                (truncated_cost(object, &pose, coarse_points, likelihood.outlier_distance), pose)
             })
             .collect();
         coarse.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -388,8 +387,8 @@ impl ClassicalDetector {
             .iter()
             .take(FINE_FITS)
             .map(|(_, pose)| {
-                let pose = refine(object.grid(), pose, &fine_points, &likelihood, FINE_ITERATIONS).pose;
-                self.judge(object, pose, points, grid)
+                let pose = refine(object.grid(), pose, fine_points, &likelihood, FINE_ITERATIONS).pose;
+                self.judge(object, pose, cluster.points, grid)
             })
             .max_by(|a, b| a.merit().total_cmp(&b.merit()))
             .expect("at least one start")
@@ -414,6 +413,24 @@ impl ClassicalDetector {
         let seen = agree + in_front;
         let agreement = if seen == 0 { 0.0 } else { agree as f64 / seen as f64 };
         Fit { obj_id: object.obj_id, pose, inliers, agreement }
+    }
+}
+
+/// One cluster's points and what every object's fit starts from: computed
+/// once per cluster, not once per object tried.
+#[derive(Debug, Clone)]
+pub struct Cluster<'a> {
+    pub points: &'a [Point3<f64>],
+    pub centroid: Vector3<f64>,
+    /// At most `COARSE_POINTS` and `FINE_POINTS` of them, evenly strided.
+    coarse: Vec<Point3<f64>>,
+    fine: Vec<Point3<f64>>,
+}
+
+impl<'a> Cluster<'a> {
+    pub fn of(points: &'a [Point3<f64>]) -> Self {
+        let centroid = points.iter().fold(Vector3::zeros(), |s, p| s + p.coords) / points.len().max(1) as f64;
+        Self { points, centroid, coarse: spread(points, COARSE_POINTS), fine: spread(points, FINE_POINTS) }
     }
 }
 

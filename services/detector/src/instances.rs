@@ -92,13 +92,7 @@ fn regions(map: &LabelMap) -> Vec<Region> {
             region.confidence += f64::from(map.confidence[i]);
             region.bounds =
                 [region.bounds[0].min(x), region.bounds[1].min(y), region.bounds[2].max(x), region.bounds[3].max(y)];
-            let neighbours = [
-                (x > 0).then(|| i - 1),
-                (x + 1 < w).then(|| i + 1),
-                (y > 0).then(|| i - w),
-                (y + 1 < h).then(|| i + w),
-            ];
-            for n in neighbours.into_iter().flatten() {
+            for n in crate::grid_neighbours(i, w, h).into_iter().flatten() {
                 if !seen[n] && map.labels[n] == class {
                     seen[n] = true;
                     stack.push(n);

@@ -214,6 +214,17 @@ impl Detector {
     }
 }
 
+/// The 4-neighbours of cell `i` in a row-major `width × height` grid.
+pub(crate) fn grid_neighbours(i: usize, width: usize, height: usize) -> [Option<usize>; 4] {
+    let (x, y) = (i % width, i / width);
+    [
+        (x > 0).then(|| i - 1),
+        (x + 1 < width).then(|| i + 1),
+        (y > 0).then(|| i - width),
+        (y + 1 < height).then(|| i + width),
+    ]
+}
+
 /// The stages of this crate, by executable name.
 pub fn registrations() -> Vec<poseflow_runtime::Registration> {
     vec![poseflow_runtime::Registration::transform("detector", |wiring| {

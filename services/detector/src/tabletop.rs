@@ -95,14 +95,7 @@ pub fn clusters(grid: &[Option<Point3<f64>>], width: usize, gap: f64) -> Vec<Vec
         while let Some(i) = stack.pop() {
             cluster.push(i);
             let p = grid[i].expect("only points are pushed");
-            let (x, y) = (i % width, i / width);
-            let neighbours = [
-                (x > 0).then(|| i - 1),
-                (x + 1 < width).then(|| i + 1),
-                (y > 0).then(|| i - width),
-                (y + 1 < height).then(|| i + width),
-            ];
-            for n in neighbours.into_iter().flatten() {
+            for n in crate::grid_neighbours(i, width, height).into_iter().flatten() {
                 if let Some(q) = grid[n]
                     && !seen[n]
                     && (q - p).norm() < gap
