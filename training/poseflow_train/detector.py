@@ -13,10 +13,11 @@ background, class k the k-th id of `object_ids`.
 
 The export writes `detector.onnx` (input "rgbd", output "probabilities":
 the softmax over the classes), `detector.json` (object ids, input size,
-downsampling, depth scale) and `parity.bin`: one validation image's input
-(uint8 RGB, uint16 depth in mm), its true labels (uint8), and the exported
-network's labels (uint8) and their probabilities (float32), which the Rust
-stage must reproduce.
+downsampling, depth scale, the loss's class weights) and `parity.bin`: one
+validation image's input (uint8 RGB, uint16 depth in mm), its true labels
+(uint8), and the exported network's labels (uint8) and their probabilities
+(float32), both with the class weights divided out, which the Rust stage
+must reproduce.
 Evaluation (AP50, mask IoU) runs through the stage: `poseflow eval --detect`.
 
 Training checkpoints (weights, optimiser, step, elapsed seconds) every
@@ -152,9 +153,7 @@ def train(args):
         optimiser.load_state_dict(state["optimiser"])
         step, elapsed = state["step"], state["elapsed_s"]
         print(f"resumed at step {step} after {elapsed / 60:.1f} min", flush=True)
-    # Background dominates the pixels: weigh the objects up.
-    weights = torch.ones(1 + len(object_ids))
-    weights[0] = 0.2
+    weights = torch.tensor(class_weights(len(object_ids)))
     rng = np.random.default_rng(step)
     started, saved = time.time() - elapsed, time.time()
     log = open(out / "detector-log.jsonl", "a")
@@ -201,13 +200,33 @@ def save(model, optimiser, step, elapsed, path):
     tmp.replace(path)
 
 
+# Background dominates the pixels: the loss weighs the objects up. The
+# network then predicts each class as if it were its weight times as likely,
+# so the labels are taken from the probabilities divided by the weights
+# (`class_weights` in detector.json; the stage does the same).
+BACKGROUND_WEIGHT = 0.2
+
+
+def class_weights(objects):
+    return [BACKGROUND_WEIGHT] + [1.0] * objects
+
+
+def labels_of(probabilities, weights):
+    """The label of each pixel: N×C×H×W probabilities → N×H×W."""
+    return (probabilities / np.asarray(weights, np.float32)[None, :, None, None]).argmax(1)
+
+
 def evaluate_arrays(model, rgb, depth_mm, labels, object_ids):
-    """Per-pixel mask IoU per object (the union over the split) and their mean."""
+    """Per-pixel mask IoU per object (the union over the split) and their
+    mean, with the stage's labels (the class weights divided out; logs
+    before step 8,617 used the plain argmax)."""
     model.eval()
     predicted = []
+    weights = class_weights(len(object_ids))
     with torch.no_grad():
         for i in range(0, len(rgb), 16):
-            predicted.append(model(to_input(rgb[i : i + 16], depth_mm[i : i + 16])).argmax(1).numpy())
+            logits = model(to_input(rgb[i : i + 16], depth_mm[i : i + 16]))
+            predicted.append(labels_of(torch.softmax(logits, dim=1).numpy(), weights))
     predicted = np.concatenate(predicted)
     ious = {}
     for k, obj in enumerate(object_ids, start=1):
@@ -254,6 +273,7 @@ def export(args):
         "format": "poseflow-detector/1",
         "object_ids": config["object_ids"],
         "input": {"height": HEIGHT, "width": WIDTH, "down": DOWN, "depth_scale_m": DEPTH_SCALE_M},
+        "class_weights": class_weights(len(config["object_ids"])),
         "training": {"step": state["step"], "train_minutes": round(state["elapsed_s"] / 60, 1)},
     }
     (out / "detector.json").write_text(json.dumps(meta, indent=1) + "\n")
@@ -263,13 +283,15 @@ def export(args):
     rgb, depth_mm, truth = read_split(args.data, "test", config["object_ids"])
     session = onnxruntime.InferenceSession(str(out / "detector.onnx"), providers=["CPUExecutionProvider"])
     probabilities = session.run(None, {"rgbd": to_input(rgb[:1], depth_mm[:1]).numpy()})[0][0]
-    labels = probabilities.argmax(0).astype(np.uint8)
+    weights = class_weights(len(config["object_ids"]))
+    labels = labels_of(probabilities[None], weights)[0].astype(np.uint8)
     with open(out / "parity.bin", "wb") as f:
         f.write(rgb[0].astype(np.uint8).tobytes())
         f.write(depth_mm[0].astype("<u2").tobytes())
         f.write(truth[0].astype(np.uint8).tobytes())
         f.write(labels.tobytes())
-        f.write(probabilities.max(0).astype("<f4").tobytes())
+        weighted = probabilities / np.asarray(weights, np.float32)[:, None, None]
+        f.write((weighted.max(0) / weighted.sum(0)).astype("<f4").tobytes())
     with torch.no_grad():
         reference = exported(to_input(rgb[:1], depth_mm[:1]))[0].numpy()
     print(f"exported step {state['step']} to {out}: max |onnx - torch| = {np.abs(probabilities - reference).max():.2e}")

@@ -333,7 +333,8 @@ impl ClassicalDetector {
                 remaining = rest;
             }
         }
-        LabelMap { width: grid.width, height: grid.height, labels, confidence }
+        let depth = grid.points.iter().map(|p| p.map_or(0.0, |p| p.z as f32)).collect();
+        LabelMap { width: grid.width, height: grid.height, labels, confidence, depth }
     }
 
     /// The support plane, if one holds a tenth of the points.

@@ -25,7 +25,7 @@ use std::path::PathBuf;
 
 pub use classical::{ClassicalDetector, ClassicalParams};
 pub use error::DetectorError;
-pub use instances::{Found, InstanceRules, LabelMap};
+pub use instances::{Found, FrameGrid, InstanceRules, LabelMap};
 pub use network::{ImageView, SegmentationNetwork};
 use serde::Deserialize;
 
@@ -75,6 +75,11 @@ pub struct DetectorParams {
     /// Instances whose mean probability is lower are dropped.
     #[serde(default = "default_min_score")]
     pub min_score: f32,
+    /// Masks follow depth edges within a block: a neighbouring cell's vote
+    /// for a pixel halves (e^-½) at this depth difference in metres. 0 scales
+    /// the label map up block by block.
+    #[serde(default = "default_edge_depth")]
+    pub edge_depth_m: f32,
     /// Settings of `mode = "classical"`.
     #[serde(default)]
     pub classical: ClassicalParams,
@@ -103,6 +108,9 @@ fn default_merge_gap() -> usize {
 fn default_min_score() -> f32 {
     0.5
 }
+fn default_edge_depth() -> f32 {
+    0.01
+}
 
 impl DetectorParams {
     pub fn from_json(value: &serde_json::Value) -> Result<Self, DetectorError> {
@@ -118,6 +126,9 @@ impl DetectorParams {
         if !(0.0..=1.0).contains(&params.min_score) {
             return bad("min_score", format!("expected a probability from 0 to 1, got {}", params.min_score));
         }
+        if !(params.edge_depth_m.is_finite() && params.edge_depth_m >= 0.0) {
+            return bad("edge_depth_m", format!("expected metres, 0 or more, got {}", params.edge_depth_m));
+        }
         if params.mode == Mode::Classical {
             params.classical.check()?;
         }
@@ -130,6 +141,7 @@ impl DetectorParams {
             merge_gap_px: self.merge_gap_px,
             max_instances: self.max_instances,
             min_score: self.min_score,
+            edge_depth_m: self.edge_depth_m,
         }
     }
 }
@@ -205,8 +217,8 @@ impl Detector {
             Backend::Network(network) => network.segment(image)?,
             Backend::Classical(classical) => classical.segment(image),
         };
-        let mut found =
-            instances::detections(&map, self.labelled_ids(), image.width, image.height, &self.params.rules());
+        let frame = FrameGrid { width: image.width, height: image.height, depth: image.depth };
+        let mut found = instances::detections(&map, self.labelled_ids(), &frame, &self.params.rules());
         if !self.params.objects.is_empty() {
             found.objects.retain(|o| self.params.objects.contains(&o.obj_id));
         }
@@ -230,4 +242,26 @@ pub fn registrations() -> Vec<poseflow_runtime::Registration> {
     vec![poseflow_runtime::Registration::transform("detector", |wiring| {
         DetectorParams::from_json(&wiring.params).and_then(stage::DetectorStage::new)
     })]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_parameters_are_refused_naming_the_key() {
+        let refused = |json: serde_json::Value| DetectorParams::from_json(&json).unwrap_err().to_string();
+        for (json, key) in [
+            (serde_json::json!({ "threads": 0 }), "threads"),
+            (serde_json::json!({ "max_instances": 0 }), "max_instances"),
+            (serde_json::json!({ "min_score": 1.5 }), "min_score"),
+            (serde_json::json!({ "edge_depth_m": -0.01 }), "edge_depth_m"),
+            (serde_json::json!({ "edge_depth": 0.01 }), "edge_depth"),
+        ] {
+            let message = refused(json.clone());
+            assert!(message.contains(key), "{json}: {message}");
+        }
+        let defaults = DetectorParams::from_json(&serde_json::json!({})).unwrap();
+        assert_eq!(defaults.rules().edge_depth_m, 0.01);
+    }
 }

@@ -9,6 +9,12 @@
 //!   `down` × `down` block (a 640 × 480 frame: 120 × 160 with `down` 4);
 //! - output `probabilities`, float32 N × (1 + K) × H × W: class 0 is
 //!   background, class k the k-th of `object_ids`.
+//!
+//! A network trained with class weights in its loss (background weighted
+//! less, since most pixels are background) predicts each class as if it
+//! were its weight times as likely as it is, which grows every mask by
+//! its uncertain border. `detector.json`'s `class_weights` records them, and
+//! the labels are taken from the probabilities divided by them.
 
 use std::path::{Path, PathBuf};
 
@@ -29,6 +35,17 @@ pub struct DetectorMeta {
     pub format: String,
     pub object_ids: Vec<u32>,
     pub input: InputSpec,
+    /// The loss weight of each class in training, background first (absent:
+    /// all equal).
+    #[serde(default)]
+    pub class_weights: Option<Vec<f32>>,
+}
+
+impl DetectorMeta {
+    /// Each class's weight, background first: `class_weights` or ones.
+    pub fn weights(&self) -> Vec<f32> {
+        self.class_weights.clone().unwrap_or_else(|| vec![1.0; self.object_ids.len() + 1])
+    }
 }
 
 /// The network's input size and scaling.
@@ -79,23 +96,27 @@ pub fn network_input(image: &ImageView<'_>, spec: &InputSpec, out: &mut Vec<f32>
 }
 
 /// Each pixel's most probable class and its probability, from `N = 1`
-/// probabilities of `classes` planes.
-pub fn label_map(probabilities: &[f32], classes: usize, spec: &InputSpec) -> LabelMap {
+/// probabilities of `weights.len()` planes divided by the classes'
+/// training weights and normalised, with the depth the network saw in
+/// `input` (its [`network_input`]).
+pub fn label_map(probabilities: &[f32], weights: &[f32], spec: &InputSpec, input: &[f32]) -> LabelMap {
     let plane = spec.height * spec.width;
     let mut labels = vec![0u8; plane];
     let mut confidence = vec![0.0f32; plane];
     for i in 0..plane {
-        let (mut best, mut p) = (0usize, f32::NEG_INFINITY);
-        for c in 0..classes {
-            let q = probabilities[c * plane + i];
+        let (mut best, mut p, mut total) = (0usize, f32::NEG_INFINITY, 0.0f32);
+        for (c, weight) in weights.iter().enumerate() {
+            let q = probabilities[c * plane + i] / weight;
+            total += q;
             if q > p {
                 (best, p) = (c, q);
             }
         }
         labels[i] = best as u8;
-        confidence[i] = p;
+        confidence[i] = if total > 0.0 { p / total } else { 0.0 };
     }
-    LabelMap { width: spec.width, height: spec.height, labels, confidence }
+    let depth = input[3 * plane..4 * plane].iter().map(|d| d * spec.depth_scale_m).collect();
+    LabelMap { width: spec.width, height: spec.height, labels, confidence, depth }
 }
 
 /// A loaded detector network.
@@ -103,6 +124,8 @@ pub fn label_map(probabilities: &[f32], classes: usize, spec: &InputSpec) -> Lab
 pub struct SegmentationNetwork {
     session: Session,
     meta: DetectorMeta,
+    /// [`DetectorMeta::weights`].
+    weights: Vec<f32>,
     path: PathBuf,
     /// The input tensor, reused from frame to frame.
     input: Vec<f32>,
@@ -124,6 +147,13 @@ impl SegmentationNetwork {
         let classes = meta.object_ids.len() + 1;
         if meta.object_ids.is_empty() || classes > 256 {
             return Err(bad(format!("object_ids: expected 1 to 255 ids, found {}", meta.object_ids.len())));
+        }
+        if let Some(weights) = &meta.class_weights
+            && (weights.len() != classes || !weights.iter().all(|w| w.is_finite() && *w > 0.0))
+        {
+            return Err(bad(format!(
+                "class_weights: expected {classes} positive weights (background, then each object id), found {weights:?}"
+            )));
         }
         let spec = meta.input;
         if spec.height == 0
@@ -150,7 +180,8 @@ impl SegmentationNetwork {
             session.outputs(),
             &[poseflow_onnx::port("probabilities", F, &[-1, classes as i64, h, w])],
         )?;
-        Ok(Self { session, meta, path, input: Vec::new() })
+        let weights = meta.weights();
+        Ok(Self { session, meta, weights, path, input: Vec::new() })
     }
 
     pub fn meta(&self) -> &DetectorMeta {
@@ -166,7 +197,7 @@ impl SegmentationNetwork {
             TensorRef::from_array_view(([1, 5, spec.height, spec.width], &self.input[..])).map_err(run_error)?;
         let outputs = self.session.run(ort::inputs!["rgbd" => tensor]).map_err(run_error)?;
         let (_, probabilities) = outputs["probabilities"].try_extract_tensor::<f32>().map_err(run_error)?;
-        Ok(label_map(probabilities, self.meta.object_ids.len() + 1, &spec))
+        Ok(label_map(probabilities, &self.weights, &spec, &self.input))
     }
 }
 
@@ -209,8 +240,28 @@ mod tests {
         for i in 0..6 {
             probabilities[(i % 3) * 6 + i] = 0.8;
         }
-        let map = label_map(&probabilities, 3, &SPEC);
+        // Depth plane: 0.25 · (pixel index) in units of depth_scale_m.
+        let mut input = vec![0.0; 5 * 6];
+        for i in 0..6 {
+            input[3 * 6 + i] = 0.25 * i as f32;
+        }
+        let map = label_map(&probabilities, &[1.0; 3], &SPEC, &input);
         assert_eq!(map.labels, [0, 1, 2, 0, 1, 2]);
-        assert!(map.confidence.iter().all(|&c| c == 0.8));
+        assert!(map.confidence.iter().all(|&c| (c - 0.8).abs() < 1e-6));
+        assert_eq!(map.depth, [0.0, 0.5, 1.0, 1.5, 2.0, 2.5], "metres, depth_scale_m being 2");
+    }
+
+    #[test]
+    fn class_weights_of_training_are_divided_out() {
+        // Background 0.4 against an object 0.6 from a network that weighted
+        // background 0.2: really 2 : 0.6, so background at 0.4 / 0.2 /
+        // (2 + 0.6) ≈ 0.77.
+        let probabilities = [0.4, 0.9, 0.6, 0.1];
+        let spec = InputSpec { height: 1, width: 2, down: 1, depth_scale_m: 1.0 };
+        let map = label_map(&probabilities, &[0.2, 1.0], &spec, &[0.0; 10]);
+        assert_eq!(map.labels, [0, 0]);
+        assert!((map.confidence[0] - 2.0 / 2.6).abs() < 1e-6, "{:?}", map.confidence);
+        let unweighted = label_map(&probabilities, &[1.0, 1.0], &spec, &[0.0; 10]);
+        assert_eq!(unweighted.labels, [1, 0]);
     }
 }

@@ -35,9 +35,9 @@ pub struct TruthMask {
     pub ignored: bool,
 }
 
-/// IoU of a detection (its box and mask) with a truth's whole-image mask of
-/// `width` columns.
-pub fn mask_iou(detection: &DetectedObject, truth: &TruthMask, width: usize) -> f64 {
+/// Pixels of a detection's mask, and of those the ones inside a truth's
+/// whole-image mask of `width` columns.
+fn mask_overlap(detection: &DetectedObject, truth: &TruthMask, width: usize) -> (usize, usize) {
     let [x, y, w, h] = detection.bbox.map(|v| v as usize);
     let (mut both, mut detected) = (0usize, 0usize);
     for row in 0..h {
@@ -48,8 +48,26 @@ pub fn mask_iou(detection: &DetectedObject, truth: &TruthMask, width: usize) -> 
             }
         }
     }
+    (detected, both)
+}
+
+/// IoU of a detection (its box and mask) with a truth's whole-image mask of
+/// `width` columns.
+pub fn mask_iou(detection: &DetectedObject, truth: &TruthMask, width: usize) -> f64 {
+    let (detected, both) = mask_overlap(detection, truth, width);
     let union = detected + truth.area - both;
     if union == 0 { 0.0 } else { both as f64 / union as f64 }
+}
+
+/// An instance's best-overlapping detection of its object.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct BestMatch {
+    /// 0 when no detection overlaps.
+    pub iou: f64,
+    /// Pixels of that detection's mask, and of those the ones on the
+    /// instance (0 and 0 without one).
+    pub detected_pixels: usize,
+    pub overlap_pixels: usize,
 }
 
 /// Per object: detections as (score, true positive), instances counted and
@@ -62,33 +80,39 @@ pub struct ObjectTally {
 }
 
 /// Matches one image's detections against its instances and adds them to
-/// `tallies`.
+/// `tallies`; each instance's best match among the detections of its
+/// object, in the order of `truths`.
 pub fn tally_image(
     detections: &[DetectedObject],
     truths: &[TruthMask],
     width: usize,
     tallies: &mut BTreeMap<u32, ObjectTally>,
-) {
+) -> Vec<BestMatch> {
     let mut order: Vec<usize> = (0..detections.len()).collect();
     order.sort_by(|&a, &b| detections[b].score.total_cmp(&detections[a].score));
-    let mut best_iou = vec![0.0f64; truths.len()];
+    let mut best = vec![BestMatch::default(); truths.len()];
     let mut taken = vec![false; truths.len()];
     for truth in truths.iter().filter(|t| !t.ignored) {
         tallies.entry(truth.obj_id).or_default().instances += 1;
     }
     for i in order {
         let detection = &detections[i];
-        let best = truths
+        let candidate = truths
             .iter()
             .enumerate()
             .filter(|(k, t)| t.obj_id == detection.obj_id && !taken[*k])
-            .map(|(k, t)| (k, mask_iou(detection, t, width)))
-            .max_by(|a, b| a.1.total_cmp(&b.1));
+            .map(|(k, t)| {
+                let (detected, both) = mask_overlap(detection, t, width);
+                let union = detected + t.area - both;
+                let iou = if union == 0 { 0.0 } else { both as f64 / union as f64 };
+                (k, BestMatch { iou, detected_pixels: detected, overlap_pixels: both })
+            })
+            .max_by(|a, b| a.1.iou.total_cmp(&b.1.iou));
         let tally = tallies.entry(detection.obj_id).or_default();
-        match best {
-            Some((k, iou)) if iou >= 0.5 => {
+        match candidate {
+            Some((k, found)) if found.iou >= 0.5 => {
                 taken[k] = true;
-                best_iou[k] = iou;
+                best[k] = found;
                 if !truths[k].ignored {
                     tally.detections.push((detection.score, true));
                 }
@@ -96,15 +120,17 @@ pub fn tally_image(
             Some((k, _)) if truths[k].ignored => {}
             _ => tally.detections.push((detection.score, false)),
         }
-        if let Some((k, iou)) = best
+        if let Some((k, found)) = candidate
             && !taken[k]
+            && found.iou > best[k].iou
         {
-            best_iou[k] = best_iou[k].max(iou);
+            best[k] = found;
         }
     }
     for (k, truth) in truths.iter().enumerate().filter(|(_, t)| !t.ignored) {
-        tallies.entry(truth.obj_id).or_default().ious.push(best_iou[k]);
+        tallies.entry(truth.obj_id).or_default().ious.push(best[k].iou);
     }
+    best
 }
 
 /// Average precision of detections `(score, true positive)` over
@@ -160,9 +186,57 @@ pub struct DetectionSummary {
     /// process, one image at a time).
     pub ms_p50: f64,
     pub ms_p99: f64,
+    /// Every annotated instance of a known object, for `detections.csv`.
+    #[serde(skip)]
+    pub instances: Vec<InstanceDetection>,
 }
 
-pub fn summarise(tallies: &BTreeMap<u32, ObjectTally>, images: usize, mut times_ms: Vec<f64>) -> DetectionSummary {
+/// How well one annotated instance was detected.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InstanceDetection {
+    pub scene_id: u32,
+    pub im_id: u32,
+    /// Its index among the image's ground-truth entries.
+    pub gt_index: usize,
+    pub obj_id: u32,
+    pub visib_fract: f64,
+    /// Pixels of its visible mask.
+    pub truth_pixels: usize,
+    /// Its best-overlapping detection.
+    pub best: BestMatch,
+    /// Under [`MIN_VISIB_FRACT`] visible: left out of AP and mean IoU.
+    pub ignored: bool,
+}
+
+/// `detections.csv`: one row per instance of [`DetectionSummary::instances`].
+pub fn instances_csv(instances: &[InstanceDetection]) -> String {
+    let mut csv = String::from(
+        "scene_id,im_id,gt_index,obj_id,visib_fract,ignored,mask_iou,truth_pixels,detected_pixels,overlap_pixels\n",
+    );
+    for i in instances {
+        csv.push_str(&format!(
+            "{},{},{},{},{:.4},{},{:.4},{},{},{}\n",
+            i.scene_id,
+            i.im_id,
+            i.gt_index,
+            i.obj_id,
+            i.visib_fract,
+            u8::from(i.ignored),
+            i.best.iou,
+            i.truth_pixels,
+            i.best.detected_pixels,
+            i.best.overlap_pixels,
+        ));
+    }
+    csv
+}
+
+pub fn summarise(
+    tallies: &BTreeMap<u32, ObjectTally>,
+    images: usize,
+    mut times_ms: Vec<f64>,
+    instances: Vec<InstanceDetection>,
+) -> DetectionSummary {
     let per_object: BTreeMap<u32, ObjectDetection> = tallies
         .iter()
         .map(|(&obj, t)| {
@@ -181,6 +255,7 @@ pub fn summarise(tallies: &BTreeMap<u32, ObjectTally>, images: usize, mut times_
         ms_p50: quantile(0.5),
         ms_p99: quantile(0.99),
         per_object,
+        instances,
     }
 }
 
@@ -196,6 +271,7 @@ pub fn evaluate_split(split_dir: &Path, detector: &mut Detector) -> anyhow::Resu
     scenes.sort_unstable();
     let mut tallies = BTreeMap::new();
     let mut times = Vec::new();
+    let mut instances = Vec::new();
     for scene_id in scenes {
         let scene = SceneDir::new(split_dir, scene_id);
         let cameras: ByImage<CameraEntry> = read_json(&scene.scene_camera())?;
@@ -213,11 +289,13 @@ pub fn evaluate_split(split_dir: &Path, detector: &mut Detector) -> anyhow::Resu
             let found = detector.detect(&image)?;
             times.push(started.elapsed().as_secs_f64() * 1e3);
             let mut truths = Vec::new();
+            let mut indices = Vec::new();
             for (k, gt) in gts.get(&im_id).into_iter().flatten().enumerate() {
                 if !known.contains(&gt.obj_id) {
                     continue;
                 }
                 let visible = infos.get(&im_id).and_then(|i| i.get(k)).map_or(1.0, |i| i.visib_fract);
+                indices.push((k, visible));
                 let mask = read_mask_png(&scene.mask_visib(im_id, k))?;
                 let area = mask.pixels.iter().filter(|&&inside| inside).count();
                 truths.push(TruthMask {
@@ -227,10 +305,22 @@ pub fn evaluate_split(split_dir: &Path, detector: &mut Detector) -> anyhow::Resu
                     ignored: visible < MIN_VISIB_FRACT,
                 });
             }
-            tally_image(&found.objects, &truths, width, &mut tallies);
+            let matches = tally_image(&found.objects, &truths, width, &mut tallies);
+            for ((truth, (gt_index, visib_fract)), best) in truths.iter().zip(indices).zip(matches) {
+                instances.push(InstanceDetection {
+                    scene_id,
+                    im_id,
+                    gt_index,
+                    obj_id: truth.obj_id,
+                    visib_fract,
+                    truth_pixels: truth.area,
+                    best,
+                    ignored: truth.ignored,
+                });
+            }
         }
     }
-    Ok(summarise(&tallies, times.len(), times))
+    Ok(summarise(&tallies, times.len(), times, instances))
 }
 
 #[cfg(test)]
@@ -288,8 +378,14 @@ mod tests {
             detection(2, 0.6, [12, 0, 4, 4]), // IoU 1/3: a false alarm; the instance missed
         ];
         let mut tallies = BTreeMap::new();
-        tally_image(&detections, &truths, w, &mut tallies);
-        let summary = summarise(&tallies, 1, vec![1.0]);
+        let matches = tally_image(&detections, &truths, w, &mut tallies);
+        let best = |iou, detected_pixels, overlap_pixels| BestMatch { iou, detected_pixels, overlap_pixels };
+        assert_eq!(
+            matches,
+            [best(1.0, 16, 16), best(8.0 / 24.0, 16, 8), best(1.0, 4, 4)],
+            "each instance's best match"
+        );
+        let summary = summarise(&tallies, 1, vec![1.0], Vec::new());
         let one = &summary.per_object[&1];
         assert_eq!((one.instances, one.detections, one.ap50, one.mask_iou), (1, 2, Some(100.0), Some(100.0)));
         let two = &summary.per_object[&2];

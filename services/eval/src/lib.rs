@@ -573,6 +573,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let instances_path = args.out.join("instances.csv");
     std::fs::write(&instances_path, instances_csv(&outcomes))
         .with_context(|| format!("{}", instances_path.display()))?;
+    if let Some(detection) = &report.detection {
+        let path = args.out.join("detections.csv");
+        std::fs::write(&path, detection::instances_csv(&detection.instances))
+            .with_context(|| format!("{}", path.display()))?;
+    }
     let summary_path = args.out.join("summary.json");
     std::fs::write(&summary_path, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("{}", summary_path.display()))?;
