@@ -106,7 +106,7 @@ fn default_merge_gap() -> usize {
     16
 }
 fn default_min_score() -> f32 {
-    0.5
+    0.3
 }
 fn default_edge_depth() -> f32 {
     0.01
