@@ -1,7 +1,9 @@
 //! The commands that make and inspect data: `poseflow render` (BOP-format
-//! RGB-D scenes), `import-model`, `grasp-data` (the grasp flow's training
-//! data), `preview` and `observe` (training shards).
+//! RGB-D scenes), `import-model`, `generate-objects` (procedural category
+//! objects), `grasp-data` (the grasp flow's training data), `preview` and
+//! `observe` (training shards).
 
+pub mod generate_objects;
 pub mod grasp_data;
 pub mod import_model;
 pub mod observe;

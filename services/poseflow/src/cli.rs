@@ -35,6 +35,8 @@ pub enum Command {
     Render(poseflow_datasets::render::RenderArgs),
     /// Add an object from a PLY or OBJ mesh to a BOP models directory (model file + models_info.json entry).
     ImportModel(poseflow_datasets::import_model::ImportModelArgs),
+    /// Generate procedural mugs, bowls, bottles and cans (category-level objects) into a BOP models directory.
+    GenerateObjects(poseflow_datasets::generate_objects::GenerateObjectsArgs),
     /// Sample antipodal, collision-free grasps on object models (the grasp flow's training data).
     GraspData(poseflow_datasets::grasp_data::GraspDataArgs),
     /// Write one dataset image's RGB, depth and visible masks side by side as a PNG.
@@ -64,6 +66,7 @@ pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
         Command::Demo(args) => done(poseflow_eval::demo::run(&args)),
         Command::Render(args) => done(poseflow_datasets::render::run(&args)),
         Command::ImportModel(args) => done(poseflow_datasets::import_model::run(&args)),
+        Command::GenerateObjects(args) => done(poseflow_datasets::generate_objects::run(&args)),
         Command::Preview(args) => done(poseflow_datasets::preview::run(&args)),
         Command::GraspData(args) => done(poseflow_datasets::grasp_data::run(&args)),
         Command::Observe(args) => done(poseflow_datasets::observe::run(&args)),

@@ -63,22 +63,7 @@ pub fn import_model(spec: &ImportSpec, models_dir: &Path) -> Result<Imported, Sc
                 .ok_or_else(|| SceneError::Invalid(format!("symmetry axis {axis:?}: expected a non-zero vector")))
         })
         .transpose()?;
-    std::fs::create_dir_all(models_dir)
-        .map_err(|source| SceneError::Write { path: models_dir.to_path_buf(), source })?;
-    let model_path = models_dir.join(model_file_name(spec.obj_id));
-    std::fs::write(&model_path, ascii_ply_mm(&mesh))
-        .map_err(|source| SceneError::Write { path: model_path.clone(), source })?;
-
-    let (min, max) = bounding_box(&mesh.vertices);
     let diameter = diameter(&mesh.vertices);
-    let info_path = models_dir.join("models_info.json");
-    let mut info: Map<String, Value> = if info_path.exists() { bop::read_json(&info_path)? } else { Map::new() };
-    let mut entry = json!({
-        "diameter": diameter * METRES_TO_BOP,
-        "min_x": min.x * METRES_TO_BOP, "min_y": min.y * METRES_TO_BOP, "min_z": min.z * METRES_TO_BOP,
-        "size_x": (max - min).x * METRES_TO_BOP, "size_y": (max - min).y * METRES_TO_BOP,
-        "size_z": (max - min).z * METRES_TO_BOP,
-    });
     let mut symmetries: Vec<Symmetry> = symmetry_axis
         .map(|axis| Symmetry::Continuous { axis: nalgebra::Unit::new_unchecked(axis), offset: Vector3::zeros() })
         .into_iter()
@@ -91,6 +76,34 @@ pub fn import_model(spec: &ImportSpec, models_dir: &Path) -> Result<Imported, Sc
         }
         symmetries.extend(find_symmetries(&mesh, diameter, tolerance)?);
     }
+    write_model(&mesh, spec.obj_id, symmetries, models_dir)
+}
+
+/// Writes `mesh` (metres, object frame) into `models_dir` (created if
+/// missing) as object `obj_id` with these symmetries, replacing an earlier
+/// object with the same id and keeping every other entry.
+pub fn write_model(
+    mesh: &ObjectMesh,
+    obj_id: u32,
+    symmetries: Vec<Symmetry>,
+    models_dir: &Path,
+) -> Result<Imported, SceneError> {
+    std::fs::create_dir_all(models_dir)
+        .map_err(|source| SceneError::Write { path: models_dir.to_path_buf(), source })?;
+    let model_path = models_dir.join(model_file_name(obj_id));
+    std::fs::write(&model_path, ascii_ply_mm(mesh))
+        .map_err(|source| SceneError::Write { path: model_path.clone(), source })?;
+
+    let (min, max) = bounding_box(&mesh.vertices);
+    let diameter = diameter(&mesh.vertices);
+    let info_path = models_dir.join("models_info.json");
+    let mut info: Map<String, Value> = if info_path.exists() { bop::read_json(&info_path)? } else { Map::new() };
+    let mut entry = json!({
+        "diameter": diameter * METRES_TO_BOP,
+        "min_x": min.x * METRES_TO_BOP, "min_y": min.y * METRES_TO_BOP, "min_z": min.z * METRES_TO_BOP,
+        "size_x": (max - min).x * METRES_TO_BOP, "size_y": (max - min).y * METRES_TO_BOP,
+        "size_z": (max - min).z * METRES_TO_BOP,
+    });
     let continuous: Vec<Value> = symmetries
         .iter()
         .filter_map(|s| match s {
@@ -135,7 +148,7 @@ pub fn import_model(spec: &ImportSpec, models_dir: &Path) -> Result<Imported, Sc
     if !discrete.is_empty() {
         entry["symmetries_discrete"] = Value::Array(discrete);
     }
-    info.insert(spec.obj_id.to_string(), entry);
+    info.insert(obj_id.to_string(), entry);
     bop::write_json(&info_path, &info)?;
     Ok(Imported {
         model_path,

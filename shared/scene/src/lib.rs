@@ -9,6 +9,7 @@
 
 pub mod bop;
 pub mod camera_path;
+pub mod category;
 pub mod dataset;
 mod error;
 pub mod import;

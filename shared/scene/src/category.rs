@@ -1,0 +1,655 @@
+//! Procedural shapes of the everyday categories (mug, bowl, bottle, can):
+//! seeded generators of distinct instances for category-level training,
+//! written out as BOP models so the renderer, eval and selection use them
+//! as they use any other object.
+//!
+//! Canonical frame (the NOCS convention of category-level pose): metres,
+//! **y up the symmetry axis**, the mug's handle towards **+x**, the
+//! bounding box centred on the origin. The box's extents are the object's
+//! size, and its diagonal the NOCS scale ([`Generated::nocs_scale`]).
+//!
+//! Every body is a closed profile revolved about y (thin-walled for the
+//! open mug and bowl, solid for the capped bottle and can); the mug's
+//! handle is a tube swept along a half-ellipse in the x–y plane whose ends
+//! sit inside the wall. Parameter ranges are in [`ShapeParams::sample`]
+//! and on docs/categories.md.
+
+use nalgebra::{Point3, Vector3};
+use rand::{Rng, SeedableRng};
+use serde::Serialize;
+
+use crate::ObjectMesh;
+
+/// Segments around the axis of every revolved body.
+const SEGMENTS: usize = 48;
+/// Segments along the handle's curve, and around its tube.
+const HANDLE_STEPS: usize = 24;
+const TUBE_SEGMENTS: usize = 12;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Category {
+    Mug,
+    Bowl,
+    Bottle,
+    Can,
+}
+
+impl Category {
+    pub const ALL: [Category; 4] = [Category::Mug, Category::Bowl, Category::Bottle, Category::Can];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Category::Mug => "mug",
+            Category::Bowl => "bowl",
+            Category::Bottle => "bottle",
+            Category::Can => "can",
+        }
+    }
+
+    /// Whether every turn about the y axis leaves the shape (and its
+    /// colours) unchanged: all but the mug, whose handle breaks it.
+    pub fn symmetric_about_y(self) -> bool {
+        self != Category::Mug
+    }
+}
+
+impl std::str::FromStr for Category {
+    type Err = String;
+    fn from_str(text: &str) -> Result<Self, String> {
+        Category::ALL
+            .into_iter()
+            .find(|c| c.name() == text)
+            .ok_or_else(|| format!("{text:?}: expected one of mug, bowl, bottle, can"))
+    }
+}
+
+/// The drawn parameters of one instance, metres; recorded beside the model.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "category", rename_all = "snake_case")]
+pub enum ShapeParams {
+    Mug {
+        height: f32,
+        bottom_radius: f32,
+        top_radius: f32,
+        wall: f32,
+        base: f32,
+        /// Tube radius, the finger gap between wall and handle at its
+        /// widest, and the heights of the handle's upper and lower ends.
+        handle_radius: f32,
+        handle_reach: f32,
+        handle_top: f32,
+        handle_bottom: f32,
+    },
+    Bowl {
+        height: f32,
+        rim_radius: f32,
+        foot_radius: f32,
+        /// Profile exponent: radius grows as (y / height)^(1 / bulge).
+        bulge: f32,
+        wall: f32,
+    },
+    Bottle {
+        height: f32,
+        body_radius: f32,
+        /// Height where the shoulder begins, the neck's radius and length.
+        shoulder: f32,
+        neck_radius: f32,
+        neck_length: f32,
+    },
+    Can {
+        height: f32,
+        radius: f32,
+        /// Radial inset and height of the rims at top and bottom.
+        rim_inset: f32,
+        rim_height: f32,
+    },
+}
+
+impl ShapeParams {
+    /// Draws an instance of `category`. Ranges follow real objects: mugs
+    /// 8–12 cm tall and 7–11.5 cm across, bowls 12–20 cm across, bottles
+    /// 15–30 cm tall, cans 6–11 cm across and 1.2–3 radii tall.
+    pub fn sample<R: Rng + ?Sized>(category: Category, rng: &mut R) -> Self {
+        match category {
+            Category::Mug => {
+                let height = rng.random_range(0.08..0.12);
+                let bottom_radius = rng.random_range(0.035..0.05);
+                let top_radius = bottom_radius * rng.random_range(0.9..1.15);
+                let span = height * rng.random_range(0.45..0.75);
+                let middle = height * rng.random_range(0.45..0.55);
+                ShapeParams::Mug {
+                    height,
+                    bottom_radius,
+                    top_radius,
+                    wall: rng.random_range(0.003..0.006),
+                    base: rng.random_range(0.005..0.01),
+                    handle_radius: rng.random_range(0.004..0.007),
+                    handle_reach: rng.random_range(0.02..0.035),
+                    handle_top: (middle + span / 2.0).min(height - 0.01),
+                    handle_bottom: (middle - span / 2.0).max(0.01),
+                }
+            }
+            Category::Bowl => {
+                let rim_radius = rng.random_range(0.06..0.1);
+                ShapeParams::Bowl {
+                    height: rim_radius * rng.random_range(0.5..0.9),
+                    rim_radius,
+                    foot_radius: rim_radius * rng.random_range(0.35..0.6),
+                    bulge: rng.random_range(1.5..3.0),
+                    wall: rng.random_range(0.003..0.006),
+                }
+            }
+            Category::Bottle => {
+                let height = rng.random_range(0.15..0.3);
+                let body_radius = rng.random_range(0.025..0.045);
+                ShapeParams::Bottle {
+                    height,
+                    body_radius,
+                    shoulder: height * rng.random_range(0.55..0.75),
+                    neck_radius: body_radius * rng.random_range(0.3..0.45),
+                    neck_length: height * rng.random_range(0.1..0.2),
+                }
+            }
+            Category::Can => {
+                let radius = rng.random_range(0.03..0.055);
+                ShapeParams::Can {
+                    height: radius * rng.random_range(1.2..3.0),
+                    radius,
+                    rim_inset: rng.random_range(0.002..0.004),
+                    rim_height: rng.random_range(0.003..0.006),
+                }
+            }
+        }
+    }
+
+    pub fn category(&self) -> Category {
+        match self {
+            ShapeParams::Mug { .. } => Category::Mug,
+            ShapeParams::Bowl { .. } => Category::Bowl,
+            ShapeParams::Bottle { .. } => Category::Bottle,
+            ShapeParams::Can { .. } => Category::Can,
+        }
+    }
+
+    /// The body's profile, `(radius, height)` from the axis at the bottom
+    /// round to the axis again (at the top for a solid, on the inner floor
+    /// for an open vessel).
+    fn profile(&self) -> Vec<(f32, f32)> {
+        match *self {
+            ShapeParams::Mug { height, bottom_radius, top_radius, wall, base, .. } => {
+                let outer = |y: f32| bottom_radius + (top_radius - bottom_radius) * y / height;
+                let mut profile = vec![(0.0, 0.0)];
+                for k in 0..=8 {
+                    let y = height * k as f32 / 8.0;
+                    profile.push((outer(y), y));
+                }
+                for k in (0..=8).rev() {
+                    let y = base + (height - base) * k as f32 / 8.0;
+                    profile.push((outer(y) - wall, y));
+                }
+                profile.push((0.0, base));
+                profile
+            }
+            ShapeParams::Bowl { height, rim_radius, foot_radius, bulge, wall } => {
+                let outer = |t: f32| foot_radius + (rim_radius - foot_radius) * t.powf(1.0 / bulge);
+                let mut profile = vec![(0.0, 0.0)];
+                for k in 0..=12 {
+                    let t = k as f32 / 12.0;
+                    profile.push((outer(t), height * t));
+                }
+                for k in (0..=12).rev() {
+                    let t = k as f32 / 12.0;
+                    let y = wall + (height - wall) * t;
+                    profile.push(((outer(t) - wall).max(0.5 * foot_radius), y));
+                }
+                profile.push((0.0, wall));
+                profile
+            }
+            ShapeParams::Bottle { height, body_radius, shoulder, neck_radius, neck_length } => {
+                let neck_start = height - neck_length;
+                let cap = neck_radius * 1.15;
+                let mut profile =
+                    vec![(0.0, 0.0), (body_radius * 0.92, 0.0), (body_radius, 0.008), (body_radius, shoulder)];
+                // A cosine shoulder from the body to the neck.
+                for k in 1..=8 {
+                    let t = k as f32 / 8.0;
+                    let blend = 0.5 - 0.5 * (std::f32::consts::PI * t).cos();
+                    profile.push((
+                        body_radius + (neck_radius - body_radius) * blend,
+                        shoulder + (neck_start - shoulder) * t,
+                    ));
+                }
+                let cap_start = height - 0.6 * neck_length;
+                profile.extend([(neck_radius, cap_start), (cap, cap_start), (cap, height), (0.0, height)]);
+                profile
+            }
+            ShapeParams::Can { height, radius, rim_inset, rim_height } => vec![
+                (0.0, 0.0),
+                (radius - rim_inset, 0.0),
+                (radius, rim_height),
+                (radius, height - rim_height),
+                (radius - rim_inset, height),
+                (0.0, height),
+            ],
+        }
+    }
+}
+
+/// One generated instance in its canonical frame.
+#[derive(Debug, Clone)]
+pub struct Generated {
+    pub params: ShapeParams,
+    pub mesh: ObjectMesh,
+    /// Bounding-box extents (x, y, z), metres.
+    pub size: Vector3<f32>,
+}
+
+impl Generated {
+    pub fn category(&self) -> Category {
+        self.params.category()
+    }
+
+    /// The bounding box's diagonal: NOCS divides by it.
+    pub fn nocs_scale(&self) -> f32 {
+        self.size.norm()
+    }
+}
+
+/// The instance of `category` drawn from `seed`: the same seed, the same
+/// shape and colours.
+pub fn generate(category: Category, seed: u64) -> Generated {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ ((category as u64) << 56));
+    let params = ShapeParams::sample(category, &mut rng);
+    let body_colour: [u8; 3] = std::array::from_fn(|_| rng.random_range(30..230));
+    let label_colour: [u8; 3] = std::array::from_fn(|_| rng.random_range(30..230));
+    let mut mesh = revolve(&params.profile(), SEGMENTS);
+    let (low, high) = match params {
+        // A printed label round the middle of cans and bottles: colour
+        // varies with height only, so the turns about y stay symmetric.
+        ShapeParams::Bottle { shoulder, .. } => (0.25 * shoulder, 0.85 * shoulder),
+        ShapeParams::Can { height, .. } => (0.15 * height, 0.85 * height),
+        _ => (f32::INFINITY, f32::INFINITY),
+    };
+    mesh.colors = Some(
+        mesh.vertices.iter().map(|v| if (low..=high).contains(&v.y) { label_colour } else { body_colour }).collect(),
+    );
+    if let ShapeParams::Mug {
+        height,
+        bottom_radius,
+        top_radius,
+        wall,
+        handle_radius,
+        handle_reach,
+        handle_top,
+        handle_bottom,
+        ..
+    } = params
+    {
+        let outer = |y: f32| bottom_radius + (top_radius - bottom_radius) * y / height;
+        // The ends are capped in the middle of the wall, so the handle
+        // meets it without a gap.
+        let start = outer(handle_top) - 0.5 * wall;
+        let end = outer(handle_bottom) - 0.5 * wall;
+        let mut handle = swept_handle(start, end, handle_top, handle_bottom, handle_reach, handle_radius);
+        handle.colors = Some(vec![body_colour; handle.vertices.len()]);
+        append(&mut mesh, handle);
+    }
+    let (min, max) = bounds(&mesh.vertices);
+    let centre = (min.coords + max.coords) / 2.0;
+    for v in &mut mesh.vertices {
+        *v -= centre;
+    }
+    mesh.normals = Some(vertex_normals(&mesh));
+    Generated { params, mesh, size: max - min }
+}
+
+/// `P(r, y, θ) = (r cos θ, y, r sin θ)`. The triangles' winding makes
+/// their normals point out of the solid the profile encloses (for a
+/// profile running outwards along the bottom, then up): the profile's
+/// tangent × the turn's tangent. Profile points on the axis become one
+/// vertex (a pole) instead of a ring.
+fn revolve(profile: &[(f32, f32)], segments: usize) -> ObjectMesh {
+    let mut vertices = Vec::new();
+    // Per profile point: its first vertex and whether it is a pole.
+    let mut rings = Vec::with_capacity(profile.len());
+    for &(r, y) in profile {
+        let first = vertices.len() as u32;
+        if r <= 0.0 {
+            vertices.push(Point3::new(0.0, y, 0.0));
+            rings.push((first, true));
+        } else {
+            for j in 0..segments {
+                let theta = std::f32::consts::TAU * j as f32 / segments as f32;
+                vertices.push(Point3::new(r * theta.cos(), y, r * theta.sin()));
+            }
+            rings.push((first, false));
+        }
+    }
+    let at = |(first, pole): (u32, bool), j: usize| if pole { first } else { first + (j % segments) as u32 };
+    let mut triangles = Vec::new();
+    for pair in rings.windows(2) {
+        let (this, next) = (pair[0], pair[1]);
+        for j in 0..segments {
+            let (a, b, c, d) = (at(this, j), at(next, j), at(this, j + 1), at(next, j + 1));
+            if !this.1 {
+                triangles.push([a, b, c]);
+            }
+            if !next.1 {
+                triangles.push([b, d, c]);
+            }
+        }
+    }
+    ObjectMesh { vertices, triangles, normals: None, colors: None }
+}
+
+/// A closed tube of radius `tube` along a half-ellipse in the x–y plane:
+/// from `(x_top, y_top)` out to `reach` beyond the wall and back to
+/// `(x_bottom, y_bottom)`, with flat caps at both ends.
+fn swept_handle(x_top: f32, x_bottom: f32, y_top: f32, y_bottom: f32, reach: f32, tube: f32) -> ObjectMesh {
+    let (middle, half_span) = ((y_top + y_bottom) / 2.0, (y_top - y_bottom) / 2.0);
+    let curve = |phi: f32| {
+        let base = x_top + (x_bottom - x_top) * phi / std::f32::consts::PI;
+        Point3::new(base + (reach + tube) * phi.sin(), middle + half_span * phi.cos(), 0.0)
+    };
+    let mut vertices = Vec::new();
+    let mut centres = Vec::new();
+    for i in 0..=HANDLE_STEPS {
+        let phi = std::f32::consts::PI * i as f32 / HANDLE_STEPS as f32;
+        let h = 1e-3;
+        let tangent = (curve((phi + h).min(std::f32::consts::PI)) - curve((phi - h).max(0.0))).normalize();
+        let side = Vector3::z();
+        let normal = tangent.cross(&side);
+        let centre = curve(phi);
+        centres.push(centre);
+        for j in 0..TUBE_SEGMENTS {
+            let psi = std::f32::consts::TAU * j as f32 / TUBE_SEGMENTS as f32;
+            vertices.push(centre + tube * (psi.cos() * normal + psi.sin() * side));
+        }
+    }
+    let ring = |i: usize, j: usize| (i * TUBE_SEGMENTS + j % TUBE_SEGMENTS) as u32;
+    let mut triangles = Vec::new();
+    for i in 0..HANDLE_STEPS {
+        for j in 0..TUBE_SEGMENTS {
+            triangles.push([ring(i, j), ring(i, j + 1), ring(i + 1, j)]);
+            triangles.push([ring(i + 1, j), ring(i, j + 1), ring(i + 1, j + 1)]);
+        }
+    }
+    // Caps: each uses its rim's edges the other way round from the sides.
+    let (first, last) = (vertices.len() as u32, vertices.len() as u32 + 1);
+    vertices.extend([centres[0], centres[HANDLE_STEPS]]);
+    for j in 0..TUBE_SEGMENTS {
+        triangles.push([first, ring(0, j + 1), ring(0, j)]);
+        triangles.push([last, ring(HANDLE_STEPS, j), ring(HANDLE_STEPS, j + 1)]);
+    }
+    let mut handle = ObjectMesh { vertices, triangles, normals: None, colors: None };
+    // Consistent, but which way round depends on the curve's direction: a
+    // closed part whose volume comes out negative is wound inwards.
+    if signed_volume(&handle) < 0.0 {
+        handle.triangles.iter_mut().for_each(|t| t.swap(1, 2));
+    }
+    handle
+}
+
+fn append(mesh: &mut ObjectMesh, part: ObjectMesh) {
+    let offset = mesh.vertices.len() as u32;
+    mesh.vertices.extend(part.vertices);
+    mesh.triangles.extend(part.triangles.into_iter().map(|t| t.map(|i| i + offset)));
+    if let (Some(colours), Some(more)) = (&mut mesh.colors, part.colors) {
+        colours.extend(more);
+    }
+}
+
+fn bounds(vertices: &[Point3<f32>]) -> (Point3<f32>, Point3<f32>) {
+    let mut min = Point3::from(Vector3::repeat(f32::INFINITY));
+    let mut max = Point3::from(Vector3::repeat(f32::NEG_INFINITY));
+    for v in vertices {
+        min = min.inf(v);
+        max = max.sup(v);
+    }
+    (min, max)
+}
+
+/// The volume a closed mesh encloses, positive when its triangles are
+/// wound with outward normals (divergence theorem over the triangles).
+pub fn signed_volume(mesh: &ObjectMesh) -> f64 {
+    mesh.triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| mesh.vertices[i as usize].coords.cast::<f64>());
+            a.dot(&b.cross(&c)) / 6.0
+        })
+        .sum()
+}
+
+/// Area-weighted normals of the triangles at each vertex.
+fn vertex_normals(mesh: &ObjectMesh) -> Vec<Vector3<f32>> {
+    let mut normals = vec![Vector3::zeros(); mesh.vertices.len()];
+    for t in &mesh.triangles {
+        let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+        let n = (b - a).cross(&(c - a));
+        for &i in t {
+            normals[i as usize] += n;
+        }
+    }
+    normals.into_iter().map(|n| n.try_normalize(1e-12).unwrap_or_else(Vector3::y)).collect()
+}
+
+/// The seed of the `index`-th instance drawn with `seed`: distinct for
+/// every pair, so runs with different seeds share no shape.
+pub fn instance_seed(seed: u64, index: u64) -> u64 {
+    // SplitMix64's finaliser over the pair.
+    let mut z = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(index).wrapping_add(0x6A09_E667_F3BC_C909);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// One object written by [`write_instances`].
+#[derive(Debug, Clone)]
+pub struct WrittenInstance {
+    pub obj_id: u32,
+    pub seed: u64,
+    pub generated: Generated,
+    pub model: crate::import::Imported,
+}
+
+/// The file beside `models_info.json` that names each generated object's
+/// category, seed, size and parameters.
+pub const CATEGORIES_FILE: &str = "categories.json";
+
+/// Writes `count` instances of each of `categories` into `models_dir` as
+/// BOP models with ids from `first_id` (categories in turn), recording
+/// each in [`CATEGORIES_FILE`]. Other objects of the directory are kept;
+/// the same ids are replaced.
+pub fn write_instances(
+    categories: &[Category],
+    count: u32,
+    seed: u64,
+    first_id: u32,
+    models_dir: &std::path::Path,
+) -> Result<Vec<WrittenInstance>, crate::SceneError> {
+    use crate::symmetry::Symmetry;
+    if first_id == 0 {
+        return Err(crate::SceneError::Invalid("first object id 0: BOP object ids start at 1".into()));
+    }
+    let total = u64::from(count) * categories.len() as u64;
+    if u64::from(first_id) + total > u64::from(u32::MAX) {
+        return Err(crate::SceneError::Invalid(format!("{total} objects from id {first_id}: ids past {}", u32::MAX)));
+    }
+    let table_path = models_dir.join(CATEGORIES_FILE);
+    let mut table: serde_json::Map<String, serde_json::Value> =
+        if table_path.exists() { crate::bop::read_json(&table_path)? } else { serde_json::Map::new() };
+    let mut written = Vec::new();
+    let mut obj_id = first_id;
+    for (c, &category) in categories.iter().enumerate() {
+        for i in 0..count {
+            let instance = instance_seed(seed, (c as u64) << 32 | u64::from(i));
+            let generated = generate(category, instance);
+            let symmetries = if category.symmetric_about_y() {
+                vec![Symmetry::Continuous { axis: Vector3::y_axis(), offset: Vector3::zeros() }]
+            } else {
+                Vec::new()
+            };
+            let model = crate::import::write_model(&generated.mesh, obj_id, symmetries, models_dir)?;
+            let mm = |v: f32| f64::from(v) * 1e3;
+            table.insert(
+                obj_id.to_string(),
+                serde_json::json!({
+                    "category": category.name(),
+                    "seed": instance,
+                    "size_mm": [mm(generated.size.x), mm(generated.size.y), mm(generated.size.z)],
+                    "nocs_scale_mm": mm(generated.nocs_scale()),
+                    "params_m": generated.params,
+                }),
+            );
+            written.push(WrittenInstance { obj_id, seed: instance, generated, model });
+            obj_id += 1;
+        }
+    }
+    crate::bop::write_json(&table_path, &table)?;
+    Ok(written)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use std::collections::HashMap;
+
+    /// Each undirected edge of a closed, consistently wound surface is
+    /// used once in each direction.
+    fn is_closed_and_consistent(mesh: &ObjectMesh) -> bool {
+        let mut directed: HashMap<(u32, u32), usize> = HashMap::new();
+        for t in &mesh.triangles {
+            for k in 0..3 {
+                *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
+            }
+        }
+        directed.iter().all(|(&(a, b), &n)| n == 1 && directed.get(&(b, a)) == Some(&1))
+    }
+
+    #[test]
+    fn a_can_is_a_cylinder_with_its_rims() {
+        // Radius 4 cm, height 10 cm, rims 3 mm in over 5 mm: extents 8 × 10
+        // × 8 cm, and the volume of the cylinder less the two rims' rings
+        // (a ring of triangular section, π·r·inset·rim_height each, to first
+        // order), less what 48 flat sides cut off a circle.
+        let params = ShapeParams::Can { height: 0.1, radius: 0.04, rim_inset: 0.003, rim_height: 0.005 };
+        let mesh = revolve(&params.profile(), SEGMENTS);
+        assert!(is_closed_and_consistent(&mesh));
+        let (min, max) = bounds(&mesh.vertices);
+        assert!(((max - min) - Vector3::new(0.08, 0.1, 0.08)).norm() < 1e-6, "{:?}", max - min);
+        let polygon = 0.5 * SEGMENTS as f64 * (std::f64::consts::TAU / SEGMENTS as f64).sin();
+        let rims = 2.0 * std::f64::consts::PI * 0.04 * 0.003 * 0.005;
+        let expected = polygon * 0.04f64.powi(2) * 0.1 - rims;
+        let volume = signed_volume(&mesh);
+        assert!((volume - expected).abs() < 0.02 * expected, "volume {volume} against {expected}");
+    }
+
+    #[test]
+    fn the_mug_is_centred_with_its_handle_towards_plus_x() {
+        for seed in 0..20 {
+            let mug = generate(Category::Mug, seed);
+            let (min, max) = bounds(&mug.mesh.vertices);
+            assert!((min.coords + max.coords).norm() < 1e-5, "centred: {min:?} {max:?}");
+            let ShapeParams::Mug { height, handle_top, handle_reach, .. } = mug.params else { panic!() };
+            assert!((mug.size.y - height).abs() < 1e-5, "y is the axis");
+            // At the rim (above the handle) only the body is there: it
+            // reaches −x as far as anything, and +x short of the handle.
+            assert!(handle_top < height);
+            let rim: Vec<_> = mug.mesh.vertices.iter().filter(|v| v.y > max.y - 1e-4).collect();
+            let rim_max = rim.iter().map(|v| v.x).fold(f32::MIN, f32::max);
+            let rim_min = rim.iter().map(|v| v.x).fold(f32::MAX, f32::min);
+            assert!(rim_max + handle_reach < max.x, "seed {seed}: handle towards +x ({rim_max} vs {})", max.x);
+            assert!((rim_min - min.x).abs() < 0.01, "seed {seed}: the body on −x");
+            assert!((max.z + min.z).abs() < 1e-4, "seed {seed}: nothing sticks out along z");
+        }
+    }
+
+    #[test]
+    fn the_handle_is_one_closed_outward_tube() {
+        let handle = swept_handle(0.04, 0.045, 0.08, 0.03, 0.025, 0.005);
+        assert!(is_closed_and_consistent(&handle));
+        // Close to π r² times the centreline's length (half an ellipse).
+        let volume = signed_volume(&handle);
+        assert!(volume > 0.0);
+        let (a, b): (f64, f64) = (0.025 + 0.005, 0.025);
+        let half_ellipse = std::f64::consts::PI * (3.0 * (a + b) - ((3.0 * a + b) * (a + 3.0 * b)).sqrt()) / 2.0;
+        let expected = std::f64::consts::PI * 0.005f64.powi(2) * half_ellipse;
+        assert!((volume - expected).abs() < 0.1 * expected, "{volume} against {expected}");
+    }
+
+    #[test]
+    fn instances_are_written_as_bop_models_with_their_categories() {
+        let dir = std::env::temp_dir().join(format!("poseflow-categories-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let written = write_instances(&[Category::Mug, Category::Can], 2, 5, 101, &dir).unwrap();
+        assert_eq!(written.iter().map(|w| w.obj_id).collect::<Vec<_>>(), [101, 102, 103, 104]);
+        let info = poseflow_geometry::models_info::ModelsInfo::from_path(&dir.join("models_info.json")).unwrap();
+        assert!(!info.objects[&101].is_symmetric(), "a mug has no symmetry of its own");
+        let can = &info.objects[&103];
+        assert_eq!(can.symmetries_continuous.len(), 1);
+        assert!((can.symmetries_continuous[0].axis.into_inner() - Vector3::y()).norm() < 1e-12);
+        let size = can.size.unwrap();
+        assert!((size - written[2].generated.size.cast::<f64>()).norm() < 1e-6, "{size:?} metres in models_info");
+        let table: serde_json::Value = crate::bop::read_json(&dir.join(CATEGORIES_FILE)).unwrap();
+        assert_eq!(table["102"]["category"], "mug");
+        assert_eq!(table["104"]["params_m"]["category"], "can");
+        assert_eq!(table["104"]["seed"], written[3].seed);
+        // The model reads back with the generated vertices (millimetres in
+        // the file).
+        let mesh = crate::load_mesh(&dir.join(crate::model_file_name(104)), 1e-3).unwrap();
+        assert_eq!(mesh.vertices.len(), written[3].generated.mesh.vertices.len());
+        assert!((mesh.vertices[5] - written[3].generated.mesh.vertices[5]).norm() < 1e-6);
+        // Different instances, different shapes; a zero id is refused.
+        assert_ne!(written[0].generated.params, written[1].generated.params);
+        assert!(write_instances(&[Category::Bowl], 1, 5, 0, &dir).unwrap_err().to_string().contains("start at 1"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn names_parse_back_and_others_are_refused() {
+        for category in Category::ALL {
+            assert_eq!(category.name().parse::<Category>(), Ok(category));
+        }
+        assert!("cup".parse::<Category>().unwrap_err().contains("mug, bowl, bottle, can"));
+    }
+
+    proptest! {
+        /// Every instance is closed and wound outwards, centred on its
+        /// box, within the documented size ranges, and the same seed gives
+        /// the same shape.
+        #[test]
+        fn generated_shapes_are_closed_centred_and_reproducible(seed in 0u64..1_000_000, which in 0usize..4) {
+            let category = Category::ALL[which];
+            let shape = generate(category, seed);
+            let body_and_handle_volume = signed_volume(&shape.mesh);
+            prop_assert!(body_and_handle_volume > 0.0, "volume {}", body_and_handle_volume);
+            let (min, max) = bounds(&shape.mesh.vertices);
+            prop_assert!((min.coords + max.coords).norm() < 1e-5);
+            let tallest = match category {
+                Category::Mug => 0.12, Category::Bowl => 0.09, Category::Bottle => 0.3, Category::Can => 0.165,
+            };
+            prop_assert!(shape.size.y > 0.0 && shape.size.y <= tallest + 1e-5, "height {}", shape.size.y);
+            prop_assert!(shape.size.x <= 0.25 && shape.size.z <= 0.2);
+            if category.symmetric_about_y() {
+                prop_assert!((shape.size.x - shape.size.z).abs() < 1e-4);
+            }
+            let again = generate(category, seed);
+            prop_assert_eq!(&again.mesh.vertices, &shape.mesh.vertices);
+            prop_assert_eq!(again.params, shape.params);
+        }
+
+        /// The body alone (the handle is a second closed part) is one
+        /// closed, consistently wound surface.
+        #[test]
+        fn revolved_bodies_are_closed(seed in 0u64..1_000_000, which in 0usize..4) {
+            let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+            let params = ShapeParams::sample(Category::ALL[which], &mut rng);
+            let body = revolve(&params.profile(), SEGMENTS);
+            prop_assert!(is_closed_and_consistent(&body));
+            prop_assert!(signed_volume(&body) > 0.0);
+        }
+    }
+}
