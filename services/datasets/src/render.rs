@@ -116,6 +116,10 @@ pub struct RenderArgs {
     /// colours.
     #[arg(long)]
     pub textured: bool,
+    /// Stand every target with its object +y axis up at a random yaw (the canonical frame of
+    /// `generate-objects`: mugs, bowls, bottles and cans on their base) instead of on a random face of its box.
+    #[arg(long)]
+    pub upright: bool,
     /// Stand up to this many unannotated distractor objects among the targets in each scene, drawn from
     /// --distractor-models.
     #[arg(long, default_value_t = 0, value_name = "N")]
@@ -284,7 +288,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         depth_noise: (sensor_kind == SensorArg::Basic).then(DepthNoise::default),
         rgb_noise: if sensor_kind == SensorArg::Basic { RGB_NOISE } else { 0.0 },
         sensor,
-        style: SceneStyle { textured: args.textured, distractors: args.distractors },
+        style: SceneStyle { textured: args.textured, distractors: args.distractors, upright: args.upright },
         condition,
     };
     let started = Instant::now();

@@ -819,8 +819,8 @@ fn realistic_renders_are_reproducible_and_their_switches_checked() {
 }
 
 /// `generate-objects` writes procedural category instances that `render`
-/// takes as it takes any BOP models: every object is seen and masked; the
-/// same seed gives the same files; a bad category is named.
+/// takes as it takes any BOP models (here `--upright`: each stands on its
+/// base); the same seed gives the same files; a bad category is named.
 #[test]
 fn generated_category_objects_are_rendered_like_any_model() {
     let models = scratch("categories");
@@ -838,14 +838,30 @@ fn generated_category_objects_are_rendered_like_any_model() {
     assert!(generate(&again).status.success());
     assert_eq!(files(&models), files(&again));
 
+    // Standing upright: each object's +y along the world's +z (the table's
+    // normal), read from the ground truth and the camera's pose.
     let data = scratch("categories-render");
     let args = ["render", "--models", models.to_str().unwrap(), "--out", data.to_str().unwrap(), "--scenes", "1"];
-    let size = ["--frames-per-scene", "1", "--width", "320", "--height", "240", "--seed", "2", "--json"];
+    let size = ["--frames-per-scene", "1", "--width", "320", "--height", "240", "--seed", "2", "--upright"];
     let out = poseflow(&[&args[..], &size[..]].concat());
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let gt: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(data.join("train/000000/scene_gt.json")).unwrap()).unwrap();
-    let mut seen: Vec<u64> = gt["0"].as_array().unwrap().iter().map(|g| g["obj_id"].as_u64().unwrap()).collect();
+    let read = |file: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(data.join("train/000000").join(file)).unwrap()).unwrap()
+    };
+    let (gt, camera) = (read("scene_gt.json"), read("scene_camera.json"));
+    let matrix = |value: &serde_json::Value| -> [f64; 9] {
+        std::array::from_fn(|k| value.as_array().unwrap()[k].as_f64().unwrap())
+    };
+    let world_to_camera = matrix(&camera["0"]["cam_R_w2c"]);
+    let mut seen = Vec::new();
+    for object in gt["0"].as_array().unwrap() {
+        seen.push(object["obj_id"].as_u64().unwrap());
+        let model_to_camera = matrix(&object["cam_R_m2c"]);
+        // Object +y in the camera (R's second column), then in the world (Rᵀ).
+        let up_in_camera: [f64; 3] = std::array::from_fn(|r| model_to_camera[3 * r + 1]);
+        let up_z: f64 = (0..3).map(|r| world_to_camera[3 * r + 2] * up_in_camera[r]).sum();
+        assert!(up_z > 0.999, "object {object}: +y · world z = {up_z}");
+    }
     seen.sort_unstable();
     assert_eq!(seen, [21, 22, 23, 24]);
 

@@ -113,6 +113,8 @@ struct Provenance<'a> {
     sensor: Option<String>,
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     textured: bool,
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    upright: bool,
     /// Up to this many distractors per scene, drawn from these objects.
     #[serde(skip_serializing_if = "Option::is_none")]
     distractors: Option<(u32, Vec<u32>)>,
@@ -345,6 +347,7 @@ pub fn write_dataset(
             rgb_noise: spec.rgb_noise,
             sensor: spec.sensor.map(|sensor| format!("{sensor:?}")),
             textured: spec.style.textured,
+            upright: spec.style.upright,
             distractors: (spec.style.distractors > 0)
                 .then(|| (spec.style.distractors, library.distractors.iter().map(|o| o.obj_id).collect())),
             view_condition: spec.condition.map(|c| c.to_string()),

@@ -78,6 +78,17 @@ pub struct SceneStyle {
     /// Up to this many meshes from [`ModelLibrary::distractors`] stand among
     /// the targets, unannotated, as other objects do in a real scene.
     pub distractors: u32,
+    /// Targets stand with their object +y axis up (the canonical frame of
+    /// category objects: mugs, bowls, bottles and cans stand on their base)
+    /// at a uniform yaw, instead of on a random face of their box.
+    pub upright: bool,
+}
+
+/// The rotation that stands an object with its +y axis along world +z,
+/// turned `yaw` about that axis.
+fn upright_rotation(yaw: f64) -> Rotation3<f64> {
+    let stand = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2);
+    Rotation3::from_axis_angle(&Vector3::z_axis(), yaw) * stand
 }
 
 /// The rotation that puts one of the six faces of the object's bounding
@@ -146,7 +157,11 @@ pub fn compose_styled_scene<R: Rng + ?Sized>(
     let mut rested = Vec::with_capacity(library.objects.len());
     for object in &library.objects {
         let (min, max) = object.model.mesh.bounds();
-        let rotation = resting_rotation(&(max - min), rng);
+        let rotation = if style.upright {
+            upright_rotation(rng.random_range(0.0..std::f64::consts::TAU))
+        } else {
+            resting_rotation(&(max - min), rng)
+        };
         let rotated: Vec<Vector3<f64>> =
             object.model.mesh.vertices.iter().map(|v| rotation * v.coords.cast::<f64>()).collect();
         let lowest = rotated.iter().map(|v| v.z).fold(f64::INFINITY, f64::min);
@@ -383,6 +398,17 @@ mod tests {
         let rolled = look_at(&eye, &target, std::f64::consts::FRAC_PI_2).transform_point(&above);
         // A quarter roll of the camera swaps the image axes of the offset.
         assert!((rolled.x.abs() - level.y.abs()).abs() < 1e-12 && rolled.y.abs() < 1e-12, "{level} {rolled}");
+    }
+
+    #[test]
+    fn upright_rotation_stands_plus_y_up_at_its_yaw() {
+        for yaw in [0.0, 1.0, -2.5] {
+            let r = upright_rotation(yaw);
+            assert!((r * Vector3::y() - Vector3::z()).norm() < 1e-12, "+y up");
+            // Object +x turns in the table plane by the yaw.
+            let x = r * Vector3::x();
+            assert!((x - Vector3::new(yaw.cos(), yaw.sin(), 0.0)).norm() < 1e-12, "{x:?}");
+        }
     }
 
     #[test]
