@@ -482,9 +482,11 @@ pub fn write_instances(
         if table_path.exists() { crate::bop::read_json(&table_path)? } else { serde_json::Map::new() };
     let mut written = Vec::new();
     let mut obj_id = first_id;
-    for (c, &category) in categories.iter().enumerate() {
+    for &category in categories {
         for i in 0..count {
-            let instance = instance_seed(seed, (c as u64) << 32 | u64::from(i));
+            // Keyed by the category itself, not its place in the list: the
+            // cans of `--categories can` are the cans of a run of all four.
+            let instance = instance_seed(seed, (category as u64) << 32 | u64::from(i));
             let generated = generate(category, instance);
             let symmetries = if category.symmetric_about_y() {
                 vec![Symmetry::Continuous { axis: Vector3::y_axis(), offset: Vector3::zeros() }]
@@ -602,6 +604,10 @@ mod tests {
         let mesh = crate::load_mesh(&dir.join(crate::model_file_name(104)), 1e-3).unwrap();
         assert_eq!(mesh.vertices.len(), written[3].generated.mesh.vertices.len());
         assert!((mesh.vertices[5] - written[3].generated.mesh.vertices[5]).norm() < 1e-6);
+        // A category's instances do not depend on the others asked for.
+        let cans = write_instances(&[Category::Can], 2, 5, 201, &dir).unwrap();
+        assert_eq!(cans[1].seed, written[3].seed);
+        assert_eq!(cans[1].generated.mesh.vertices, written[3].generated.mesh.vertices);
         // Different instances, different shapes; a zero id is refused.
         assert_ne!(written[0].generated.params, written[1].generated.params);
         assert!(write_instances(&[Category::Bowl], 1, 5, 0, &dir).unwrap_err().to_string().contains("start at 1"));
