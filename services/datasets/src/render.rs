@@ -120,6 +120,10 @@ pub struct RenderArgs {
     /// `generate-objects`: mugs, bowls, bottles and cans on their base) instead of on a random face of its box.
     #[arg(long)]
     pub upright: bool,
+    /// Each scene holds this many of the objects, drawn anew per scene (0: all of them); for libraries of many
+    /// generated instances.
+    #[arg(long, default_value_t = 0, value_name = "K")]
+    pub objects_per_scene: u32,
     /// Stand up to this many unannotated distractor objects among the targets in each scene, drawn from
     /// --distractor-models.
     #[arg(long, default_value_t = 0, value_name = "N")]
@@ -288,7 +292,12 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         depth_noise: (sensor_kind == SensorArg::Basic).then(DepthNoise::default),
         rgb_noise: if sensor_kind == SensorArg::Basic { RGB_NOISE } else { 0.0 },
         sensor,
-        style: SceneStyle { textured: args.textured, distractors: args.distractors, upright: args.upright },
+        style: SceneStyle {
+            textured: args.textured,
+            distractors: args.distractors,
+            upright: args.upright,
+            objects_per_scene: args.objects_per_scene,
+        },
         condition,
     };
     let started = Instant::now();
@@ -315,12 +324,22 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     if args.json {
         println!("{}", serde_json::to_string(&summary)?);
     } else {
+        // A library of generated instances holds thousands of ids.
+        let objects = match summary.objects.as_slice() {
+            [first, .., last] if summary.objects.len() > 20 => {
+                format!("{} objects, ids {first}–{last}", summary.objects.len())
+            }
+            ids => format!("objects {ids:?}"),
+        };
+        let per_scene = match args.objects_per_scene {
+            0 => String::new(),
+            k => format!(", {k} a scene"),
+        };
         println!(
-            "rendered {} frames ({} scenes, objects {:?}, {}×{}) to {} in {:.1} s: render {:.1} ms/frame \
+            "rendered {} frames ({} scenes, {objects}{per_scene}, {}×{}) to {} in {:.1} s: render {:.1} ms/frame \
              (p50 {:.1}, max {:.1}), write {:.1} ms/frame",
             summary.frames,
             summary.scenes,
-            summary.objects,
             summary.width,
             summary.height,
             summary.out.display(),

@@ -820,7 +820,8 @@ fn realistic_renders_are_reproducible_and_their_switches_checked() {
 
 /// `generate-objects` writes procedural category instances that `render`
 /// takes as it takes any BOP models (here `--upright`: each stands on its
-/// base); the same seed gives the same files; a bad category is named.
+/// base; `--objects-per-scene`: a few of them per scene); the same seed
+/// gives the same files; a bad category is named.
 #[test]
 fn generated_category_objects_are_rendered_like_any_model() {
     let models = scratch("categories");
@@ -838,32 +839,40 @@ fn generated_category_objects_are_rendered_like_any_model() {
     assert!(generate(&again).status.success());
     assert_eq!(files(&models), files(&again));
 
-    // Standing upright: each object's +y along the world's +z (the table's
-    // normal), read from the ground truth and the camera's pose.
+    // Three scenes of two objects each, drawn anew per scene, standing
+    // upright: each object's +y along the world's +z (the table's normal),
+    // read from the ground truth and the camera's pose.
     let data = scratch("categories-render");
-    let args = ["render", "--models", models.to_str().unwrap(), "--out", data.to_str().unwrap(), "--scenes", "1"];
+    let args = ["render", "--models", models.to_str().unwrap(), "--out", data.to_str().unwrap(), "--scenes", "3"];
     let size = ["--frames-per-scene", "1", "--width", "320", "--height", "240", "--seed", "2", "--upright"];
-    let out = poseflow(&[&args[..], &size[..]].concat());
+    let out = poseflow(&[&args[..], &size[..], &["--objects-per-scene", "2"]].concat());
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let read = |file: &str| -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(data.join("train/000000").join(file)).unwrap()).unwrap()
-    };
-    let (gt, camera) = (read("scene_gt.json"), read("scene_camera.json"));
     let matrix = |value: &serde_json::Value| -> [f64; 9] {
         std::array::from_fn(|k| value.as_array().unwrap()[k].as_f64().unwrap())
     };
-    let world_to_camera = matrix(&camera["0"]["cam_R_w2c"]);
-    let mut seen = Vec::new();
-    for object in gt["0"].as_array().unwrap() {
-        seen.push(object["obj_id"].as_u64().unwrap());
-        let model_to_camera = matrix(&object["cam_R_m2c"]);
-        // Object +y in the camera (R's second column), then in the world (Rᵀ).
-        let up_in_camera: [f64; 3] = std::array::from_fn(|r| model_to_camera[3 * r + 1]);
-        let up_z: f64 = (0..3).map(|r| world_to_camera[3 * r + 2] * up_in_camera[r]).sum();
-        assert!(up_z > 0.999, "object {object}: +y · world z = {up_z}");
+    let mut sets = Vec::new();
+    for scene in 0..3 {
+        let read = |file: &str| -> serde_json::Value {
+            let path = data.join(format!("train/{scene:06}")).join(file);
+            serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+        };
+        let (gt, camera) = (read("scene_gt.json"), read("scene_camera.json"));
+        let world_to_camera = matrix(&camera["0"]["cam_R_w2c"]);
+        let mut seen = Vec::new();
+        for object in gt["0"].as_array().unwrap() {
+            seen.push(object["obj_id"].as_u64().unwrap());
+            let model_to_camera = matrix(&object["cam_R_m2c"]);
+            // Object +y in the camera (R's second column), then in the world (Rᵀ).
+            let up_in_camera: [f64; 3] = std::array::from_fn(|r| model_to_camera[3 * r + 1]);
+            let up_z: f64 = (0..3).map(|r| world_to_camera[3 * r + 2] * up_in_camera[r]).sum();
+            assert!(up_z > 0.999, "object {object}: +y · world z = {up_z}");
+        }
+        seen.sort_unstable();
+        seen.dedup();
+        assert!(seen.len() == 2 && seen.iter().all(|id| (21..=24).contains(id)), "scene {scene}: {seen:?}");
+        sets.push(seen);
     }
-    seen.sort_unstable();
-    assert_eq!(seen, [21, 22, 23, 24]);
+    assert!(sets.windows(2).any(|w| w[0] != w[1]), "the same objects in every scene: {sets:?}");
 
     let out = poseflow(&["generate-objects", "--models", models.to_str().unwrap(), "--categories", "mug,cup"]);
     let stderr = String::from_utf8_lossy(&out.stderr);

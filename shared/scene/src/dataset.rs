@@ -92,6 +92,10 @@ pub struct FrameDone {
     pub write: Duration,
 }
 
+fn is_zero(value: &u32) -> bool {
+    *value == 0
+}
+
 /// The parameters as written to `poseflow_render.json`.
 #[derive(Serialize)]
 struct Provenance<'a> {
@@ -115,6 +119,8 @@ struct Provenance<'a> {
     textured: bool,
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     upright: bool,
+    #[serde(skip_serializing_if = "is_zero")]
+    objects_per_scene: u32,
     /// Up to this many distractors per scene, drawn from these objects.
     #[serde(skip_serializing_if = "Option::is_none")]
     distractors: Option<(u32, Vec<u32>)>,
@@ -348,6 +354,7 @@ pub fn write_dataset(
             sensor: spec.sensor.map(|sensor| format!("{sensor:?}")),
             textured: spec.style.textured,
             upright: spec.style.upright,
+            objects_per_scene: spec.style.objects_per_scene,
             distractors: (spec.style.distractors > 0)
                 .then(|| (spec.style.distractors, library.distractors.iter().map(|o| o.obj_id).collect())),
             view_condition: spec.condition.map(|c| c.to_string()),

@@ -82,6 +82,10 @@ pub struct SceneStyle {
     /// category objects: mugs, bowls, bottles and cans stand on their base)
     /// at a uniform yaw, instead of on a random face of their box.
     pub upright: bool,
+    /// Each scene holds this many of the library's objects, drawn anew per
+    /// scene (0: every object): thousands of generated instances make
+    /// scenes of a few each. Drawn first, so it changes where the others go.
+    pub objects_per_scene: u32,
 }
 
 /// The rotation that stands an object with its +y axis along world +z,
@@ -154,8 +158,18 @@ pub fn compose_styled_scene<R: Rng + ?Sized>(
     rng: &mut R,
 ) -> Scene {
     let crowding = occlusion.crowding();
-    let mut rested = Vec::with_capacity(library.objects.len());
-    for object in &library.objects {
+    let every = library.objects.len();
+    let chosen: Vec<usize> = match style.objects_per_scene as usize {
+        k if k == 0 || k >= every => (0..every).collect(),
+        k => {
+            let mut drawn = rand::seq::index::sample(rng, every, k).into_vec();
+            drawn.sort_unstable();
+            drawn
+        }
+    };
+    let mut rested = Vec::with_capacity(chosen.len());
+    for &index in &chosen {
+        let object = &library.objects[index];
         let (min, max) = object.model.mesh.bounds();
         let rotation = if style.upright {
             upright_rotation(rng.random_range(0.0..std::f64::consts::TAU))
@@ -176,16 +190,16 @@ pub fn compose_styled_scene<R: Rng + ?Sized>(
         gap: f64::from(crowding.gap),
     };
     let mut objects = Vec::with_capacity(rested.len());
-    for (library_index, (object, (rotation, lift, _, footprint))) in library.objects.iter().zip(&rested).enumerate() {
+    for (&library_index, (rotation, lift, _, footprint)) in chosen.iter().zip(&rested) {
         let at = placer.place(*footprint, rng);
         objects.push(SceneObject {
-            obj_id: object.obj_id,
+            obj_id: library.objects[library_index].obj_id,
             library_index,
             world_from_object: Pose::new(*rotation, at + Vector3::z() * *lift),
         });
     }
     let spread = placer.radius;
-    let mut diameters: Vec<f64> = library.objects.iter().map(|o| o.info.diameter).collect();
+    let mut diameters: Vec<f64> = chosen.iter().map(|&i| library.objects[i].info.diameter).collect();
     diameters.sort_by(f64::total_cmp);
     let typical = diameters.get(diameters.len() / 2).copied().unwrap_or(0.1) as f32;
     let count = rng.random_range(crowding.clutter_count.0..=crowding.clutter_count.1);

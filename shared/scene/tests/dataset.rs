@@ -332,7 +332,8 @@ fn styled_scenes_add_distractors_and_patterns_around_the_same_targets() {
     let library = ModelLibrary::load(&ycbv, &[13, 14]).unwrap().with_distractors(&ycbv).unwrap();
     assert_eq!(library.distractors.len(), 19, "the 21 YCB-V objects but the two targets");
     let plain = clean_spec();
-    let styled = RenderSpec { style: SceneStyle { textured: true, distractors: 3, upright: false }, ..clean_spec() };
+    let styled =
+        RenderSpec { style: SceneStyle { textured: true, distractors: 3, ..SceneStyle::default() }, ..clean_spec() };
     let mut distractor_pixels = 0;
     for scene_id in 3..9 {
         let (a, b) = (scene(&library, &plain, scene_id), scene(&library, &styled, scene_id));
