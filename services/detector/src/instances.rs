@@ -150,6 +150,9 @@ pub fn detections(map: &LabelMap, object_ids: &[u32], frame: &FrameGrid<'_>, rul
             None => instances.push(region),
         }
     }
+    let depth_guided = rules.edge_depth_m > 0.0
+        && map.depth.len() == map.labels.len()
+        && frame.depth.len() == frame.width * frame.height;
     let mut objects = Vec::new();
     let mut per_class = vec![0usize; 256];
     for instance in instances {
@@ -163,9 +166,6 @@ pub fn detections(map: &LabelMap, object_ids: &[u32], frame: &FrameGrid<'_>, rul
             dropped += 1;
             continue;
         }
-        let depth_guided = rules.edge_depth_m > 0.0
-            && map.depth.len() == map.labels.len()
-            && frame.depth.len() == frame.width * frame.height;
         let scaled = if depth_guided {
             depth_guided_mask(map, &instance, frame, rules.edge_depth_m)
         } else {

@@ -35,28 +35,10 @@ pub struct TruthMask {
     pub ignored: bool,
 }
 
-/// Pixels of a detection's mask, and of those the ones inside a truth's
-/// whole-image mask of `width` columns.
-fn mask_overlap(detection: &DetectedObject, truth: &TruthMask, width: usize) -> (usize, usize) {
-    let [x, y, w, h] = detection.bbox.map(|v| v as usize);
-    let (mut both, mut detected) = (0usize, 0usize);
-    for row in 0..h {
-        for col in 0..w {
-            if detection.mask[row * w + col] {
-                detected += 1;
-                both += usize::from(truth.mask[(y + row) * width + x + col]);
-            }
-        }
-    }
-    (detected, both)
-}
-
 /// IoU of a detection (its box and mask) with a truth's whole-image mask of
 /// `width` columns.
 pub fn mask_iou(detection: &DetectedObject, truth: &TruthMask, width: usize) -> f64 {
-    let (detected, both) = mask_overlap(detection, truth, width);
-    let union = detected + truth.area - both;
-    if union == 0 { 0.0 } else { both as f64 / union as f64 }
+    BestMatch::of(detection, truth, width).iou
 }
 
 /// An instance's best-overlapping detection of its object.
@@ -68,6 +50,26 @@ pub struct BestMatch {
     /// instance (0 and 0 without one).
     pub detected_pixels: usize,
     pub overlap_pixels: usize,
+}
+
+impl BestMatch {
+    /// How `detection` overlaps a truth's whole-image mask of `width`
+    /// columns.
+    fn of(detection: &DetectedObject, truth: &TruthMask, width: usize) -> Self {
+        let [x, y, w, h] = detection.bbox.map(|v| v as usize);
+        let (mut both, mut detected) = (0usize, 0usize);
+        for row in 0..h {
+            for col in 0..w {
+                if detection.mask[row * w + col] {
+                    detected += 1;
+                    both += usize::from(truth.mask[(y + row) * width + x + col]);
+                }
+            }
+        }
+        let union = detected + truth.area - both;
+        let iou = if union == 0 { 0.0 } else { both as f64 / union as f64 };
+        Self { iou, detected_pixels: detected, overlap_pixels: both }
+    }
 }
 
 /// Per object: detections as (score, true positive), instances counted and
@@ -101,12 +103,7 @@ pub fn tally_image(
             .iter()
             .enumerate()
             .filter(|(k, t)| t.obj_id == detection.obj_id && !taken[*k])
-            .map(|(k, t)| {
-                let (detected, both) = mask_overlap(detection, t, width);
-                let union = detected + t.area - both;
-                let iou = if union == 0 { 0.0 } else { both as f64 / union as f64 };
-                (k, BestMatch { iou, detected_pixels: detected, overlap_pixels: both })
-            })
+            .map(|(k, t)| (k, BestMatch::of(detection, t, width)))
             .max_by(|a, b| a.1.iou.total_cmp(&b.1.iou));
         let tally = tallies.entry(detection.obj_id).or_default();
         match candidate {

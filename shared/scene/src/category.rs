@@ -295,7 +295,7 @@ pub fn generate(category: Category, seed: u64) -> Generated {
         handle.colors = Some(vec![body_colour; handle.vertices.len()]);
         append(&mut mesh, handle);
     }
-    let (min, max) = bounds(&mesh.vertices);
+    let (min, max) = mesh.bounds();
     let centre = (min.coords + max.coords) / 2.0;
     for v in &mut mesh.vertices {
         *v -= centre;
@@ -385,7 +385,7 @@ fn swept_handle(x_top: f32, x_bottom: f32, y_top: f32, y_bottom: f32, reach: f32
     let mut handle = ObjectMesh { vertices, triangles, normals: None, colors: None };
     // Consistent, but which way round depends on the curve's direction: a
     // closed part whose volume comes out negative is wound inwards.
-    if signed_volume(&handle) < 0.0 {
+    if handle.enclosed_volume() < 0.0 {
         handle.triangles.iter_mut().for_each(|t| t.swap(1, 2));
     }
     handle
@@ -398,28 +398,6 @@ fn append(mesh: &mut ObjectMesh, part: ObjectMesh) {
     if let (Some(colours), Some(more)) = (&mut mesh.colors, part.colors) {
         colours.extend(more);
     }
-}
-
-fn bounds(vertices: &[Point3<f32>]) -> (Point3<f32>, Point3<f32>) {
-    let mut min = Point3::from(Vector3::repeat(f32::INFINITY));
-    let mut max = Point3::from(Vector3::repeat(f32::NEG_INFINITY));
-    for v in vertices {
-        min = min.inf(v);
-        max = max.sup(v);
-    }
-    (min, max)
-}
-
-/// The volume a closed mesh encloses, positive when its triangles are
-/// wound with outward normals (divergence theorem over the triangles).
-pub fn signed_volume(mesh: &ObjectMesh) -> f64 {
-    mesh.triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| mesh.vertices[i as usize].coords.cast::<f64>());
-            a.dot(&b.cross(&c)) / 6.0
-        })
-        .sum()
 }
 
 /// Area-weighted normals of the triangles at each vertex.
@@ -540,12 +518,12 @@ mod tests {
         let params = ShapeParams::Can { height: 0.1, radius: 0.04, rim_inset: 0.003, rim_height: 0.005 };
         let mesh = revolve(&params.profile(), SEGMENTS);
         assert!(is_closed_and_consistent(&mesh));
-        let (min, max) = bounds(&mesh.vertices);
+        let (min, max) = mesh.bounds();
         assert!(((max - min) - Vector3::new(0.08, 0.1, 0.08)).norm() < 1e-6, "{:?}", max - min);
         let polygon = 0.5 * SEGMENTS as f64 * (std::f64::consts::TAU / SEGMENTS as f64).sin();
         let rims = 2.0 * std::f64::consts::PI * 0.04 * 0.003 * 0.005;
         let expected = polygon * 0.04f64.powi(2) * 0.1 - rims;
-        let volume = signed_volume(&mesh);
+        let volume = mesh.enclosed_volume();
         assert!((volume - expected).abs() < 0.02 * expected, "volume {volume} against {expected}");
     }
 
@@ -553,7 +531,7 @@ mod tests {
     fn the_mug_is_centred_with_its_handle_towards_plus_x() {
         for seed in 0..20 {
             let mug = generate(Category::Mug, seed);
-            let (min, max) = bounds(&mug.mesh.vertices);
+            let (min, max) = mug.mesh.bounds();
             assert!((min.coords + max.coords).norm() < 1e-5, "centred: {min:?} {max:?}");
             let ShapeParams::Mug { height, handle_top, handle_reach, .. } = mug.params else { panic!() };
             assert!((mug.size.y - height).abs() < 1e-5, "y is the axis");
@@ -574,7 +552,7 @@ mod tests {
         let handle = swept_handle(0.04, 0.045, 0.08, 0.03, 0.025, 0.005);
         assert!(is_closed_and_consistent(&handle));
         // Close to π r² times the centreline's length (half an ellipse).
-        let volume = signed_volume(&handle);
+        let volume = handle.enclosed_volume();
         assert!(volume > 0.0);
         let (a, b): (f64, f64) = (0.025 + 0.005, 0.025);
         let half_ellipse = std::f64::consts::PI * (3.0 * (a + b) - ((3.0 * a + b) * (a + 3.0 * b)).sqrt()) / 2.0;
@@ -630,9 +608,9 @@ mod tests {
         fn generated_shapes_are_closed_centred_and_reproducible(seed in 0u64..1_000_000, which in 0usize..4) {
             let category = Category::ALL[which];
             let shape = generate(category, seed);
-            let body_and_handle_volume = signed_volume(&shape.mesh);
+            let body_and_handle_volume = shape.mesh.enclosed_volume();
             prop_assert!(body_and_handle_volume > 0.0, "volume {}", body_and_handle_volume);
-            let (min, max) = bounds(&shape.mesh.vertices);
+            let (min, max) = shape.mesh.bounds();
             prop_assert!((min.coords + max.coords).norm() < 1e-5);
             let tallest = match category {
                 Category::Mug => 0.12, Category::Bowl => 0.09, Category::Bottle => 0.3, Category::Can => 0.165,
@@ -655,7 +633,7 @@ mod tests {
             let params = ShapeParams::sample(Category::ALL[which], &mut rng);
             let body = revolve(&params.profile(), SEGMENTS);
             prop_assert!(is_closed_and_consistent(&body));
-            prop_assert!(signed_volume(&body) > 0.0);
+            prop_assert!(body.enclosed_volume() > 0.0);
         }
     }
 }

@@ -89,6 +89,11 @@ impl ObjectMesh {
         Ok(())
     }
 
+    /// The volume the surface encloses ([`enclosed_volume`]).
+    pub fn enclosed_volume(&self) -> f64 {
+        enclosed_volume(&self.vertices, &self.triangles)
+    }
+
     /// Axis-aligned bounds `(min, max)`.
     pub fn bounds(&self) -> (Point3<f32>, Point3<f32>) {
         let mut min = Point3::from(Vector3::repeat(f32::INFINITY));
@@ -119,6 +124,18 @@ impl ObjectMesh {
     }
 }
 
+/// The volume a closed surface encloses (divergence theorem over its
+/// triangles), positive when they are wound with outward normals.
+pub fn enclosed_volume(vertices: &[Point3<f32>], triangles: &[[u32; 3]]) -> f64 {
+    triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| vertices[i as usize].coords.cast::<f64>());
+            a.dot(&b.cross(&c)) / 6.0
+        })
+        .sum()
+}
+
 /// The parry mesh of a closed surface with outward faces and pseudo-normals,
 /// for inside/outside tests (signed distances, grippers inside an object)
 /// and outward contact normals. Faces wound inwards (negative enclosed
@@ -127,14 +144,7 @@ pub fn oriented_trimesh(
     vertices: Vec<Point3<f32>>,
     mut triangles: Vec<[u32; 3]>,
 ) -> Result<TriMesh, parry3d::shape::TriMeshBuilderError> {
-    let volume: f64 = triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| vertices[i as usize].coords.cast::<f64>());
-            a.dot(&b.cross(&c)) / 6.0
-        })
-        .sum();
-    if volume < 0.0 {
+    if enclosed_volume(&vertices, &triangles) < 0.0 {
         triangles.iter_mut().for_each(|t| t.swap(1, 2));
     }
     let flags = TriMeshFlags::ORIENTED | TriMeshFlags::MERGE_DUPLICATE_VERTICES;
