@@ -59,12 +59,25 @@ class Header(ctypes.Structure):
     ]
 
 
+class ObjectCategory(ctypes.Structure):
+    """A category-level model's category code (REAL275's: 1 bottle, 2 bowl,
+    3 camera, 4 can, 5 laptop, 6 mug; 0 = none) and the object's box extents
+    along its canonical x, y, z in metres (shared/contracts/src/category.rs)."""
+
+    _fields_ = [("code", ctypes.c_uint32), ("size", ctypes.c_float * 3)]
+
+
 class HypothesesHeader(ctypes.Structure):
-    _fields_ = [("header", Header), ("sample_count", ctypes.c_uint32), ("step_count", ctypes.c_uint32)]
+    _fields_ = [
+        ("header", Header),
+        ("sample_count", ctypes.c_uint32),
+        ("step_count", ctypes.c_uint32),
+        ("category", ObjectCategory),
+    ]
 
     @staticmethod
     def type_name():
-        return "poseflow/Hypotheses/v1"
+        return "poseflow/Hypotheses/v2"
 
     def payload_len(self):
         return 12 * self.sample_count
@@ -185,11 +198,12 @@ class ConditionHandle(ctypes.Structure):
         ("model_width", ctypes.c_uint32),
         ("centroid", ctypes.c_float * 3),
         ("point_scale", ctypes.c_float),
+        ("category", ObjectCategory),
     ]
 
     @staticmethod
     def type_name():
-        return "poseflow/Condition/v1"
+        return "poseflow/Condition/v2"
 
     def payload_len(self):
         return 0
@@ -269,11 +283,12 @@ class EstimateHeader(ctypes.Structure):
         ("hypothesis_count", ctypes.c_uint32),
         ("kept_count", ctypes.c_uint32),
         ("refined", ctypes.c_uint32),
+        ("category", ObjectCategory),
     ]
 
     @staticmethod
     def type_name():
-        return "poseflow/Estimate/v2"
+        return "poseflow/Estimate/v3"
 
     def payload_len(self):
         return WEIGHTED_POSE_LEN * (self.mode_count + self.hypothesis_count)
@@ -342,6 +357,7 @@ CONTRACTS = [
     StageStamps,
     Header,
     CameraIntrinsics,
+    ObjectCategory,
     FrameHeader,
     ObservationHeader,
     ConditionHandle,

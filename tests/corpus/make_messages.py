@@ -22,14 +22,21 @@ def base(frame_id=7, object_id=1, flags=0):
     return struct.pack("<QII8Q", frame_id, object_id, flags, *([0] * 8))
 
 
-def hypotheses(sample_count, values):
-    return bytes([HYPOTHESES]) + base() + struct.pack("<II", sample_count, 5) + floats(values)
+def category(code=0, size=(0.0, 0.0, 0.0)):
+    """ObjectCategory: code u32, size 3 f32 (16 bytes)."""
+    return struct.pack("<I3f", code, *size)
 
 
-def estimate(mode_count, hypothesis_count, kept_count, values, selection=3):
+def hypotheses(sample_count, values, kind=None):
+    kind = kind or category()
+    return bytes([HYPOTHESES]) + base() + struct.pack("<II", sample_count, 5) + kind + floats(values)
+
+
+def estimate(mode_count, hypothesis_count, kept_count, values, selection=3, kind=None):
     header = (base() + floats(IDENTITY) + floats(IDENTITY) + floats([0.0] * 36) + floats([0.0])
-              + struct.pack("<IIIII", selection, mode_count, hypothesis_count, kept_count, 1))
-    assert len(header) == 344
+              + struct.pack("<IIIII", selection, mode_count, hypothesis_count, kept_count, 1)
+              + (kind or category()))
+    assert len(header) == 360
     return bytes([ESTIMATE]) + header + floats(values)
 
 
@@ -52,6 +59,9 @@ def main(target):
         "estimate-mode-count-huge.bin": estimate(0xFFFFFFFF, 2, 1, weighted * 2),
         "estimate-unknown-selection.bin": estimate(0, 2, 1, weighted * 2, selection=9),
         "estimate-long-payload.bin": estimate(0, 2, 1, weighted * 3),
+        "estimate-mug.bin": estimate(0, 2, 1, weighted * 2, kind=category(6, (0.12, 0.1, 0.09))),
+        "estimate-mug-nan-size.bin": estimate(0, 2, 1, weighted * 2, kind=category(6, (float("nan"), 0.1, 0.09))),
+        "hypotheses-can-zero-size.bin": hypotheses(2, IDENTITY * 2, kind=category(4, (0.08, 0.0, 0.08))),
     }
     for name, data in cases.items():
         (target / name).write_bytes(data)

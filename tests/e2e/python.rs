@@ -12,8 +12,8 @@ use std::process::Command;
 use iceoryx2::prelude::ZeroCopySend;
 use poseflow_contracts::{
     CameraIntrinsics, ConditionHandle, EstimateHeader, FrameHeader, GraspsHeader, Header, Heartbeat, HypothesesHeader,
-    NextViewHeader, ObservationHeader, STAGE_SLOTS, StageStamps, StampSlot, TensorHeader, VelocityRequest,
-    VelocityResponse, VelocitySegment,
+    NextViewHeader, ObjectCategory, ObservationHeader, STAGE_SLOTS, StageStamps, StampSlot, TensorHeader,
+    VelocityRequest, VelocityResponse, VelocitySegment,
 };
 use poseflow_e2e::harness::*;
 use poseflow_e2e::plugin_python;
@@ -40,7 +40,7 @@ macro_rules! rust_layout {
 }
 
 /// Contracts that only ever travel inside another header.
-const NESTED: [&str; 4] = ["StageStamps", "Header", "CameraIntrinsics", "VelocitySegment"];
+const NESTED: [&str; 5] = ["StageStamps", "Header", "CameraIntrinsics", "VelocitySegment", "ObjectCategory"];
 
 const DUMP: &str = r#"
 import ctypes, json, sys
@@ -60,6 +60,7 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
         rust_layout!(StageStamps { ns }),
         rust_layout!(Header { frame_id, object_id, flags, stamps }),
         rust_layout!(CameraIntrinsics { fx, fy, cx, cy, width, height }),
+        rust_layout!(ObjectCategory { code, size }),
         rust_layout!(FrameHeader { header, intrinsics, scene_id, image_id, detection_count, mask_len }),
         rust_layout!(ObservationHeader {
             header,
@@ -82,7 +83,8 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
             active_image_tokens,
             model_width,
             centroid,
-            point_scale
+            point_scale,
+            category
         }),
         rust_layout!(VelocitySegment { condition_id, sample_count, t }),
         rust_layout!(VelocityRequest {
@@ -95,7 +97,7 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
             segments
         }),
         rust_layout!(VelocityResponse { header, request_id, sample_count, status }),
-        rust_layout!(HypothesesHeader { header, sample_count, step_count }),
+        rust_layout!(HypothesesHeader { header, sample_count, step_count, category }),
         rust_layout!(EstimateHeader {
             header,
             best,
@@ -106,7 +108,8 @@ fn every_python_contract_mirror_has_the_rust_layout_and_type_name() {
             mode_count,
             hypothesis_count,
             kept_count,
-            refined
+            refined,
+            category
         }),
         rust_layout!(GraspsHeader { header, grasp_count, hypothesis_count }),
         rust_layout!(Heartbeat {

@@ -75,12 +75,53 @@ def load_arcs(shard):
     return turns
 
 
+# Category codes of a category-level model's `object_ids`: REAL275's (NOCS)
+# class ids, so a detector trained on its classes names them alike.
+CATEGORY_IDS = {"bottle": 1, "bowl": 2, "camera": 3, "can": 4, "laptop": 5, "mug": 6}
+# The categories whose shapes (and colours) every turn about their y axis
+# leaves unchanged (`shared/scene/src/category.rs`).
+SYMMETRIC_ABOUT_Y = ("bottle", "bowl", "can")
+
+
+def category_models_info(object_ids):
+    """A models_info-like dict {category code: entry} giving each category
+    the symmetry its generated instances share: continuous about y for
+    bottles, bowls and cans, none for mugs (a hidden handle is an ambiguity
+    of the view, not of the shape)."""
+    names = {code: name for name, code in CATEGORY_IDS.items()}
+    unknown = [code for code in object_ids if code not in names]
+    if unknown:
+        raise SystemExit(f"model.object_ids: {unknown[0]} is no category code; expected one of {sorted(names)} "
+                         f"({', '.join(f'{c} {n}' for n, c in sorted(CATEGORY_IDS.items(), key=lambda x: x[1]))})")
+    axis = [{"axis": [0, 1, 0], "offset": [0, 0, 0]}]
+    return {str(code): {"symmetries_continuous": axis} if names[code] in SYMMETRIC_ABOUT_Y else {} for code in object_ids}
+
+
+def read_categories(shard):
+    """{obj_id: (category code, size [3] metres)} from the categories.json
+    beside the shard's models_info.json (`poseflow generate-objects`)."""
+    path = Path(shard.models_info).with_name("categories.json")
+    if not path.is_file():
+        raise SystemExit(f"{shard.path}: no {path} (a category model trains on `poseflow generate-objects` libraries)")
+    out = {}
+    for key, entry in json.loads(path.read_text()).items():
+        if entry["category"] not in CATEGORY_IDS:
+            raise SystemExit(f"{path}: object {key}: category {entry['category']!r}, expected one of {sorted(CATEGORY_IDS)}")
+        out[int(key)] = (CATEGORY_IDS[entry["category"]], np.asarray(entry["size_mm"], dtype=np.float32) / 1000.0)
+    return out
+
+
 class Observations:
     """Several shards as one indexable set, filtered by visibility and
-    object, yielding torch batches."""
+    object, yielding torch batches. With `categories`, `object_ids` are
+    category codes (`CATEGORY_IDS`) and each observation's object index is
+    its instance's category (from each shard's categories.json); batches
+    then also hold the instance's `size` (box extents, metres)."""
 
-    def __init__(self, paths, object_ids, min_visib_fract=0.1, hidden_arcs=False):
+    def __init__(self, paths, object_ids, min_visib_fract=0.1, hidden_arcs=False, categories=False):
         self.shards = [Shard(p) for p in paths]
+        # Per shard, {obj_id: (category code, size)} of a category model.
+        self.categories = [read_categories(shard) for shard in self.shards] if categories else None
         # Per shard, the turns that keep a part hidden ([records, bins]
         # bool, `poseflow_train.arcs`), when asked for.
         self.arcs = [load_arcs(shard) for shard in self.shards] if hidden_arcs else None
@@ -94,15 +135,39 @@ class Observations:
         self.object_index = {obj: i for i, obj in enumerate(object_ids)}
         self.index = []
         for k, shard in enumerate(self.shards):
-            ids = shard.records["ids"][:, 0]
+            ids = self.model_ids(k, shard.records["ids"][:, 0])
             keep = (shard.records["visib_fract"] >= min_visib_fract) & np.isin(ids, list(self.object_index))
             self.index.extend((k, int(i)) for i in np.nonzero(keep)[0])
         norm = first["normalisation"]
         self.mean = torch.tensor(norm["mean"]).reshape(1, 3, 1, 1)
         self.std = torch.tensor(norm["std"]).reshape(1, 3, 1, 1)
 
+    def model_ids(self, k, obj_ids):
+        """The ids the model knows the objects of shard `k` by: their own,
+        or their category's code."""
+        if self.categories is None:
+            return np.asarray(obj_ids)
+        table = self.categories[k]
+        missing = [int(o) for o in obj_ids if int(o) not in table]
+        if missing:
+            raise SystemExit(f"{self.shards[k].path}: object {missing[0]} has no entry in its categories.json")
+        return np.array([table[int(o)][0] for o in obj_ids], dtype=np.int64)
+
     def __len__(self):
         return len(self.index)
+
+    def rows(self, indices):
+        """(shard index, record) of each position."""
+        return [(k, self.shards[k].records[i]) for k, i in (self.index[j] for j in indices)]
+
+    def identities(self, rows):
+        """`object_index`, `obj_id` and, for a category model, `size`."""
+        obj = np.stack([r["ids"] for _, r in rows])[:, 0].astype(np.int64)
+        keys = [int(self.model_ids(k, [r["ids"][0]])[0]) for k, r in rows]
+        out = {"object_index": torch.tensor([self.object_index[key] for key in keys]), "obj_id": torch.from_numpy(obj)}
+        if self.categories is not None:
+            out["size"] = torch.from_numpy(np.stack([self.categories[k][int(r["ids"][0])][1] for k, r in rows]))
+        return out
 
     def obj_ids(self):
         """The object id of every observation, in index order."""
@@ -117,29 +182,27 @@ class Observations:
         """The ground truth alone (what training on cached conditions needs):
         `rotation`, `translation` (relative to the observed points' mean),
         `object_index` and `obj_id` of the given positions."""
-        rows = [self.shards[k].records[i] for k, i in (self.index[j] for j in indices)]
-        ids = np.stack([r["ids"] for r in rows])
+        tagged = self.rows(indices)
+        rows = [r for _, r in tagged]
         centroid = torch.from_numpy(np.stack([r["centroid"] for r in rows]))
         return {
-            "object_index": torch.tensor([self.object_index[int(o)] for o in ids[:, 0]]),
-            "obj_id": torch.from_numpy(ids[:, 0].astype(np.int64)),
+            **self.identities(tagged),
             "rotation": torch.from_numpy(np.stack([r["rotation"] for r in rows])).reshape(-1, 3, 3),
             "translation": torch.from_numpy(np.stack([r["translation"] for r in rows])) - centroid,
         }
 
     def batch(self, indices):
         """A dict of tensors for the given positions in this set."""
-        rows = [self.shards[k].records[i] for k, i in (self.index[j] for j in indices)]
+        tagged = self.rows(indices)
+        rows = [r for _, r in tagged]
         s, n = self.info["image_size"], self.info["point_count"]
         image = torch.from_numpy(np.stack([r["image"] for r in rows]).astype(np.float32)).reshape(-1, 3, s, s)
-        ids = np.stack([r["ids"] for r in rows])
         centroid = torch.from_numpy(np.stack([r["centroid"] for r in rows]))
         return {
             "image": (image / 255.0 - self.mean) / self.std,
             "token_mask": torch.from_numpy(np.stack([r["token_mask"] for r in rows]).astype(np.float32)),
             "points": torch.from_numpy(np.stack([r["points"] for r in rows])).reshape(-1, n, 3),
-            "object_index": torch.tensor([self.object_index[int(o)] for o in ids[:, 0]]),
-            "obj_id": torch.from_numpy(ids[:, 0].astype(np.int64)),
+            **self.identities(tagged),
             "rotation": torch.from_numpy(np.stack([r["rotation"] for r in rows])).reshape(-1, 3, 3),
             # The pose's translation relative to the observed points' mean.
             "translation": torch.from_numpy(np.stack([r["translation"] for r in rows])) - centroid,

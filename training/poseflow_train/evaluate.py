@@ -20,8 +20,9 @@ CONTINUOUS_STEPS = 360
 def symmetries(models_info, continuous_steps=CONTINUOUS_STEPS):
     """{obj_id: [(R [3,3], t [3] metres)]} with the identity first: the
     discrete symmetries, each combined with the discretised continuous ones
-    (as the BOP toolkit does), from a models_info.json."""
-    info = json.loads(Path(models_info).read_text())
+    (as the BOP toolkit does), from a models_info.json (a path, or its
+    parsed dict)."""
+    info = models_info if isinstance(models_info, dict) else json.loads(Path(models_info).read_text())
     out = {}
     for key, entry in info.items():
         discrete = [(torch.eye(3), torch.zeros(3))]
@@ -145,6 +146,8 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed, 
     ({obj_id: instances}, from `unobserved`) count as instances whose every
     sample failed; medians are over the observed ones."""
     missed = missed or {}
+    if observations.categories is not None and missed:
+        raise ValueError("accuracy: unobserved instances are counted per object, not per category")
     generator = torch.Generator().manual_seed(seed)
     transforms = symmetries(observations.models_info)
     count = min(count, len(observations))
@@ -158,7 +161,8 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed, 
             rot, trans = errors(r[i], p[i], batch["rotation"][i], batch["translation"][i], sym)
             rots.append(rot)
             transs.append(trans)
-            objects.append(obj)
+            # A category model's figures are per category, not per instance.
+            objects.append(int(batch["object_index"][i]) if observations.categories is not None else obj)
             rot, trans = errors(coarse_r[i:i + 1], coarse_p[i:i + 1], batch["rotation"][i], batch["translation"][i], sym)
             coarse_rots.append(rot)
             coarse_transs.append(trans)
@@ -170,8 +174,9 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed, 
     # The encoder's coarse pose alone (one per observation), for comparison.
     result["coarse"] = summary(torch.cat(coarse_rots), torch.cat(coarse_transs), total_missed, 1)
     result["coverage_10deg_5cm"] = coverage(rots, transs, total_missed)
+    names = {i: code for code, i in observations.object_index.items()} if observations.categories is not None else None
     result["per_object"] = {
-        str(obj): {"observations": objects.count(obj), "unobserved": missed.get(obj, 0),
+        str(names[obj] if names else obj): {"observations": objects.count(obj), "unobserved": missed.get(obj, 0),
                    **summary(torch.cat([r for r, o in zip(rots, objects) if o == obj]),
                              torch.cat([t for t, o in zip(transs, objects) if o == obj]), missed.get(obj, 0), samples),
                    "coverage_10deg_5cm": coverage([r for r, o in zip(rots, objects) if o == obj],

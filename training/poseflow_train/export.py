@@ -35,7 +35,8 @@ import onnxruntime
 import torch
 
 from . import se3
-from .model import Encoder, ModelConfig, VelocityNet
+from .data import CATEGORY_IDS
+from .model import SIZE_VALUES, Encoder, ModelConfig, VelocityNet
 from .objects import write_objects
 
 CONTRACT = "poseflow-onnx/2"
@@ -81,6 +82,12 @@ def metadata(cfg, extra):
         "image_encoder": cfg.image_encoder,
         **extra,
     }
+    if cfg.size_head:
+        # A category-level model: its object ids are category codes, and its
+        # size (extents / translation_scale) lies in the last condition token.
+        names = {code: name for name, code in CATEGORY_IDS.items()}
+        values["categories"] = {str(code): names[code] for code in cfg.object_ids}
+        values["size_values"] = [SIZE_VALUES.start, SIZE_VALUES.stop]
     return {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()}
 
 

@@ -91,6 +91,11 @@ class ModelConfig:
     # the camera frame has to relearn it per orientation, and in practice
     # collapses every sample onto the coarse pose. False: the first models.
     relative_pose: bool = False
+    # A category-level model (`object_ids` are category codes) also predicts
+    # the object's size, its box extents in the canonical frame, from the
+    # observed points under the coarse pose (`SizeHead`), and carries it in
+    # the coarse pose token (`hint_token`).
+    size_head: bool = False
 
     def __post_init__(self):
         if self.image_encoder not in ("scratch", "dinov2"):
@@ -309,15 +314,50 @@ class Refiner(nn.Module):
         return coordinates, rotation, translation
 
 
+class SizeHead(nn.Module):
+    """The object's size (box extents along its canonical x, y, z, metres)
+    from the observed points mapped into the object frame by the coarse
+    pose and the category's embedding: a PointNet regressing log extents
+    about 10 cm. Returns log(size / 0.1 m) [B, 3]."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.count, self.scale = cfg.correspondence_points, cfg.translation_scale
+        self.objects = nn.Embedding(len(cfg.object_ids), 64)
+        self.local = nn.Sequential(nn.Linear(3, 64), nn.LayerNorm(64), nn.GELU(), nn.Linear(64, 128), nn.LayerNorm(128), nn.GELU())
+        self.whole = nn.Sequential(nn.Linear(128 + 64, 256), nn.LayerNorm(256), nn.GELU(), nn.Linear(256, 256))
+        self.head = nn.Sequential(nn.Linear(256 + 64, 128), nn.GELU(), nn.Linear(128, 3))
+
+    def forward(self, points, object_index, rotation, translation):
+        canonical = ((points[:, : self.count] - translation[:, None]) @ rotation) / self.scale
+        o = self.objects(object_index)[:, None, :]
+        whole = split_first(self.whole, self.local(canonical), o).amax(1)
+        return self.head(torch.cat([whole, o[:, 0]], -1))
+
+
+# Reference of `SizeHead`'s log extents, metres.
+SIZE_REFERENCE_M = 0.1
+
 # Layout of the coarse pose token (the last condition token): R row-major,
-# then p / translation_scale, then zeros.
+# then p / translation_scale, then (models with `size_head`) the size /
+# translation_scale, then zeros. The velocity network's pose input reads the
+# first HINT_VALUES.
 HINT_VALUES = 12
+SIZE_VALUES = slice(12, 15)
 
 
-def hint_token(rotation, translation, cfg):
+def hint_token(rotation, translation, cfg, size=None):
     b = rotation.shape[0]
-    values = torch.cat([rotation.reshape(b, 9), translation / cfg.translation_scale], -1)
-    return torch.cat([values, torch.zeros(b, cfg.width - HINT_VALUES, dtype=values.dtype)], -1)[:, None, :]
+    parts = [rotation.reshape(b, 9), translation / cfg.translation_scale]
+    if size is not None:
+        parts.append(size / cfg.translation_scale)
+    values = torch.cat(parts, -1)
+    return torch.cat([values, torch.zeros(b, cfg.width - values.shape[1], dtype=values.dtype)], -1)[:, None, :]
+
+
+def read_size(condition, cfg):
+    """The size [Bc, 3] metres a `size_head` model put in its last token."""
+    return condition[:, -1, SIZE_VALUES] * cfg.translation_scale
 
 
 def read_hint(condition, cfg):
@@ -345,6 +385,8 @@ class Encoder(nn.Module):
         self.correspondences = Correspondences(cfg)
         if cfg.refine_iterations > 0:
             self.refiner = Refiner(cfg)
+        if cfg.size_head:
+            self.size = SizeHead(cfg)
         self.cfg = cfg
 
     def first_pose(self, points, object_index):
@@ -380,7 +422,10 @@ class Encoder(nn.Module):
         point_tokens = self.point_proj(self.points(points)) + self.kind[1]
         object_token = (self.objects(object_index) + self.kind[2])[:, None, :]
         coordinates, rotation, translation = self.coarse_pose(points, object_index)
-        hint = hint_token(rotation, translation, self.cfg)
+        size = None
+        if self.cfg.size_head:
+            size = SIZE_REFERENCE_M * self.size(points, object_index, rotation, translation).exp()
+        hint = hint_token(rotation, translation, self.cfg, size)
         condition = torch.cat([image_tokens, point_tokens, object_token, hint], 1)
         ones = torch.ones(points.shape[0], point_tokens.shape[1] + 2, dtype=token_mask.dtype, device=token_mask.device)
         return condition, torch.cat([token_mask, ones], 1), coordinates

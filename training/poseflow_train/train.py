@@ -27,9 +27,9 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
 from . import se3
-from .data import Observations
+from .data import Observations, category_models_info
 from .evaluate import rollout, symmetries, validate
-from .model import Encoder, ModelConfig, VelocityNet, read_hint
+from .model import SIZE_REFERENCE_M, Encoder, ModelConfig, VelocityNet, read_hint
 
 
 class LossModule(torch.nn.Module):
@@ -352,7 +352,18 @@ def correspondence_losses(encoder, batch, table, cfg, config, generator):
         translation = torch.where(from_first[:, None], translation, p)
         refined, _, _ = encoder.refine(batch["points"], batch["object_index"], rotation, translation)
         losses += [correspondence_loss(c, batch, table, cfg) for c in refined]
-    return sum(losses) / len(losses)
+    loss = sum(losses) / len(losses)
+    if cfg.size_head:
+        loss = loss + config.get("size_weight", 1.0) * size_loss(encoder, batch)
+    return loss
+
+
+def size_loss(encoder, batch):
+    """Mean L1 distance of the log box extents, from the coarse pose the
+    encoder itself reaches (what the size head meets at inference)."""
+    _, rotation, translation = encoder.coarse_pose(batch["points"], batch["object_index"])
+    predicted = encoder.size(batch["points"], batch["object_index"], rotation, translation)
+    return (predicted - (batch["size"] / SIZE_REFERENCE_M).log()).abs().mean()
 
 
 def learning_rate(config, state):
@@ -486,23 +497,28 @@ def main():
     equivalent = config.get("equivalent_targets", False)
     if config.get("hidden_arcs") and not equivalent:
         raise SystemExit("config: hidden_arcs needs equivalent_targets")
-    train = Observations(config["train"], cfg.object_ids, config.get("min_visib_fract", 0.1), config.get("hidden_arcs", False))
+    categories = cfg.size_head
+    train = Observations(config["train"], cfg.object_ids, config.get("min_visib_fract", 0.1), config.get("hidden_arcs", False),
+                         categories)
     # `validate_also` {name: [shards]}: more held-out sets scored at each
     # validation (say, views where the mug's handle is hidden), logged as
     # `validation_<name>`.
-    val = {"val": Observations(config["val"], cfg.object_ids, config.get("min_visib_fract", 0.1))}
+    val = {"val": Observations(config["val"], cfg.object_ids, config.get("min_visib_fract", 0.1), categories=categories)}
     for name, patterns in config.get("validate_also", {}).items():
         val[name] = Observations(shard_paths(patterns, f"validate_also.{name}"), cfg.object_ids,
-                                 config.get("min_visib_fract", 0.1))
+                                 config.get("min_visib_fract", 0.1), categories=categories)
     for key in ("image_size", "patch_grid", "point_count"):
         if train.info[key] != getattr(cfg, key):
             raise SystemExit(f"{config['train'][0]}: {key} {train.info[key]}, the model config says {getattr(cfg, key)}")
     encoder, velocity = Encoder(cfg), VelocityNet(cfg)
     modules = {"encoder": encoder, "velocity": velocity}
-    table = symmetry_table(train.models_info, cfg.object_ids, config.get("loss_continuous_steps", 36))
+    # A category model's symmetries are its categories' (object index =
+    # category), an instance model's its objects'.
+    symmetry_source = category_models_info(cfg.object_ids) if categories else train.models_info
+    table = symmetry_table(symmetry_source, cfg.object_ids, config.get("loss_continuous_steps", 36))
     # Flow targets drawn from every equivalent pose: continuous symmetries
     # at 1-degree steps.
-    target_table = symmetry_table(train.models_info, cfg.object_ids, 360, counts=True) if equivalent else None
+    target_table = symmetry_table(symmetry_source, cfg.object_ids, 360, counts=True) if equivalent else None
     # `frozen_encoder`: the encoder (from `init_from`) is fixed and its
     # conditions are computed once (`condition_cache`), so a step costs the
     # velocity network alone and can afford many more flow samples.

@@ -57,7 +57,12 @@ fn two_bridges_carry_an_edge_intact_and_end_with_its_stream() {
     let messages: Vec<(HypothesesHeader, Vec<f32>)> = (0..40u64)
         .map(|frame| {
             let samples = 1 + (frame % 4) as u32;
-            let mut header = HypothesesHeader { header: Header::new(frame, 5), sample_count: samples, step_count: 3 };
+            let mut header = HypothesesHeader {
+                header: Header::new(frame, 5),
+                sample_count: samples,
+                step_count: 3,
+                ..Default::default()
+            };
             header.header.flags = (frame % 2) as u32;
             let payload = (0..samples as usize * POSE_LEN).map(|i| (frame * 100 + i as u64) as f32 * 0.5).collect();
             (header, payload)

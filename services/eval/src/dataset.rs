@@ -20,6 +20,9 @@ pub const MIN_VISIB_FRACT: f64 = 0.1;
 #[derive(Debug, Clone)]
 pub struct TruthInstance {
     pub obj_id: u32,
+    /// Its position in the image's `scene_gt.json` list (the instance
+    /// number of its mask files).
+    pub gt_index: usize,
     pub pose: Pose,
     /// Below [`MIN_VISIB_FRACT`] the instance is not scored (an estimate of
     /// it is neither a hit nor a miss).
@@ -106,6 +109,7 @@ pub fn read_truth(split_dir: &Path, frames: &BopFrames) -> anyhow::Result<Vec<Tr
             let visib_fract = infos.and_then(|infos| infos.get(index)).map(|info| info.visib_fract);
             instances.push(TruthInstance {
                 obj_id: gt.obj_id,
+                gt_index: index,
                 pose: gt.pose(&dir.scene_gt(), im_id, index)?,
                 scored: visib_fract.unwrap_or(1.0) >= MIN_VISIB_FRACT,
                 visib_fract,

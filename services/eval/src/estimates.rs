@@ -6,7 +6,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use anyhow::Context;
-use poseflow_contracts::{EstimateHeader, StampSlot, WEIGHTED_POSE_LEN};
+use poseflow_contracts::{EstimateHeader, ObjectCategory, StampSlot, WEIGHTED_POSE_LEN};
 use poseflow_geometry::Pose;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
@@ -15,6 +15,7 @@ use super::dataset::TruthImage;
 
 /// One estimate of one object in one image, from the graph or a results
 /// file.
+#[derive(Debug)]
 pub struct Estimated {
     pub scene_id: u32,
     pub im_id: u32,
@@ -34,6 +35,9 @@ pub struct Estimated {
     /// The Estimate header's flags (0 from a results file; `TRACKING`: the
     /// samples started from an earlier estimate or a prior).
     pub flags: u32,
+    /// A category-level model's category and size (none from a results
+    /// file or an instance-level model).
+    pub category: Option<ObjectCategory>,
 }
 
 /// The graph's estimates in a recording, placed in their images (the frame
@@ -83,6 +87,7 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
                     .elapsed_ns(StampSlot::Source, StampSlot::Selector)
                     .map(Duration::from_nanos),
                 flags: header.header.flags,
+                category: header.category.is_set().then_some(header.category),
             },
         ));
     }
@@ -131,6 +136,7 @@ pub fn read_results(path: &Path) -> anyhow::Result<Vec<Estimated>> {
                 .map(|s| Duration::from_secs_f64(s / f64::from(per_image[&(row.scene_id, row.im_id)]))),
             latency: row.time_s.map(Duration::from_secs_f64),
             flags: 0,
+            category: None,
         })
         .collect())
 }

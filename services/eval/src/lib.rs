@@ -6,6 +6,7 @@
 //! the BOP19 CSV format.
 
 mod bop_csv;
+pub mod category;
 mod dataset;
 pub mod demo;
 pub mod detection;
@@ -40,7 +41,7 @@ use crate::demo::{DetectorMode, SelectionArg};
 use crate::demo::{print_report, run_graph};
 use poseflow_runtime::progress::Progress;
 
-#[derive(Debug, Args)]
+#[derive(Debug, Clone, Args)]
 #[command(after_help = "Run from the repository root after `cargo build --release --workspace` (the stages are \
     separate executables). Writes <out>/<graph>.toml (the graph run, with the frame source on the dataset), \
     <out>/<graph>.rec (its estimates), <out>/graph.log (the stages' log), <out>/run.json (its report), \
@@ -140,19 +141,49 @@ pub struct EvalArgs {
     /// How the detector finds the objects, with --detect (classical: the objects of --objects).
     #[arg(long, value_enum, default_value_t = DetectorMode::Network)]
     pub detector_mode: DetectorMode,
+    /// Category-level evaluation (REAL275's protocol): --model is a category-level model, each object's
+    /// category comes from <objects>/categories.json (`poseflow generate-objects`), the selector scores
+    /// against category templates (evaluation/graphs/estimation-category.toml unless --graph names another), and the
+    /// report adds 5°2cm … 10°5cm with turns about the symmetry axis ignored and 3D IoU25/50 per category.
+    /// The model defaults to models/poseflow-cat, and `--selection sdf` (the default) scores as `chamfer`.
+    #[arg(long, conflicts_with_all = ["detect", "results"])]
+    pub category: bool,
 }
 
 /// The graph `--detect` runs when `--graph` was left at its default.
 pub const DETECT_GRAPH: &str = "deploy/estimation-detect.toml";
+/// The graph `--category` runs when `--graph` was left at its default.
+pub const CATEGORY_GRAPH: &str = "evaluation/graphs/estimation-category.toml";
+
+/// The model `--category` runs when `--model` was left at its default.
+pub const CATEGORY_MODEL: &str = "models/poseflow-cat";
 
 impl EvalArgs {
-    /// The graph file to run: `--graph`, or with `--detect` and the default
-    /// graph, its detecting twin.
+    /// The arguments as run: with `--category`, the default model is the
+    /// category-level one and `sdf` selection scores as `chamfer` (a
+    /// template is built per message; a signed-distance grid for each would
+    /// cost more than the estimate).
+    fn resolved(&self) -> Self {
+        let mut args = self.clone();
+        if self.category {
+            if self.model == Path::new("models/poseflow-lmo10") {
+                args.model = PathBuf::from(CATEGORY_MODEL);
+            }
+            if self.selection == SelectionArg::Sdf {
+                args.selection = SelectionArg::Chamfer;
+            }
+        }
+        args
+    }
+
+    /// The graph file to run: `--graph`, or with `--detect` or `--category`
+    /// and the default graph, its detecting or category-level twin.
     fn graph_file(&self) -> PathBuf {
-        if self.detect && self.graph == Path::new("deploy/estimation.toml") {
-            PathBuf::from(DETECT_GRAPH)
-        } else {
-            self.graph.clone()
+        let default = self.graph == Path::new("deploy/estimation.toml");
+        match (default, self.detect, self.category) {
+            (true, true, _) => PathBuf::from(DETECT_GRAPH),
+            (true, _, true) => PathBuf::from(CATEGORY_GRAPH),
+            _ => self.graph.clone(),
         }
     }
 }
@@ -201,6 +232,9 @@ struct EvalReport {
     /// With --detect: the detector scored on the same images.
     #[serde(skip_serializing_if = "Option::is_none")]
     detection: Option<detection::DetectionSummary>,
+    /// With `--category`: the REAL275-style tables.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    category: Option<category::CategorySummary>,
     #[serde(flatten)]
     summary: Summary,
 }
@@ -381,6 +415,7 @@ fn score_images(
 /// The graph the evaluation runs: `--graph` (or its detecting twin) with
 /// the dataset, model and options set on its stages.
 fn eval_graph(args: &EvalArgs, objects_dir: &Path, object_ids: Vec<u32>) -> anyhow::Result<Graph> {
+    let classes = objects_dir.join(poseflow_scene::category::CATEGORIES_FILE);
     let overrides = Overrides {
         dataset: &args.dataset,
         split: &args.split,
@@ -397,6 +432,7 @@ fn eval_graph(args: &EvalArgs, objects_dir: &Path, object_ids: Vec<u32>) -> anyh
         detector_model: args.detect.then_some(args.detector_model.as_path()),
         detector_mode: args.detect.then_some(args.detector_mode),
         detector_objects: args.detect.then_some(object_ids),
+        classes: args.category.then_some(classes.as_path()),
     };
     let graph_file = args.graph_file();
     let run = graph_with_overrides(&graph_file, &overrides)?;
@@ -524,6 +560,7 @@ fn summarise_videos(
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    let args = &args.resolved();
     check(args)?;
     let frames = BopFrames::open(&args.dataset, &args.split, &[], args.targets.as_deref(), Masks::GroundTruth)
         .with_context(|| format!("--dataset {} --split {}", args.dataset.display(), args.split))?;
@@ -532,7 +569,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let library = ModelLibrary::load(&objects_dir, &[])
         .with_context(|| format!("--objects {}: cannot load the object models", objects_dir.display()))?;
     let objects = scored_objects(&library);
-    if args.results.is_none() {
+    let categories = args
+        .category
+        .then(|| {
+            poseflow_scene::category::read_categories(&objects_dir)
+                .with_context(|| format!("--category: the categories of --objects {}", objects_dir.display()))
+        })
+        .transpose()?;
+    if args.results.is_none() && !args.category {
         check_model_objects(&args.model, &library)?;
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
@@ -552,6 +596,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let stages = args.results.is_none().then(|| stage_counts(&args.out.join("run.json"))).transpose()?;
     let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
     let (outcomes, unmatched_estimates) = evaluate(&images, &estimates, &objects, every_hypothesis)?;
+    let category_outcomes = categories
+        .as_ref()
+        .map(|categories| category::score(&args.dataset.join(&args.split), &images, &estimates, categories))
+        .transpose()?;
     let (videos, per_image) = if outcomes.iter().any(InstanceOutcome::tracked) {
         let per_image = args.out.join("tracking.csv");
         (summarise_videos(&args.dataset.join(&args.split), &images, &outcomes, &per_image)?, Some(per_image))
@@ -568,8 +616,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         videos,
         per_image,
         detection,
+        category: category_outcomes.as_deref().map(category::summarise),
         summary: summarise(&outcomes),
     };
+    if let Some(outcomes) = &category_outcomes {
+        let path = args.out.join("category.csv");
+        std::fs::write(&path, category::instances_csv(outcomes)).with_context(|| format!("{}", path.display()))?;
+    }
     let instances_path = args.out.join("instances.csv");
     std::fs::write(&instances_path, instances_csv(&outcomes))
         .with_context(|| format!("{}", instances_path.display()))?;
@@ -671,6 +724,9 @@ fn print_table(report: &EvalReport) {
     }
     if let Some(d) = &report.detection {
         print_detection(d);
+    }
+    if let Some(c) = &report.category {
+        category::print(c);
     }
     for video in &report.videos {
         println!(

@@ -11,7 +11,7 @@ pub mod stage;
 
 pub use error::InferenceError;
 pub use grasp_model::{GRASP_CONTRACT, GraspFlowModel, GraspModelInfo};
-pub use model::{CONTRACTS, Condition, EncoderInput, ModelInfo, PoseFlowModel, Precision, Velocities};
+pub use model::{CONTRACTS, CategoryHead, Condition, EncoderInput, ModelInfo, PoseFlowModel, Precision, Velocities};
 
 /// The stage of this crate: `inference` (Observation in, Condition handle
 /// out, velocity requests served).

@@ -18,6 +18,11 @@
 //!
 //! Metadata (ONNX `metadata_props`, JSON values) gives S, P, N, the
 //! normalisation, the translation scale and noise, and the object ids.
+//!
+//! A **category-level** model (same ports) also has `categories` (`{code:
+//! name}`: its `object_ids` are category codes, REAL275's) and `size_values`
+//! (`[first, end)`: where in the last condition token its predicted size
+//! lies, as extents / `translation_scale`).
 
 use std::path::{Path, PathBuf};
 
@@ -51,6 +56,35 @@ pub struct ModelInfo {
     /// Cross-attention blocks L whose keys and values the encoder caches
     /// (`poseflow-onnx/2`); 0 under `poseflow-onnx/1`.
     pub cached_blocks: usize,
+    /// A category-level model's categories and size output; None for an
+    /// instance-level model.
+    pub categories: Option<CategoryHead>,
+}
+
+/// What a category-level model adds to its metadata.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CategoryHead {
+    /// (code, name) of each category, in `object_ids` order.
+    pub names: Vec<(u32, String)>,
+    /// Values [first, end) of the last condition token holding the size
+    /// (box extents x, y, z) divided by `translation_scale`.
+    pub size_values: (usize, usize),
+    /// Metres per network translation unit.
+    pub translation_scale: f32,
+}
+
+impl CategoryHead {
+    /// The code of a category name.
+    pub fn code(&self, name: &str) -> Option<u32> {
+        self.names.iter().find(|(_, n)| n == name).map(|(code, _)| *code)
+    }
+
+    /// The size (metres) an encoded condition carries.
+    pub fn size(&self, condition: &Condition, tokens: usize, width: usize) -> [f32; 3] {
+        let last = &condition.tokens[(tokens - 1) * width..tokens * width];
+        let (first, _) = self.size_values;
+        std::array::from_fn(|i| last[first + i] * self.translation_scale)
+    }
 }
 
 /// One observation's encoded condition, kept by the inference stage and
@@ -198,6 +232,50 @@ pub(crate) fn meta<T: serde::de::DeserializeOwned>(
         .map_err(|e| bad(format!("metadata `{key}` = {text:?}: {e}")))
 }
 
+/// A metadata value that may be absent.
+fn optional_meta<T: serde::de::DeserializeOwned>(
+    session: &Session,
+    path: &Path,
+    key: &str,
+) -> Result<Option<T>, InferenceError> {
+    let metadata =
+        session.metadata().map_err(|e| InferenceError::Model { path: path.to_path_buf(), detail: e.to_string() })?;
+    if metadata.custom(key).is_none() {
+        return Ok(None);
+    }
+    meta(session, path, key).map(Some)
+}
+
+/// The category head a model's metadata declares, checked against its
+/// object ids and token width.
+fn category_head(
+    encoder: &Session,
+    path: &Path,
+    object_ids: &[u32],
+    width: usize,
+) -> Result<Option<CategoryHead>, InferenceError> {
+    let bad = |detail: String| InferenceError::Model { path: path.to_path_buf(), detail };
+    let Some(names) = optional_meta::<std::collections::BTreeMap<String, String>>(encoder, path, "categories")? else {
+        return Ok(None);
+    };
+    let mut pairs = Vec::new();
+    for id in object_ids {
+        let name = names
+            .get(&id.to_string())
+            .ok_or_else(|| bad(format!("metadata `categories` names no category for object id (code) {id}")))?;
+        pairs.push((*id, name.clone()));
+    }
+    let (first, end): (usize, usize) = optional_meta(encoder, path, "size_values")?
+        .ok_or_else(|| bad("metadata has `categories` but no `size_values`".into()))?;
+    if end != first + 3 || end > width {
+        return Err(bad(format!(
+            "metadata `size_values` = [{first}, {end}): expected 3 values within the token width {width}"
+        )));
+    }
+    let translation_scale: f32 = meta(encoder, path, "translation_scale")?;
+    Ok(Some(CategoryHead { names: pairs, size_values: (first, end), translation_scale }))
+}
+
 /// An encoder and a velocity session from one model directory.
 pub(crate) struct SessionPair {
     pub encoder: Session,
@@ -279,6 +357,8 @@ impl PoseFlowModel {
         ]);
         check_ports(&velocity_path, "inputs", velocity.inputs(), &velocity_inputs)?;
         check_velocity_outputs(&velocity, &velocity_path)?;
+        let object_ids: Vec<u32> = meta(&encoder, &encoder_path, "object_ids")?;
+        let categories = category_head(&encoder, &encoder_path, &object_ids, width as usize)?;
         let info = ModelInfo {
             image_size: s as usize,
             patch_grid: p as usize,
@@ -286,11 +366,12 @@ impl PoseFlowModel {
             normalisation_mean: meta(&encoder, &encoder_path, "normalisation_mean")?,
             normalisation_std: meta(&encoder, &encoder_path, "normalisation_std")?,
             translation_noise_std: meta(&encoder, &encoder_path, "translation_noise_std")?,
-            object_ids: meta(&encoder, &encoder_path, "object_ids")?,
+            object_ids,
             tokens: t_dim as usize,
             width: width as usize,
             contract,
             cached_blocks,
+            categories,
         };
         Ok(Self { dir: dir.to_path_buf(), info, encoder, velocity, gathered: Gathered::default(), encodings: 0 })
     }

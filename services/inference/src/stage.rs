@@ -21,17 +21,18 @@
 //! the last `MORE_IN_FRAME`) are encoded in one run of the encoder, at most
 //! `batch` at a time ([`FrameBatches`]).
 
-use std::collections::VecDeque;
+use std::collections::{BTreeMap, VecDeque};
 use std::path::{Path, PathBuf};
 
 use poseflow_contracts::status as velocity_status;
 use poseflow_contracts::{
-    ConditionHandle, Header, ObservationHeader, POSE_LEN, StampSlot, VELOCITY_LEN, VelocityRequest, VelocityResponse,
+    ConditionHandle, Header, ObjectCategory, ObservationHeader, POSE_LEN, StampSlot, VELOCITY_LEN, VelocityRequest,
+    VelocityResponse,
 };
 use poseflow_runtime::{Emitter, Flush, FrameBatches, Input, Server, Transform};
 use serde::Deserialize;
 
-use crate::{Condition, EncoderInput, InferenceError, PoseFlowModel, Precision};
+use crate::{CategoryHead, Condition, EncoderInput, InferenceError, PoseFlowModel, Precision};
 
 /// The stage's parameters.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -47,6 +48,12 @@ pub struct InferenceParams {
     pub cache: usize,
     #[serde(default = "default_batch")]
     pub batch: usize,
+    /// A category-level model's class of each object id: a JSON file
+    /// `{"<obj_id>": {"category": "<name>", ...}}` (the `categories.json` of
+    /// `poseflow generate-objects`). Without it a category model reads each
+    /// object id as a category code.
+    #[serde(default)]
+    pub classes: Option<PathBuf>,
 }
 
 fn default_model() -> PathBuf {
@@ -96,6 +103,8 @@ struct Held {
     /// Metres (the network's unit).
     points: Vec<f32>,
     object_index: usize,
+    /// The category code of a category-level model; 0 otherwise.
+    code: u32,
     active_image_tokens: u32,
 }
 
@@ -130,6 +139,33 @@ pub struct InferenceStage {
     times: Vec<f32>,
     response: Vec<f32>,
     rejected: u64,
+    /// Object id → category code (`InferenceParams::classes`).
+    classes: Option<BTreeMap<u32, u32>>,
+}
+
+/// Reads a `classes` file into object id → the model's category code.
+fn read_classes(path: &Path, head: &CategoryHead) -> Result<BTreeMap<u32, u32>, InferenceError> {
+    let bad = |detail: String| InferenceError::Params {
+        key: "classes".into(),
+        detail: format!("{}: {detail}", path.display()),
+    };
+    let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+    let entries: BTreeMap<String, serde_json::Value> = serde_json::from_str(&text)
+        .map_err(|e| bad(format!("expected {{\"<obj_id>\": {{\"category\": name}}}}: {e}")))?;
+    let mut classes = BTreeMap::new();
+    for (key, entry) in entries {
+        let id: u32 = key.parse().map_err(|_| bad(format!("key {key:?}: expected an object id")))?;
+        let name = entry
+            .get("category")
+            .and_then(|c| c.as_str())
+            .ok_or_else(|| bad(format!("object {id}: no \"category\" name")))?;
+        let code = head.code(name).ok_or_else(|| {
+            let known: Vec<&str> = head.names.iter().map(|(_, n)| n.as_str()).collect();
+            bad(format!("object {id}: category {name:?} is not one of the model's {known:?}"))
+        })?;
+        classes.insert(id, code);
+    }
+    Ok(classes)
 }
 
 /// Image tokens left active by a token mask.
@@ -149,7 +185,20 @@ fn run_nonce() -> u64 {
 impl InferenceStage {
     pub fn new(params: &InferenceParams) -> Result<Self, InferenceError> {
         let model = PoseFlowModel::load_as(&params.model, params.threads, params.precision)?;
-        Ok(Self { batches: FrameBatches::new(params.batch), ..Self::with_model(model, params.cache) })
+        let classes = match (&params.classes, &model.info.categories) {
+            (None, _) => None,
+            (Some(path), Some(head)) => Some(read_classes(path, head)?),
+            (Some(_), None) => {
+                return Err(InferenceError::Params {
+                    key: "classes".into(),
+                    detail: format!(
+                        "the model in {} is instance-level (no `categories` in its metadata): it takes object ids as they are",
+                        params.model.display()
+                    ),
+                });
+            }
+        };
+        Ok(Self { batches: FrameBatches::new(params.batch), classes, ..Self::with_model(model, params.cache) })
     }
 
     pub fn with_model(model: PoseFlowModel, capacity: usize) -> Self {
@@ -167,6 +216,7 @@ impl InferenceStage {
             times: Vec::new(),
             response: Vec::new(),
             rejected: 0,
+            classes: None,
         }
     }
 
@@ -177,19 +227,19 @@ impl InferenceStage {
     /// Encodes one observation and caches its condition; returns the handle.
     /// Reads the payload in place (only the points are rescaled).
     pub fn encode(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<ConditionHandle, InferenceError> {
-        let (object_index, view) = self.check(header, payload)?;
+        let (object_index, code, view) = self.check(header, payload)?;
         // The network takes metres.
         self.points.clear();
         self.points.extend(view.points.iter().map(|&x| x * header.point_scale));
         let input = EncoderInput { image: view.image, token_mask: view.token_mask, points: &self.points, object_index };
         let condition = self.model.encode_batch(&[input])?.pop().expect("one condition per input");
-        Ok(self.store(header, active_tokens(view.token_mask), condition))
+        Ok(self.store(header, active_tokens(view.token_mask), code, condition))
     }
 
     /// Checks an observation against the model and keeps a copy of it for
     /// the next [`Self::encode_held`].
     pub fn hold(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<(), InferenceError> {
-        let (object_index, view) = self.check(header, payload)?;
+        let (object_index, code, view) = self.check(header, payload)?;
         self.held.push(Held {
             header: *header,
             image: view.image.to_vec(),
@@ -197,18 +247,20 @@ impl InferenceStage {
             // The network takes metres.
             points: view.points.iter().map(|&x| x * header.point_scale).collect(),
             object_index,
+            code,
             active_image_tokens: active_tokens(view.token_mask),
         });
         Ok(())
     }
 
-    /// The observation's object index and payload sections, or why the
-    /// model cannot take it.
+    /// The observation's object index, category code (0 for an
+    /// instance-level model) and payload sections, or why the model cannot
+    /// take it.
     fn check<'p>(
         &self,
         header: &ObservationHeader,
         payload: &'p [f32],
-    ) -> Result<(usize, poseflow_contracts::ObservationView<'p>), InferenceError> {
+    ) -> Result<(usize, u32, poseflow_contracts::ObservationView<'p>), InferenceError> {
         let frame = header.header.frame_id;
         let bad = |detail: String| InferenceError::Observation { frame, detail };
         let info = &self.model.info;
@@ -225,17 +277,26 @@ impl InferenceStage {
                 )));
             }
         }
-        let object_index = self.model.object_index(header.header.object_id).ok_or_else(|| {
-            bad(format!(
-                "object {} is not one the model knows (its objects: {:?})",
-                header.header.object_id, self.model.info.object_ids
-            ))
+        let object = header.header.object_id;
+        let key = match (&self.classes, &info.categories) {
+            (Some(classes), _) => *classes.get(&object).ok_or_else(|| {
+                bad(format!("object {object} has no category in the inference stage's `classes` file"))
+            })?,
+            _ => object,
+        };
+        let object_index = self.model.object_index(key).ok_or_else(|| match &info.categories {
+            Some(head) => bad(format!(
+                "object {object}: the category model takes category codes {:?} (set the inference stage's `classes` to map object ids to categories)",
+                head.names
+            )),
+            None => bad(format!("object {object} is not one the model knows (its objects: {:?})", info.object_ids)),
         })?;
+        let code = if info.categories.is_some() { key } else { 0 };
         if !(header.point_scale.is_finite() && header.point_scale > 0.0) {
             return Err(bad(format!("point_scale {}: expected a positive number", header.point_scale)));
         }
         let view = header.view(payload).map_err(|e| bad(e.to_string()))?;
-        Ok((object_index, view))
+        Ok((object_index, code, view))
     }
 
     /// Observations held and not yet encoded.
@@ -260,12 +321,23 @@ impl InferenceStage {
         Ok(held
             .iter()
             .zip(conditions)
-            .map(|(h, condition)| self.store(&h.header, h.active_image_tokens, condition))
+            .map(|(h, condition)| self.store(&h.header, h.active_image_tokens, h.code, condition))
             .collect())
     }
 
     /// Caches an encoded observation under a new id; its handle.
-    fn store(&mut self, header: &ObservationHeader, active_image_tokens: u32, condition: Condition) -> ConditionHandle {
+    fn store(
+        &mut self,
+        header: &ObservationHeader,
+        active_image_tokens: u32,
+        code: u32,
+        condition: Condition,
+    ) -> ConditionHandle {
+        let info = &self.model.info;
+        let category = match &info.categories {
+            Some(head) => ObjectCategory { code, size: head.size(&condition, info.tokens, info.width) },
+            None => ObjectCategory::default(),
+        };
         self.encoded += 1;
         let id = self.run_nonce | (self.encoded & 0xFFFF_FFFF);
         let image_tokens = (self.model.info.patch_grid * self.model.info.patch_grid) as u32;
@@ -282,6 +354,7 @@ impl InferenceStage {
             model_width: self.model.info.width as u32,
             centroid: header.centroid,
             point_scale: header.point_scale,
+            category,
         }
     }
 

@@ -35,6 +35,17 @@ fn observation(v: &BTreeMap<String, Vec<f32>>, object_id: u32, point_scale: f32)
     (header, payload)
 }
 
+/// The first of the stored observations (its image, token mask and
+/// points), with every stored pose.
+fn first_observation(v: &BTreeMap<String, Vec<f32>>) -> BTreeMap<String, Vec<f32>> {
+    let observations = v["object_index"].len();
+    ["image", "token_mask", "points"]
+        .iter()
+        .map(|&name| (name.to_string(), v[name][..v[name].len() / observations].to_vec()))
+        .chain(["rotation", "translation"].iter().map(|&name| (name.to_string(), v[name].clone())))
+        .collect()
+}
+
 /// The stored poses as a request payload (R row-major, t), translations
 /// divided by `point_scale`.
 fn poses(v: &BTreeMap<String, Vec<f32>>, point_scale: f32) -> Vec<f32> {
@@ -61,17 +72,7 @@ fn request(condition_id: u64, sample_count: u32, t: f32) -> VelocityRequest {
 fn held_observations_and_segmented_requests_match_one_by_one() {
     let default_model = model_dir().parent().unwrap().join("poseflow-lmo10");
     for dir in [model_dir(), default_model] {
-        let v = parity_of(&dir);
-        let per = v["image"].len() / v["object_index"].len();
-        let first: BTreeMap<String, Vec<f32>> = ["image", "token_mask", "points"]
-            .iter()
-            .map(|&name| {
-                let values = &v[name];
-                let count = values.len() * per / v["image"].len();
-                (name.to_string(), values[..count].to_vec())
-            })
-            .chain(["rotation", "translation"].iter().map(|&name| (name.to_string(), v[name].clone())))
-            .collect();
+        let first = first_observation(&parity_of(&dir));
         let mut together = InferenceStage::with_model(PoseFlowModel::load(&dir, 1).unwrap(), 8);
         let mut alone = InferenceStage::with_model(PoseFlowModel::load(&dir, 1).unwrap(), 8);
         let scales = [1.0, 0.5];
@@ -193,4 +194,58 @@ fn parameters_name_the_key_that_is_wrong() {
     assert!(err.contains("`threads`") && err.contains("1 to 64"), "{err}");
     let err = InferenceParams::from_json(&serde_json::json!({ "modle": "x" })).unwrap_err().to_string();
     assert!(err.contains("modle"), "{err}");
+}
+
+/// A category-level model (`models/test-tiny-cat`, an untrained contract
+/// fixture): object ids reach it through the `classes` file (or as
+/// category codes), and each Condition carries the category and the size
+/// the encoder put in its last token.
+#[test]
+fn a_category_model_takes_classes_and_hands_on_its_category_and_size() {
+    let dir = model_dir().parent().unwrap().join("test-tiny-cat");
+    let v = parity_of(&dir);
+    let first = first_observation(&v);
+    let scratch = std::env::temp_dir().join(format!("poseflow-classes-{}", std::process::id()));
+    std::fs::create_dir_all(&scratch).unwrap();
+    let classes = scratch.join("categories.json");
+    // The fixture's first stored observation is object index 0: code 1, bottle.
+    std::fs::write(&classes, r#"{"17": {"category": "bottle", "seed": 3}, "18": {"category": "mug"}}"#).unwrap();
+    let params = |classes: Option<&std::path::Path>| {
+        let mut json = serde_json::json!({"model": dir, "precision": "fp32", "threads": 1});
+        if let Some(path) = classes {
+            json["classes"] = serde_json::json!(path);
+        }
+        InferenceParams::from_json(&json).unwrap()
+    };
+    let mut stage = InferenceStage::new(&params(Some(&classes))).unwrap();
+    let (header, payload) = observation(&first, 17, 1.0);
+    let handle = stage.encode(&header, &payload).unwrap();
+    assert_eq!(handle.category.code, 1);
+    // The size is the stored condition's last token, values 12..15, times the
+    // translation scale (0.05 m).
+    let (tokens, width) = (handle.image_tokens + handle.point_tokens, handle.model_width);
+    let last = (tokens as usize - 1) * width as usize;
+    let expected: Vec<f32> = v["condition"][last + 12..last + 15].iter().map(|x| x * 0.05).collect();
+    assert!(max_difference(&handle.category.size, &expected) < 1e-5, "{:?} vs {expected:?}", handle.category.size);
+    assert!(handle.category.size.iter().all(|s| *s > 0.0));
+    // An object the file does not list is refused by name.
+    let (unlisted, payload_unlisted) = observation(&first, 19, 1.0);
+    let error = stage.encode(&unlisted, &payload_unlisted).unwrap_err().to_string();
+    assert!(error.contains("object 19 has no category"), "{error}");
+
+    // Without `classes`, object ids are category codes.
+    let mut direct = InferenceStage::new(&params(None)).unwrap();
+    let (bottle, payload_bottle) = observation(&first, 1, 1.0);
+    assert_eq!(direct.encode(&bottle, &payload_bottle).unwrap().category, handle.category);
+    let error = direct.encode(&unlisted, &payload_unlisted).unwrap_err().to_string();
+    assert!(error.contains("category codes") && error.contains("classes"), "{error}");
+
+    // A category the model lacks, and `classes` for an instance-level model.
+    std::fs::write(&classes, r#"{"17": {"category": "laptop"}}"#).unwrap();
+    let error = InferenceStage::new(&params(Some(&classes))).unwrap_err().to_string();
+    assert!(error.contains("object 17") && error.contains("\"laptop\""), "{error}");
+    let instance = serde_json::json!({"model": model_dir(), "precision": "fp32", "threads": 1, "classes": classes});
+    let error = InferenceStage::new(&InferenceParams::from_json(&instance).unwrap()).unwrap_err().to_string();
+    assert!(error.contains("instance-level"), "{error}");
+    std::fs::remove_dir_all(&scratch).unwrap();
 }

@@ -196,7 +196,7 @@ fn hypotheses_header(handle: &ConditionHandle, start: &Start, samples: usize, st
     if matches!(start, Start::Track(_) | Start::Mixed(_)) {
         header.flags |= flags::TRACKING;
     }
-    HypothesesHeader { header, sample_count: samples as u32, step_count: steps as u32 }
+    HypothesesHeader { header, sample_count: samples as u32, step_count: steps as u32, category: handle.category }
 }
 
 impl<F: VelocityField> Transform for SamplerStage<F> {

@@ -1,19 +1,22 @@
 //! The sampler against velocity fields with known flows.
 
 use nalgebra::Vector3;
-use poseflow_contracts::{ConditionHandle, Header, VelocityRequest, flags};
+use poseflow_contracts::{ConditionHandle, Header, ObjectCategory, VelocityRequest, flags};
 use poseflow_geometry::flow::target_velocity;
 use poseflow_geometry::{Pose, so3};
 use poseflow_runtime::{EmitError, Emitter, Flush, Input, Transform};
 use poseflow_sampler::stage::SamplerStage;
 use poseflow_sampler::{FieldError, FlowSampler, SamplerParams, Start, TrackingParams};
 
+/// A category-level model's handle (a can and its size), which the
+/// Hypotheses must carry on.
 fn handle(frame: u64) -> ConditionHandle {
     ConditionHandle {
         header: Header::new(frame, 5),
         condition_id: 42,
         centroid: [0.1, -0.05, 0.7],
         point_scale: 0.5,
+        category: ObjectCategory { code: 4, size: [0.08, 0.11, 0.08] },
         ..Default::default()
     }
 }
@@ -147,6 +150,7 @@ fn tracking_starts_from_the_previous_estimate_late_in_the_flow() {
         let (header, poses) = stage.hypotheses(&next).unwrap();
         assert!(header.header.has_flag(flags::TRACKING));
         assert_eq!(header.step_count, 2);
+        assert_eq!(header.category, next.category);
         assert_near_target(poses, 1e-3, 1e-5);
         // Too old an estimate is not used.
         assert_eq!(stage.start_for(&handle(17)), Start::Prior);

@@ -49,6 +49,7 @@ impl Method {
 /// | `keep_fraction` | share of best-scored hypotheses kept (model-based) | 0.2 |
 /// | `keep_margin` | model-based: also keep every hypothesis scored within this of the best (per-point log-likelihood; 0.5 = a mean squared residual one σ² worse; 0: `keep_fraction` alone) | 0.25 |
 /// | `models` | BOP models directory (`models_info.json`, `obj_NNNNNN.ply`, mm) for `chamfer`, `sdf`, `refine` | none |
+/// | `category_templates` | instead of `models`: score a category-level model's hypotheses against its category's mean shape stretched to the size the model predicted (the Hypotheses' `category`) | false |
 /// | `score_points` | observed points scored (a prefix of the farthest-point order) | 256 |
 /// | `noise_std` | σ of point-to-surface residuals in the likelihood, metres | 0.005 |
 /// | `outlier_distance` | residuals are truncated here (occluders, mask bleed), metres | 0.02 |
@@ -80,6 +81,11 @@ pub struct SelectorParams {
     pub keep_margin: f64,
     #[serde(default)]
     pub models: Option<PathBuf>,
+    /// Category-level hypotheses are scored against a template: the mean
+    /// shape of their category stretched to their predicted size
+    /// (`poseflow_scene::category::template`); no meshes are loaded.
+    #[serde(default)]
+    pub category_templates: bool,
     #[serde(default = "default_score_points")]
     pub score_points: usize,
     #[serde(default = "default_noise_std")]
@@ -173,7 +179,7 @@ impl SelectorParams {
 
     /// Whether the object models must be loaded.
     pub fn needs_models(&self) -> bool {
-        self.method.needs_model() || self.refine
+        (self.method.needs_model() || self.refine) && !self.category_templates
     }
 
     pub fn validate(&self) -> Result<(), SelectorError> {
@@ -232,11 +238,20 @@ impl SelectorParams {
             return Err(SelectorError::Params { key, detail });
         }
         self.tracking.validate()?;
+        if self.category_templates && self.models.is_some() {
+            return Err(SelectorError::Params {
+                key: "category_templates",
+                detail: "true with `models` set: a category-level graph scores against templates, an instance-level \
+                         one against its meshes; set one of the two"
+                    .into(),
+            });
+        }
         if self.needs_models() && self.models.is_none() {
             return Err(SelectorError::Params {
                 key: "models",
                 detail: format!(
-                    "method {:?}{} needs the object models: set `models` to a BOP models directory",
+                    "method {:?}{} needs the object models: set `models` to a BOP models directory (or \
+                     `category_templates = true` for a category-level model)",
                     self.method,
                     if self.refine { " with refine" } else { "" }
                 ),

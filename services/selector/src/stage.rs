@@ -10,6 +10,7 @@ use poseflow_contracts::{
 };
 use poseflow_geometry::Pose;
 use poseflow_runtime::{Emitter, Input, Joined, Transform};
+use poseflow_scene::category::{Category, template};
 use poseflow_scene::{ObjectGeometry, ObjectLibrary};
 
 use crate::select::{Observed, scorer};
@@ -202,21 +203,44 @@ impl SelectorStage {
             .iter()
             .position(|o| o.frame_id == frame && o.object_id == object)
             .and_then(|i| self.observations.remove(i));
-        let model = match &self.library {
-            Some(library) => Some(library.get(object).ok_or_else(|| {
+        let template = match self.params.category_templates {
+            true => Some(template_geometry(header, self.params.sdf_resolution).map_err(in_frame)?),
+            false => None,
+        };
+        let model = match (&self.library, &template) {
+            (_, Some(template)) => Some(template),
+            (Some(library), None) => Some(library.get(object).ok_or_else(|| {
                 in_frame(format!(
                     "no model of object {object} in {} (objects there: {:?})",
                     library.dir.display(),
                     library.ids()
                 ))
             })?),
-            None => None,
+            (None, None) => None,
         };
         let selection =
             select(&hypotheses, observed.as_ref().map(|o| o.observed(self.params.score_points)), model, &self.params)
                 .map_err(|e| in_frame(e.to_string()))?;
         Ok((selection, observed))
     }
+}
+
+/// The template a category-level message is scored against: its
+/// category's mean shape stretched to the predicted size. Built per message
+/// (a mesh of about a thousand vertices; its SDF grid only if refinement or
+/// the free-space test asks for it).
+fn template_geometry(header: &HypothesesHeader, sdf_resolution: usize) -> Result<ObjectGeometry, String> {
+    let category = &header.category;
+    let kind = Category::from_code(category.code).ok_or_else(|| match category.code {
+        0 => "category_templates: the Hypotheses carry no category (an instance-level model?)".to_string(),
+        code => format!(
+            "category_templates: no template for category code {code} (templates: {})",
+            Category::ALL.map(|c| format!("{} {}", c.code(), c.name())).join(", ")
+        ),
+    })?;
+    let mesh = template(kind, Vector3::from(category.size));
+    ObjectGeometry::from_mesh(category.code, mesh.vertices, mesh.triangles, sdf_resolution)
+        .map_err(|e| format!("the {} template at size {:?}: {e}", kind.name(), category.size))
 }
 
 /// The depth grid of an Observation: the crop scaled by `depth_span` about
@@ -306,6 +330,7 @@ pub fn estimate_header(selection: &Selection, header: Header) -> EstimateHeader 
         hypothesis_count: selection.scored.len() as u32,
         kept_count: selection.kept as u32,
         refined: u32::from(selection.refined),
+        category: Default::default(),
     }
 }
 
@@ -340,7 +365,7 @@ impl Transform for SelectorStage {
         let (selection, track_flags) = self.select_and_check(header, input.payload)?;
         let mut forwarded = input.forward_header();
         forwarded.flags |= track_flags;
-        let estimate = estimate_header(&selection, forwarded);
+        let estimate = EstimateHeader { category: header.category, ..estimate_header(&selection, forwarded) };
         output.emit(estimate, estimate_payload_len(&selection), &mut |out| write_estimate_payload(&selection, out))?;
         Ok(())
     }
@@ -382,9 +407,73 @@ pub fn from_wiring(wiring: &poseflow_graph::StageWiring) -> Result<SelectorStage
 #[cfg(test)]
 mod tests {
     use super::*;
+    use poseflow_contracts::ObjectCategory;
 
     fn observation(crop: [f32; 4], depth_span: f32) -> ObservationHeader {
         ObservationHeader { header: Header::new(7, 3), crop, depth_grid: 2, depth_span, ..Default::default() }
+    }
+
+    /// An Observation of `points` (camera frame, metres) with a tiny
+    /// image and no depth grid.
+    fn observation_of(points: &[Point3<f64>]) -> (ObservationHeader, Vec<f32>) {
+        let centroid = points.iter().fold(Vector3::zeros(), |sum, p| sum + p.coords) / points.len() as f64;
+        let header = ObservationHeader {
+            header: Header::new(7, 3),
+            centroid: centroid.cast::<f32>().into(),
+            point_scale: 1.0,
+            image_size: 16,
+            patch_grid: 2,
+            point_count: points.len() as u32,
+            valid_point_count: points.len() as u32,
+            ..Default::default()
+        };
+        let mut payload = vec![0.0; 3 * 16 * 16 + 4];
+        payload.extend(points.iter().flat_map(|p| (p.coords - centroid).cast::<f32>().data.0[0]));
+        (header, payload)
+    }
+
+    #[test]
+    fn category_templates_score_against_the_mean_shape_at_the_predicted_size() {
+        // A can (not the mean one) seen from the front; hypotheses: the truth,
+        // the truth 3 cm off, and the truth tipped 30° over.
+        let can = poseflow_scene::category::generate(Category::Can, 11);
+        let size = can.size;
+        let geometry = ObjectGeometry::from_mesh(4, can.mesh.vertices.clone(), can.mesh.triangles.clone(), 32).unwrap();
+        let truth = Pose::new(nalgebra::Rotation3::from_euler_angles(-1.2, 0.3, 0.2), Vector3::new(0.02, -0.01, 0.7));
+        let points: Vec<Point3<f64>> = geometry
+            .surface()
+            .iter()
+            .map(|p| truth.transform_point(p))
+            .filter(|p| p.z < truth.translation.z)
+            .take(300)
+            .collect();
+        let params = SelectorParams::from_json(&serde_json::json!({
+            "method": "chamfer", "category_templates": true, "keep_fraction": 0.3, "keep_margin": 0.0
+        }))
+        .unwrap();
+        let mut stage = SelectorStage::new(params).unwrap();
+        let tipped =
+            Pose::new(truth.rotation * nalgebra::Rotation3::from_euler_angles(0.52, 0.0, 0.0), truth.translation);
+        let shifted = Pose::new(truth.rotation, truth.translation + Vector3::new(0.03, 0.0, 0.0));
+        let hypotheses: Vec<f32> = [shifted, tipped, truth].iter().flat_map(|p| p.to_f32_row_major()).collect();
+        let category = ObjectCategory { code: Category::Can.code(), size: size.into() };
+        let header = HypothesesHeader { header: Header::new(7, 3), sample_count: 3, step_count: 5, category };
+        let (observation, payload) = observation_of(&points);
+        stage.keep_observation(&observation, &payload).unwrap();
+        let (selection, _) = stage.select_and_check(&header, &hypotheses).unwrap();
+        assert!(selection.best.translation.metric_distance(&truth.translation) < 1e-6, "{:?}", selection.best);
+        assert_eq!(selection.kept, 1);
+
+        // Without a category (an instance-level model), the template is refused by name.
+        let instance = HypothesesHeader { category: ObjectCategory::default(), ..header };
+        stage.keep_observation(&observation, &payload).unwrap();
+        let error = stage.select_and_check(&instance, &hypotheses).unwrap_err().to_string();
+        assert!(error.contains("frame 7") && error.contains("carry no category"), "{error}");
+        // A category without a template (3: camera) is named.
+        let camera = HypothesesHeader { category: ObjectCategory { code: 3, ..category }, ..header };
+        stage.keep_observation(&observation, &payload).unwrap();
+        let error = stage.select_and_check(&camera, &hypotheses).unwrap_err().to_string();
+        assert!(error.contains("category code 3"), "{error}");
     }
 
     #[test]

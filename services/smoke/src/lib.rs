@@ -77,7 +77,12 @@ impl Source for CountingSource {
         }
         let frame = self.next_frame;
         self.next_frame += 1;
-        let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: self.samples, step_count: 1 };
+        let header = HypothesesHeader {
+            header: Header::new(frame, 1),
+            sample_count: self.samples,
+            step_count: 1,
+            ..Default::default()
+        };
         let len = self.samples as usize * POSE_LEN;
         output.emit(header, len, &mut |payload| {
             for (i, v) in payload.iter_mut().enumerate() {

@@ -5,9 +5,9 @@ use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
 use crate::message::{MessageHeader, header_accessors};
-use crate::{ContractError, Header};
+use crate::{ContractError, Header, ObjectCategory};
 
-/// User header of a Condition handle (120 bytes, alignment 8). No payload.
+/// User header of a Condition handle (136 bytes, alignment 8). No payload.
 ///
 /// | offset | size | field               | type     | meaning |
 /// |-------:|-----:|---------------------|----------|---------|
@@ -19,9 +19,10 @@ use crate::{ContractError, Header};
 /// | 100    | 4    | model_width         | u32      | token width of the network |
 /// | 104    | 12   | centroid            | [f32; 3] | copied from the Observation, to map poses back |
 /// | 116    | 4    | point_scale         | f32      | copied from the Observation |
+/// | 120    | 16   | category            | [`ObjectCategory`] | a category-level model's category and predicted size; zeros otherwise |
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("poseflow/Condition/v1")]
+#[type_name("poseflow/Condition/v2")]
 pub struct ConditionHandle {
     pub header: Header,
     pub condition_id: u64,
@@ -31,6 +32,7 @@ pub struct ConditionHandle {
     pub model_width: u32,
     pub centroid: [f32; 3],
     pub point_scale: f32,
+    pub category: ObjectCategory,
 }
 
 impl MessageHeader for ConditionHandle {
@@ -39,6 +41,7 @@ impl MessageHeader for ConditionHandle {
     header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
+        self.category.check(Self::NAME)?;
         Ok(0)
     }
 }

@@ -8,4 +8,7 @@ pub enum ContractError {
 
     #[error("{message}: field `{field}` = {value}: expected {expected}")]
     FieldOutOfRange { message: &'static str, field: &'static str, value: u64, expected: &'static str },
+
+    #[error("{message}: field `{field}` = {value}: expected {expected}")]
+    InvalidField { message: &'static str, field: &'static str, value: String, expected: &'static str },
 }

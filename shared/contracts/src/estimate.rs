@@ -4,25 +4,27 @@ use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
 use crate::message::{MessageHeader, POSE_LEN, bounded, header_accessors, limits, sections};
-use crate::{ContractError, Header};
+use crate::{ContractError, Header, ObjectCategory};
 
-/// User header of Hypotheses (88 bytes, alignment 8).
+/// User header of Hypotheses (104 bytes, alignment 8).
 ///
 /// | offset | size | field        | type | meaning |
 /// |-------:|-----:|--------------|------|---------|
 /// | 0      | 80   | header       | [`Header`] | `flags` has TRACKING in tracking mode |
 /// | 80     | 4    | sample_count | u32  | N |
 /// | 84     | 4    | step_count   | u32  | K Euler steps that produced them |
+/// | 88     | 16   | category     | [`ObjectCategory`] | copied from the Condition |
 ///
 /// Payload (`f32`): N object-to-camera poses × 12 (`R` row-major, `t` in
 /// metres), camera frame.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("poseflow/Hypotheses/v1")]
+#[type_name("poseflow/Hypotheses/v2")]
 pub struct HypothesesHeader {
     pub header: Header,
     pub sample_count: u32,
     pub step_count: u32,
+    pub category: ObjectCategory,
 }
 
 impl MessageHeader for HypothesesHeader {
@@ -31,6 +33,7 @@ impl MessageHeader for HypothesesHeader {
     header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
+        self.category.check(Self::NAME)?;
         let n = bounded(Self::NAME, "sample_count", self.sample_count, 1, limits::MAX_SAMPLES, "1..=4096")?;
         Ok(n * POSE_LEN)
     }
@@ -60,7 +63,7 @@ impl SelectionMethod {
 /// score (1).
 pub const WEIGHTED_POSE_LEN: usize = POSE_LEN + 1;
 
-/// User header of an Estimate (344 bytes, alignment 8).
+/// User header of an Estimate (360 bytes, alignment 8).
 ///
 /// | offset | size | field            | type      | meaning |
 /// |-------:|-----:|------------------|-----------|---------|
@@ -74,6 +77,7 @@ pub const WEIGHTED_POSE_LEN: usize = POSE_LEN + 1;
 /// | 332    | 4    | hypothesis_count | u32       | N hypotheses scored (every sample) |
 /// | 336    | 4    | kept_count       | u32       | K ≤ N of them kept (the first K) |
 /// | 340    | 4    | refined          | u32       | 1 when the kept hypotheses were refined against the observed points |
+/// | 344    | 16   | category         | [`ObjectCategory`] | a category-level model's category and size (the poses are then in the category's canonical frame); zeros otherwise |
 ///
 /// Payload (`f32`): M modes × 13 (pose, weight = share of samples) ‖ N
 /// hypotheses × 13 (pose, score), best score first; each pose `R` row-major
@@ -82,7 +86,7 @@ pub const WEIGHTED_POSE_LEN: usize = POSE_LEN + 1;
 /// noise), 0 without selection.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("poseflow/Estimate/v2")]
+#[type_name("poseflow/Estimate/v3")]
 pub struct EstimateHeader {
     pub header: Header,
     pub best: [f32; 12],
@@ -94,6 +98,7 @@ pub struct EstimateHeader {
     pub hypothesis_count: u32,
     pub kept_count: u32,
     pub refined: u32,
+    pub category: ObjectCategory,
 }
 
 impl Default for EstimateHeader {
@@ -109,6 +114,7 @@ impl Default for EstimateHeader {
             hypothesis_count: 0,
             kept_count: 0,
             refined: 0,
+            category: ObjectCategory::default(),
         }
     }
 }
@@ -165,6 +171,7 @@ impl MessageHeader for EstimateHeader {
     header_accessors!();
 
     fn payload_len(&self) -> Result<usize, ContractError> {
+        self.category.check(Self::NAME)?;
         Ok(self.section_lengths()?.iter().sum())
     }
 }

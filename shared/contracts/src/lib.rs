@@ -45,6 +45,7 @@
 //! | Tensor | [`TensorHeader`] | values ∏shape | plug-ins, benchmarks |
 
 mod bytes;
+mod category;
 mod condition;
 mod error;
 mod estimate;
@@ -63,6 +64,7 @@ mod visit;
 mod tests;
 
 pub use bytes::{header_bytes, header_from_bytes};
+pub use category::ObjectCategory;
 pub use condition::ConditionHandle;
 pub use error::ContractError;
 pub use estimate::{EstimateHeader, EstimateView, HypothesesHeader, SelectionMethod, WEIGHTED_POSE_LEN};
@@ -99,19 +101,20 @@ mod layout {
         header @ 0, intrinsics @ 80, centroid @ 104, point_scale @ 116, crop @ 120,
         image_size @ 136, patch_grid @ 140, point_count @ 144, valid_point_count @ 148, depth_grid @ 152,
         depth_span @ 156);
-    assert_layout!(ConditionHandle, size 120, align 8,
+    assert_layout!(ConditionHandle, size 136, align 8,
         header @ 0, condition_id @ 80, image_tokens @ 88, point_tokens @ 92,
-        active_image_tokens @ 96, model_width @ 100, centroid @ 104, point_scale @ 116);
+        active_image_tokens @ 96, model_width @ 100, centroid @ 104, point_scale @ 116, category @ 120);
     assert_layout!(VelocitySegment, size 16, align 8, condition_id @ 0, sample_count @ 8, t @ 12);
     assert_layout!(VelocityRequest, size 360, align 8,
         header @ 0, request_id @ 80, segment_count @ 88, sample_count @ 92, step_index @ 96,
         step_count @ 100, segments @ 104);
     assert_layout!(VelocityResponse, size 96, align 8,
         header @ 0, request_id @ 80, sample_count @ 88, status @ 92);
-    assert_layout!(HypothesesHeader, size 88, align 8, header @ 0, sample_count @ 80, step_count @ 84);
-    assert_layout!(EstimateHeader, size 344, align 8,
+    assert_layout!(ObjectCategory, size 16, align 4, code @ 0, size @ 4);
+    assert_layout!(HypothesesHeader, size 104, align 8, header @ 0, sample_count @ 80, step_count @ 84, category @ 88);
+    assert_layout!(EstimateHeader, size 360, align 8,
         header @ 0, best @ 80, mean @ 128, covariance @ 176, rotation_trace @ 320,
-        selection @ 324, mode_count @ 328, hypothesis_count @ 332, kept_count @ 336, refined @ 340);
+        selection @ 324, mode_count @ 328, hypothesis_count @ 332, kept_count @ 336, refined @ 340, category @ 344);
     assert_layout!(GraspsHeader, size 88, align 8, header @ 0, grasp_count @ 80, hypothesis_count @ 84);
     assert_layout!(Heartbeat, size 136, align 8,
         header @ 0, pid @ 80, state @ 84, frames_in @ 88, frames_out @ 96, dropped @ 104,

@@ -13,11 +13,11 @@ fn type_name<T: ZeroCopySend>() -> &'static str {
 fn type_names_are_stable_and_versioned() {
     assert_eq!(type_name::<Header>(), "poseflow/Header/v1");
     assert_eq!(type_name::<ObservationHeader>(), "poseflow/Observation/v2");
-    assert_eq!(type_name::<ConditionHandle>(), "poseflow/Condition/v1");
+    assert_eq!(type_name::<ConditionHandle>(), "poseflow/Condition/v2");
     assert_eq!(type_name::<VelocityRequest>(), "poseflow/VelocityRequest/v2");
     assert_eq!(type_name::<VelocityResponse>(), "poseflow/VelocityResponse/v1");
-    assert_eq!(type_name::<HypothesesHeader>(), "poseflow/Hypotheses/v1");
-    assert_eq!(type_name::<EstimateHeader>(), "poseflow/Estimate/v2");
+    assert_eq!(type_name::<HypothesesHeader>(), "poseflow/Hypotheses/v2");
+    assert_eq!(type_name::<EstimateHeader>(), "poseflow/Estimate/v3");
     assert_eq!(type_name::<GraspsHeader>(), "poseflow/Grasps/v1");
     assert_eq!(type_name::<NextViewHeader>(), "poseflow/NextView/v1");
     assert_eq!(type_name::<Heartbeat>(), "poseflow/Heartbeat/v1");
@@ -153,6 +153,25 @@ fn estimate_sections_and_selection_codes() {
 }
 
 #[test]
+fn a_category_needs_finite_positive_extents() {
+    let mug = ObjectCategory { code: 6, size: [0.12, 0.1, 0.09] };
+    let estimate = EstimateHeader { kept_count: 1, hypothesis_count: 1, category: mug, ..Default::default() };
+    assert!(estimate.payload_len().is_ok());
+    for size in [[0.0, 0.1, 0.1], [f32::NAN, 0.1, 0.1], [0.1, -0.1, 0.1], [0.1, 0.1, f32::INFINITY]] {
+        let bad = EstimateHeader { category: ObjectCategory { size, ..mug }, ..estimate };
+        let error = bad.payload_len().unwrap_err().to_string();
+        assert!(error.contains("Estimate") && error.contains("category.size"), "{error}");
+        let hypotheses =
+            HypothesesHeader { sample_count: 1, category: ObjectCategory { size, ..mug }, ..Default::default() };
+        assert!(hypotheses.payload_len().is_err());
+        let condition = ConditionHandle { category: ObjectCategory { size, ..mug }, ..Default::default() };
+        assert!(condition.payload_len().is_err());
+    }
+    // An instance-level model leaves it all zero.
+    assert!(ConditionHandle::default().payload_len().is_ok());
+}
+
+#[test]
 fn grasps_next_view_hypotheses_and_condition_lengths() {
     let grasps = GraspsHeader { grasp_count: 4, hypothesis_count: 10, ..Default::default() };
     assert_eq!(grasps.payload_len().unwrap(), 4 * GRASP_LEN);
@@ -226,7 +245,7 @@ fn message_names_resolve_to_their_header_types() {
         }
     }
     assert_eq!(visit_message("Observation", Size), Some(160));
-    assert_eq!(visit_message("Estimate", Size), Some(344));
+    assert_eq!(visit_message("Estimate", Size), Some(360));
     assert_eq!(visit_message("Tensor", Size), Some(104));
     assert_eq!(visit_message("Pose", Size), None);
 }

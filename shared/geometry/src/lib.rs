@@ -16,6 +16,7 @@
 //! - **Randomness** is always seeded ([`sampling::seeded_rng`]) so every draw
 //!   is reproducible.
 
+pub mod category;
 pub mod distance;
 pub mod eigen;
 mod error;

@@ -2,11 +2,11 @@
 //! they were received, so a stage can be developed and benchmarked against
 //! a real stream without the stages upstream of it.
 //!
-//! # File format (version 2)
+//! # File format (version 3)
 //!
 //! ```text
 //! "POSEFLOW-REC"  12 bytes magic
-//! version         u32 little-endian (2: Observation/v2 headers)
+//! version         u32 little-endian (3: Condition/v2, Hypotheses/v2, Estimate/v3 headers)
 //! frames          each: u64 little-endian length, then that many bytes of
 //!                 bincode 2 (standard config, serde): first a
 //!                 RecordingInfo, then one RecordedMessage per message
@@ -24,7 +24,7 @@ pub use poseflow_contracts::{header_bytes, header_from_bytes};
 use serde::{Deserialize, Serialize};
 
 pub const MAGIC: &[u8; 12] = b"POSEFLOW-REC";
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 /// A frame larger than this is a corrupt file, not a message.
 const MAX_FRAME_BYTES: u64 = 1 << 30;
 
@@ -172,7 +172,8 @@ mod tests {
             instance: "i".into(),
             edges: vec![RecordedEdge { edge: "e".into(), message: "Hypotheses".into() }],
         };
-        let header = HypothesesHeader { header: Header::new(42, 7), sample_count: 1, step_count: 5 };
+        let header =
+            HypothesesHeader { header: Header::new(42, 7), sample_count: 1, step_count: 5, ..Default::default() };
         let message = RecordedMessage {
             edge: "e".into(),
             received_ns: 123,

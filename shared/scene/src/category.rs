@@ -14,6 +14,8 @@
 //! sit inside the wall. Parameter ranges are in [`ShapeParams::sample`]
 //! and on docs/categories.md.
 
+use std::collections::BTreeMap;
+
 use nalgebra::{Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
@@ -45,6 +47,23 @@ impl Category {
             Category::Bottle => "bottle",
             Category::Can => "can",
         }
+    }
+
+    /// REAL275's (NOCS) class id: the code a category-level model and its
+    /// messages know the category by.
+    pub fn code(self) -> u32 {
+        match self {
+            Category::Bottle => 1,
+            Category::Bowl => 2,
+            Category::Can => 4,
+            Category::Mug => 6,
+        }
+    }
+
+    /// The category of a REAL275 class id; None for one without a
+    /// generator (3 camera, 5 laptop) or none at all.
+    pub fn from_code(code: u32) -> Option<Self> {
+        Category::ALL.into_iter().find(|c| c.code() == code)
     }
 
     /// Whether every turn about the y axis leaves the shape (and its
@@ -111,53 +130,65 @@ impl ShapeParams {
     /// 8–12 cm tall and 7–11.5 cm across, bowls 12–20 cm across, bottles
     /// 15–30 cm tall, cans 6–11 cm across and 1.2–3 radii tall.
     pub fn sample<R: Rng + ?Sized>(category: Category, rng: &mut R) -> Self {
+        Self::drawn(category, &mut |range| rng.random_range(range))
+    }
+
+    /// The category's mean shape: every parameter at the middle of its
+    /// range (the template selection scores against, scaled to a size).
+    pub fn mean(category: Category) -> Self {
+        Self::drawn(category, &mut |range| 0.5 * (range.start + range.end))
+    }
+
+    /// The parameters with each value taken by `draw` from its range, in a
+    /// fixed order (so a seed keeps giving the same shape).
+    fn drawn(category: Category, draw: &mut dyn FnMut(std::ops::Range<f32>) -> f32) -> Self {
         match category {
             Category::Mug => {
-                let height = rng.random_range(0.08..0.12);
-                let bottom_radius = rng.random_range(0.035..0.05);
-                let top_radius = bottom_radius * rng.random_range(0.9..1.15);
-                let span = height * rng.random_range(0.45..0.75);
-                let middle = height * rng.random_range(0.45..0.55);
+                let height = draw(0.08..0.12);
+                let bottom_radius = draw(0.035..0.05);
+                let top_radius = bottom_radius * draw(0.9..1.15);
+                let span = height * draw(0.45..0.75);
+                let middle = height * draw(0.45..0.55);
                 ShapeParams::Mug {
                     height,
                     bottom_radius,
                     top_radius,
-                    wall: rng.random_range(0.003..0.006),
-                    base: rng.random_range(0.005..0.01),
-                    handle_radius: rng.random_range(0.004..0.007),
-                    handle_reach: rng.random_range(0.02..0.035),
+                    wall: draw(0.003..0.006),
+                    base: draw(0.005..0.01),
+                    handle_radius: draw(0.004..0.007),
+                    handle_reach: draw(0.02..0.035),
                     handle_top: (middle + span / 2.0).min(height - 0.01),
                     handle_bottom: (middle - span / 2.0).max(0.01),
                 }
             }
             Category::Bowl => {
-                let rim_radius = rng.random_range(0.06..0.1);
+                let rim_radius = draw(0.06..0.1);
                 ShapeParams::Bowl {
-                    height: rim_radius * rng.random_range(0.5..0.9),
+                    height: rim_radius * draw(0.5..0.9),
                     rim_radius,
-                    foot_radius: rim_radius * rng.random_range(0.35..0.6),
-                    bulge: rng.random_range(1.5..3.0),
-                    wall: rng.random_range(0.003..0.006),
+                    foot_radius: rim_radius * draw(0.35..0.6),
+                    bulge: draw(1.5..3.0),
+                    wall: draw(0.003..0.006),
                 }
             }
             Category::Bottle => {
-                let height = rng.random_range(0.15..0.3);
-                let body_radius = rng.random_range(0.025..0.045);
+                let height = draw(0.15..0.3);
+                let body_radius = draw(0.025..0.045);
                 ShapeParams::Bottle {
                     height,
                     body_radius,
-                    shoulder: height * rng.random_range(0.55..0.75),
-                    neck_radius: body_radius * rng.random_range(0.3..0.45),
-                    neck_length: height * rng.random_range(0.1..0.2),
+                    shoulder: height * draw(0.55..0.75),
+                    neck_radius: body_radius * draw(0.3..0.45),
+                    neck_length: height * draw(0.1..0.2),
                 }
             }
             Category::Can => {
-                let radius = rng.random_range(0.03..0.055);
+                let radius = draw(0.03..0.055);
                 ShapeParams::Can {
-                    height: radius * rng.random_range(1.2..3.0),
+                    height: radius * draw(1.2..3.0),
                     radius,
-                    rim_inset: rng.random_range(0.002..0.004),
-                    rim_height: rng.random_range(0.003..0.006),
+                    rim_inset: draw(0.002..0.004),
+                    rim_height: draw(0.003..0.006),
                 }
             }
         }
@@ -263,6 +294,31 @@ pub fn generate(category: Category, seed: u64) -> Generated {
     let params = ShapeParams::sample(category, &mut rng);
     let body_colour: [u8; 3] = std::array::from_fn(|_| rng.random_range(30..230));
     let label_colour: [u8; 3] = std::array::from_fn(|_| rng.random_range(30..230));
+    build(params, body_colour, label_colour)
+}
+
+/// The category's mean shape ([`ShapeParams::mean`]), grey.
+pub fn mean_shape(category: Category) -> Generated {
+    build(ShapeParams::mean(category), [128; 3], [128; 3])
+}
+
+/// The category's mean shape stretched along each canonical axis so that
+/// its bounding box has extents `size` (metres): the template a
+/// category-level estimate is scored against when the instance's own mesh
+/// is unknown.
+pub fn template(category: Category, size: Vector3<f32>) -> ObjectMesh {
+    let mean = mean_shape(category);
+    let stretch = size.component_div(&mean.size);
+    let mut mesh = mean.mesh;
+    for v in &mut mesh.vertices {
+        v.coords.component_mul_assign(&stretch);
+    }
+    mesh.normals = None;
+    mesh
+}
+
+/// The mesh of `params` in the canonical frame, coloured.
+fn build(params: ShapeParams, body_colour: [u8; 3], label_colour: [u8; 3]) -> Generated {
     let mut mesh = revolve(&params.profile(), SEGMENTS);
     let (low, high) = match params {
         // A printed label round the middle of cans and bottles: colour
@@ -436,6 +492,59 @@ pub struct WrittenInstance {
 /// category, seed, size and parameters.
 pub const CATEGORIES_FILE: &str = "categories.json";
 
+/// One object's entry in [`CATEGORIES_FILE`], as the evaluation reads it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CategoryEntry {
+    pub category: Category,
+    /// Bounding-box extents along canonical x, y, z, metres.
+    pub size: Vector3<f64>,
+    /// A mug's handle: the canonical x beyond which a surface point is
+    /// handle, not body (metres); None for the other categories, or a mug
+    /// whose file gives neither its shape parameters nor `handle_beyond_x_mm`.
+    pub handle_beyond_x: Option<f64>,
+}
+
+/// Reads `<models_dir>/categories.json`: per object id its category, size
+/// and, for a mug, where its handle begins. Errors name the file, the
+/// object and the field.
+pub fn read_categories(models_dir: &std::path::Path) -> Result<BTreeMap<u32, CategoryEntry>, crate::SceneError> {
+    let path = models_dir.join(CATEGORIES_FILE);
+    let table: serde_json::Map<String, serde_json::Value> = crate::bop::read_json(&path)?;
+    let bad = |detail: String| crate::SceneError::Invalid(format!("{}: {detail}", path.display()));
+    let mut entries = BTreeMap::new();
+    for (key, entry) in &table {
+        let obj_id: u32 = key.parse().map_err(|_| bad(format!("key {key:?}: expected an object id")))?;
+        let category: Category = entry
+            .get("category")
+            .and_then(|c| c.as_str())
+            .ok_or_else(|| bad(format!("object {obj_id}: no \"category\"")))?
+            .parse()
+            .map_err(|e: String| bad(format!("object {obj_id}: category {e}")))?;
+        let size_mm: [f64; 3] = entry
+            .get("size_mm")
+            .and_then(|s| serde_json::from_value(s.clone()).ok())
+            .filter(|s: &[f64; 3]| s.iter().all(|v| v.is_finite() && *v > 0.0))
+            .ok_or_else(|| bad(format!("object {obj_id}: \"size_mm\" must be three extents > 0 (millimetres)")))?;
+        let size = Vector3::from(size_mm) / 1e3;
+        let explicit = entry.get("handle_beyond_x_mm").and_then(|v| v.as_f64()).map(|mm| mm / 1e3);
+        let handle_beyond_x = match category {
+            Category::Mug => explicit.or_else(|| mug_handle_start(entry.get("params_m")?, size.x)),
+            _ => None,
+        };
+        entries.insert(obj_id, CategoryEntry { category, size, handle_beyond_x });
+    }
+    Ok(entries)
+}
+
+/// Where a generated mug's handle begins along canonical x: the body's
+/// axis lies one outer radius in from the box's −x side, and the handle
+/// starts past the body's outer wall on +x (a millimetre of margin).
+fn mug_handle_start(params: &serde_json::Value, size_x: f64) -> Option<f64> {
+    let radius = |key: &str| params.get(key).and_then(|v| v.as_f64());
+    let outer = radius("bottom_radius")?.max(radius("top_radius")?);
+    Some(-size_x / 2.0 + 2.0 * outer + 0.001)
+}
+
 /// Writes `count` instances of each of `categories` into `models_dir` as
 /// BOP models with ids from `first_id` (categories in turn), recording
 /// each in [`CATEGORIES_FILE`]. Other objects of the directory are kept;
@@ -507,6 +616,60 @@ mod tests {
             }
         }
         directed.iter().all(|(&(a, b), &n)| n == 1 && directed.get(&(b, a)) == Some(&1))
+    }
+
+    #[test]
+    fn categories_read_back_with_sizes_and_where_a_mug_handle_begins() {
+        let dir = std::env::temp_dir().join(format!("poseflow-categories-read-{}", std::process::id()));
+        let written = write_instances(&[Category::Mug, Category::Can], 2, 5, 1, &dir).unwrap();
+        let read = read_categories(&dir).unwrap();
+        assert_eq!(read.len(), 4);
+        for w in &written {
+            let entry = &read[&w.obj_id];
+            assert_eq!(entry.category, w.generated.category());
+            assert!((entry.size - w.generated.size.cast::<f64>()).abs().max() < 1e-6);
+            match w.generated.params {
+                ShapeParams::Mug { .. } => {
+                    // The handle reaches past the start, which lies past the body.
+                    let start = entry.handle_beyond_x.unwrap() as f32;
+                    let beyond = w.generated.mesh.vertices.iter().filter(|v| v.x > start).count();
+                    assert!(beyond > 0, "some of the handle");
+                    let (min, _) = w.generated.mesh.bounds();
+                    assert!(start - min.x > 0.07, "past the body: {}", start - min.x);
+                }
+                _ => assert_eq!(entry.handle_beyond_x, None),
+            }
+        }
+        // A bad entry is named.
+        std::fs::write(dir.join(CATEGORIES_FILE), r#"{"3": {"category": "mug", "size_mm": [0, 1, 2]}}"#).unwrap();
+        let error = read_categories(&dir).unwrap_err().to_string();
+        assert!(error.contains("object 3") && error.contains("size_mm"), "{error}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn codes_are_real275_class_ids() {
+        let codes: Vec<(u32, &str)> = Category::ALL.iter().map(|c| (c.code(), c.name())).collect();
+        assert_eq!(codes, [(6, "mug"), (2, "bowl"), (1, "bottle"), (4, "can")]);
+        for category in Category::ALL {
+            assert_eq!(Category::from_code(category.code()), Some(category));
+        }
+        assert_eq!(Category::from_code(3), None);
+        assert_eq!(Category::from_code(0), None);
+    }
+
+    #[test]
+    fn a_template_has_the_asked_extents_and_stays_centred() {
+        for category in Category::ALL {
+            let size = Vector3::new(0.07, 0.21, 0.05);
+            let mesh = template(category, size);
+            let (min, max) = mesh.bounds();
+            assert!((max - min - size).abs().max() < 1e-6, "{category:?}: {:?}", max - min);
+            assert!((max.coords + min.coords).abs().max() < 1e-6, "{category:?}");
+        }
+        // The mean shape's parameters are each range's midpoint.
+        let ShapeParams::Can { radius, height, .. } = ShapeParams::mean(Category::Can) else { panic!("a can") };
+        assert!((radius - 0.0425).abs() < 1e-6 && (height - 0.0425 * 2.1).abs() < 1e-6);
     }
 
     #[test]

@@ -21,7 +21,12 @@ fn spawn_sender(
         let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
         let ready = wait(&publisher);
         for frame in 0..count {
-            let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 };
+            let header = HypothesesHeader {
+                header: Header::new(frame, 1),
+                sample_count: 1,
+                step_count: 1,
+                ..Default::default()
+            };
             publisher.publish(header, POSE_LEN, |p| p.fill(frame as f32)).unwrap();
         }
         publisher.end_of_stream(Duration::from_secs(10)).unwrap();
@@ -84,7 +89,12 @@ fn a_blocked_publish_keeps_serving_until_the_queue_drains() {
             let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
             assert_eq!(publisher.wait_for_receivers(1, Duration::from_secs(10)).unwrap(), 1);
             for frame in 0..3u64 {
-                let header = HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 };
+                let header = HypothesesHeader {
+                    header: Header::new(frame, 1),
+                    sample_count: 1,
+                    step_count: 1,
+                    ..Default::default()
+                };
                 let mut meanwhile = || {
                     served.fetch_add(1, Ordering::SeqCst);
                 };

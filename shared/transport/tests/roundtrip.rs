@@ -21,7 +21,12 @@ fn samples_and_end_of_stream_cross_shared_memory() {
             let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
             publisher.wait_for_receivers(1, std::time::Duration::from_secs(10)).unwrap();
             for frame in 0..10u64 {
-                let header = HypothesesHeader { header: Header::new(frame, 3), sample_count: 2, step_count: 5 };
+                let header = HypothesesHeader {
+                    header: Header::new(frame, 3),
+                    sample_count: 2,
+                    step_count: 5,
+                    ..Default::default()
+                };
                 publisher
                     .publish(header, 2 * POSE_LEN, |p| {
                         p.iter_mut().enumerate().for_each(|(i, v)| *v = (frame * 100 + i as u64) as f32)
@@ -67,7 +72,7 @@ fn publish_rejects_a_payload_that_disagrees_with_its_header() {
     let name = edge_service_name(&format!("test-reject-{}", std::process::id()), "poses").unwrap();
     let node = create_node("reject").unwrap();
     let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &EdgeOptions::default()).unwrap();
-    let header = HypothesesHeader { header: Header::new(0, 1), sample_count: 2, step_count: 1 };
+    let header = HypothesesHeader { header: Header::new(0, 1), sample_count: 2, step_count: 1, ..Default::default() };
     let err = publisher.publish(header, 23, |_| {}).unwrap_err().to_string();
     assert!(err.contains("Hypotheses") && err.contains("24"), "{err}");
 }

@@ -27,7 +27,8 @@ fn an_untyped_publisher_and_subscriber_carry_messages_byte_for_byte() {
     assert_eq!(typed_out.wait_for_receivers(1, Duration::from_secs(5)).unwrap(), 1);
     assert_eq!(untyped_out.wait_for_all_receivers(1, Duration::from_secs(5)).unwrap(), 1);
 
-    let mut header = HypothesesHeader { header: Header::new(7, 3), sample_count: 2, step_count: 5 };
+    let mut header =
+        HypothesesHeader { header: Header::new(7, 3), sample_count: 2, step_count: 5, ..Default::default() };
     header.header.flags = 0b10;
     let payload: Vec<f32> = (0..2 * POSE_LEN).map(|i| f32::from_bits(0x3f80_0000 + i as u32)).collect();
     typed_out.publish(header, payload.len(), |out| out.copy_from_slice(&payload)).unwrap();

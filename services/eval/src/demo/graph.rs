@@ -38,6 +38,10 @@ pub struct Overrides<'a> {
     /// The objects the detector stages report (those the selector has
     /// models of), when set.
     pub detector_objects: Option<Vec<u32>>,
+    /// A category-level run: the inference stage's `classes` file (each
+    /// object id's category); the selector then scores against category
+    /// templates instead of `object_models`.
+    pub classes: Option<&'a Path>,
 }
 
 fn absolute(path: &Path) -> anyhow::Result<String> {
@@ -99,7 +103,12 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
                 graph.set(stage, &[], params)?;
             }
             "ingest" if !overrides.rgb => graph.set(stage, &["rgb"], false.into())?,
-            "inference" => graph.set(stage, &["model"], absolute(overrides.model)?.into())?,
+            "inference" => {
+                graph.set(stage, &["model"], absolute(overrides.model)?.into())?;
+                if let Some(classes) = overrides.classes {
+                    graph.set(stage, &["classes"], absolute(classes)?.into())?;
+                }
+            }
             "sampler" => {
                 graph.set(stage, &["samples"], overrides.samples.into())?;
                 graph.set(stage, &["steps"], overrides.steps.into())?;
@@ -109,7 +118,10 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
             }
             "selector" => {
                 graph.set(stage, &["method"], overrides.selection.into())?;
-                graph.set(stage, &["models"], absolute(overrides.object_models)?.into())?;
+                match overrides.classes {
+                    Some(_) => graph.set(stage, &["category_templates"], true.into())?,
+                    None => graph.set(stage, &["models"], absolute(overrides.object_models)?.into())?,
+                }
                 graph.set(stage, &["refine"], overrides.refine.into())?;
             }
             _ => {}

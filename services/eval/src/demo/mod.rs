@@ -346,6 +346,7 @@ fn render_and_run(
         detector_model: None,
         detector_mode: Some(args.detector_mode),
         detector_objects: Some(library.objects.iter().map(|o| o.obj_id).collect()),
+        classes: None,
     };
     let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
     let graph = args.out.join(name);

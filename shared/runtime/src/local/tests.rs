@@ -18,7 +18,7 @@ impl From<EmitError> for TestError {
 }
 
 fn hypotheses(frame: u64) -> HypothesesHeader {
-    HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1 }
+    HypothesesHeader { header: Header::new(frame, 1), sample_count: 1, step_count: 1, ..Default::default() }
 }
 
 /// Frames 0..n, one pose each, every value the frame number.
