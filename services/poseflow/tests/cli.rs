@@ -910,3 +910,60 @@ fn import_model_finds_the_bowls_symmetry_and_not_the_mugs() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && stderr.contains("0.7") && stderr.contains("(0, 0.5)"), "{stderr}");
 }
+
+/// `poseflow eval --category` end to end, small: generated instances of the
+/// four categories rendered standing, the category-level graph as
+/// processes with `models/test-tiny-cat` (an untrained contract fixture, so
+/// only the plumbing is checked: every instance estimated with a size, and
+/// scored per category; the figures themselves come from the metric's
+/// closed-form tests in `poseflow_geometry::category`).
+#[test]
+fn eval_category_scores_generated_instances_per_category() {
+    let dir = scratch("eval-category");
+    let data = dir.join("data");
+    let models = data.join("models");
+    let generate = ["generate-objects", "--models", models.to_str().unwrap(), "--count", "1", "--seed", "4"];
+    assert!(poseflow(&generate).status.success());
+    let render = ["render", "--models", models.to_str().unwrap(), "--out", data.to_str().unwrap(), "--split", "test"];
+    let look = ["--scenes", "1", "--frames-per-scene", "2", "--width", "320", "--height", "240", "--seed", "6"];
+    let rendered = poseflow(&[&render[..], &look[..], &["--upright", "--occlusion", "low"]].concat());
+    assert!(rendered.status.success(), "{}", String::from_utf8_lossy(&rendered.stderr));
+    let out_dir = dir.join("eval");
+    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(["--log-format", "json", "eval", "--json", "--category", "--samples", "8", "--steps", "2"])
+        .args(["--model", "models/test-tiny-cat", "--dataset", data.to_str().unwrap()])
+        .args(["--out", out_dir.to_str().unwrap()])
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join("../.."))
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let category = &summary["category"];
+    let per_category = category["per_category"].as_object().unwrap();
+    assert!(per_category.len() >= 3, "{category}");
+    for (name, row) in per_category {
+        assert!(["mug", "bowl", "bottle", "can"].contains(&name.as_str()), "{name}");
+        assert!(row["instances"].as_u64().unwrap() > 0);
+        assert_eq!(row["estimated"], row["instances"], "every instance estimated with a size: {row}");
+        for value in row["accuracy"].as_array().unwrap().iter().chain(row["iou"].as_array().unwrap()) {
+            assert!((0.0..=100.0).contains(&value.as_f64().unwrap()), "{row}");
+        }
+        assert!(row["median_size_error"].as_f64().unwrap().is_finite(), "{row}");
+    }
+    assert_eq!(category["mean"]["instances"], summary["instances"], "{summary}");
+    let csv = std::fs::read_to_string(out_dir.join("category.csv")).unwrap();
+    assert_eq!(csv.lines().count() as u64, 1 + summary["instances"].as_u64().unwrap(), "{csv}");
+    assert!(csv.lines().skip(1).all(|line| line.split(',').count() == 10 && !line.ends_with(",,,")), "{csv}");
+
+    // Without categories.json the run stops and names the file.
+    std::fs::remove_file(models.join("categories.json")).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(["eval", "--category", "--model", "models/test-tiny-cat", "--dataset", data.to_str().unwrap()])
+        .args(["--out", out_dir.to_str().unwrap()])
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join("../.."))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("categories.json"), "{stderr}");
+}
