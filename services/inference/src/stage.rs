@@ -278,11 +278,11 @@ impl InferenceStage {
             }
         }
         let object = header.header.object_id;
-        let key = match (&self.classes, &info.categories) {
-            (Some(classes), _) => *classes.get(&object).ok_or_else(|| {
+        let key = match &self.classes {
+            Some(classes) => *classes.get(&object).ok_or_else(|| {
                 bad(format!("object {object} has no category in the inference stage's `classes` file"))
             })?,
-            _ => object,
+            None => object,
         };
         let object_index = self.model.object_index(key).ok_or_else(|| match &info.categories {
             Some(head) => bad(format!(
