@@ -56,7 +56,7 @@ fn parse_colour(text: &str) -> Result<[u8; 3], String> {
     three(text, "three integers 0-255 separated by commas, e.g. 200,30,30")
 }
 
-fn parse_axis(text: &str) -> Result<Vector3<f64>, String> {
+pub(crate) fn parse_axis(text: &str) -> Result<Vector3<f64>, String> {
     three::<f64>(text, "three numbers separated by commas, e.g. 0,0,1").map(Vector3::from)
 }
 

@@ -3,6 +3,7 @@
 //! objects), `grasp-data` (the grasp flow's training data), `preview` and
 //! `observe` (training shards).
 
+pub mod annotate_category;
 pub mod generate_objects;
 pub mod grasp_data;
 pub mod import_model;

@@ -118,9 +118,42 @@ fn handle_visible(
     Ok(seen as f64 >= HANDLE_VISIBLE_PIXELS_AT_640X480 * area)
 }
 
+/// The estimates of annotated objects taken from their category's frame,
+/// where the model estimates, to the objects' model frames, where the
+/// dataset's poses, the BOP results file and the instance-level metrics
+/// are.
+pub fn to_model_frames(estimates: &mut [Estimated], categories: &BTreeMap<u32, CategoryEntry>) {
+    for estimate in estimates {
+        if let Some(entry) = categories.get(&estimate.obj_id) {
+            let to_model = |pose: &Pose| *pose * entry.canonical_from_model;
+            estimate.selected = to_model(&estimate.selected);
+            estimate.hypotheses = estimate.hypotheses.iter().map(to_model).collect();
+        }
+    }
+}
+
+/// A BOP targets list (`test_targets_bop19.json` format) of the annotated
+/// instances of `images` whose object has a category: what a category run
+/// estimates, so that objects without one (a sugar box beside the cans of
+/// a real frame) are not sent to a model that cannot place them.
+pub fn targets(images: &[TruthImage], categories: &BTreeMap<u32, CategoryEntry>) -> Vec<serde_json::Value> {
+    let mut counts: BTreeMap<(u32, u32, u32), u32> = BTreeMap::new();
+    for image in images {
+        for instance in image.instances.iter().filter(|i| categories.contains_key(&i.obj_id)) {
+            *counts.entry((image.scene_id, image.im_id, instance.obj_id)).or_default() += 1;
+        }
+    }
+    counts
+        .into_iter()
+        .map(|((scene_id, im_id, obj_id), inst_count)| {
+            serde_json::json!({ "scene_id": scene_id, "im_id": im_id, "obj_id": obj_id, "inst_count": inst_count })
+        })
+        .collect()
+}
+
 /// Scores every scored ground-truth instance of `images` whose object has
 /// an entry in `categories` against its estimate (matched by image and
-/// object id).
+/// object id; both poses of the model frame, compared in the category's).
 pub fn score(
     split_dir: &Path,
     images: &[TruthImage],
@@ -133,20 +166,23 @@ pub fn score(
     for image in images {
         for instance in image.instances.iter().filter(|i| i.scored) {
             let Some(entry) = categories.get(&instance.obj_id) else { continue };
+            // The truth in the category's frame, where the model estimates.
+            let truth = instance.pose * entry.canonical_from_model.inverse();
             let handle_visible = match (entry.category, entry.handle_beyond_x) {
                 (Category::Mug, Some(beyond_x)) => {
-                    Some(handle_visible(split_dir, image, instance.gt_index, &instance.pose, beyond_x)?)
+                    Some(handle_visible(split_dir, image, instance.gt_index, &truth, beyond_x)?)
                 }
                 _ => None,
             };
             let axis_ignored = entry.category.symmetric_about_y() || handle_visible == Some(false);
-            let truth_box = PlacedBox { pose: instance.pose, size: entry.size };
+            let truth_box = PlacedBox { pose: truth, size: entry.size };
             let errors = by_instance.get(&(image.scene_id, image.im_id, instance.obj_id)).and_then(|estimate| {
                 let size = Vector3::from(estimate.category?.size.map(f64::from));
-                let estimated_box = PlacedBox { pose: estimate.selected, size };
+                let estimated = estimate.selected * entry.canonical_from_model.inverse();
+                let estimated_box = PlacedBox { pose: estimated, size };
                 Some(CategoryErrors {
-                    rotation_deg: rotation_error_deg(&estimate.selected, &instance.pose, axis_ignored),
-                    translation_cm: translation_error_cm(&estimate.selected, &instance.pose),
+                    rotation_deg: rotation_error_deg(&estimated, &truth, axis_ignored),
+                    translation_cm: translation_error_cm(&estimated, &truth),
                     iou: category_iou(&estimated_box, &truth_box, axis_ignored),
                     size_error: (0..3).map(|i| (size[i] - entry.size[i]).abs() / entry.size[i]).sum::<f64>() / 3.0,
                 })
@@ -318,6 +354,81 @@ mod tests {
         let turned = Pose::new(Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::PI), pose.translation);
         assert_eq!(handle_pixels(&mask, &depth, &camera, &turned, 0.0), 2);
         assert_eq!(handle_pixels(&mask, &depth, &camera, &turned, 0.02), 1);
+    }
+
+    #[test]
+    fn a_scan_is_scored_in_its_category_frame_and_reported_in_its_model_frame() {
+        // A can whose model frame stands it on z (a YCB can): canonical y
+        // is model z, and the canonical origin sits 1 cm up the axis.
+        let canonical_from_model = Pose::new(
+            Rotation3::from_axis_angle(&Vector3::x_axis(), -std::f64::consts::FRAC_PI_2),
+            Vector3::new(0.0, -0.01, 0.0),
+        );
+        let entry = CategoryEntry {
+            category: Category::Can,
+            size: Vector3::new(0.07, 0.1, 0.07),
+            handle_beyond_x: None,
+            canonical_from_model,
+        };
+        let categories = BTreeMap::from([(5, entry)]);
+        let truth = Pose::new(Rotation3::from_euler_angles(0.3, -0.2, 1.0), Vector3::new(0.05, 0.0, 0.7));
+        let image = image_of(&[(5, truth)]);
+        // The model's estimate, in the canonical frame: the truth turned
+        // 50° about the can's axis (not scored) and 3° across it.
+        let canonical_truth = truth * canonical_from_model.inverse();
+        let turn = Rotation3::from_axis_angle(&Vector3::y_axis(), 50f64.to_radians())
+            * Rotation3::from_axis_angle(&Vector3::x_axis(), 3f64.to_radians());
+        let estimate = Pose::new(canonical_truth.rotation * turn, canonical_truth.translation);
+        let mut estimates = vec![Estimated {
+            scene_id: 0,
+            im_id: 0,
+            obj_id: 5,
+            selected: estimate,
+            score: 1.0,
+            hypotheses: vec![estimate],
+            kept: 1,
+            rotation_trace: None,
+            service_time: None,
+            latency: None,
+            flags: 0,
+            category: Some(poseflow_contracts::ObjectCategory { code: Category::Can.code(), size: [0.07, 0.1, 0.07] }),
+        }];
+        to_model_frames(&mut estimates, &categories);
+        // Reported in the model frame: the canonical estimate carried back.
+        let carried = estimates[0].selected * canonical_from_model.inverse();
+        assert!((carried.to_homogeneous() - estimate.to_homogeneous()).abs().max() < 1e-12);
+        assert!((estimates[0].selected.translation - truth.translation).norm() < 0.011);
+        let outcome = &score(Path::new("unused"), &[image], &estimates, &categories).unwrap()[0];
+        let errors = outcome.errors.as_ref().unwrap();
+        assert!(outcome.axis_ignored);
+        assert!((errors.rotation_deg - 3.0).abs() < 1e-6, "{errors:?}");
+        assert!(errors.translation_cm < 1e-9 && errors.size_error < 1e-6, "{errors:?}");
+        // Only the objects with a category are targets.
+        let targets = targets(&[image_of(&[(5, truth), (3, truth), (5, truth)])], &categories);
+        assert_eq!(targets, [serde_json::json!({"scene_id": 0, "im_id": 0, "obj_id": 5, "inst_count": 2})]);
+    }
+
+    fn image_of(instances: &[(u32, Pose)]) -> TruthImage {
+        TruthImage {
+            scene_id: 0,
+            im_id: 0,
+            camera: crate::score::ImageCamera {
+                pinhole: Pinhole { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 },
+                width: 640,
+            },
+            depth: None,
+            instances: instances
+                .iter()
+                .enumerate()
+                .map(|(gt_index, &(obj_id, pose))| crate::dataset::TruthInstance {
+                    obj_id,
+                    gt_index,
+                    pose,
+                    scored: true,
+                    visib_fract: None,
+                })
+                .collect(),
+        }
     }
 
     fn outcome(category: &'static str, rotation_deg: f64, translation_cm: f64, iou: f64) -> CategoryOutcome {

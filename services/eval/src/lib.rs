@@ -564,7 +564,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     check(args)?;
     let frames = BopFrames::open(&args.dataset, &args.split, &[], args.targets.as_deref(), Masks::GroundTruth)
         .with_context(|| format!("--dataset {} --split {}", args.dataset.display(), args.split))?;
-    let images = read_truth(&args.dataset.join(&args.split), &frames)?;
+    let mut images = read_truth(&args.dataset.join(&args.split), &frames)?;
     let objects_dir = args.objects.clone().unwrap_or_else(|| args.dataset.join("models"));
     let library = ModelLibrary::load(&objects_dir, &[])
         .with_context(|| format!("--objects {}: cannot load the object models", objects_dir.display()))?;
@@ -580,6 +580,29 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         check_model_objects(&args.model, &library)?;
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
+    let with_category_targets;
+    let args = match &categories {
+        Some(categories) => {
+            let targets = category::targets(&images, categories);
+            if targets.is_empty() {
+                bail!(
+                    "--category: no annotated instance of --dataset {} is an object of {} (objects {:?}; \
+                     `poseflow annotate-category` adds one)",
+                    args.dataset.display(),
+                    objects_dir.join(poseflow_scene::category::CATEGORIES_FILE).display(),
+                    categories.keys().collect::<Vec<_>>()
+                );
+            }
+            for image in &mut images {
+                image.instances.retain(|i| categories.contains_key(&i.obj_id));
+            }
+            let path = args.out.join("category_targets.json");
+            poseflow_scene::bop::write_json(&path, &targets)?;
+            with_category_targets = EvalArgs { targets: Some(path), ..args.clone() };
+            &with_category_targets
+        }
+        None => args,
+    };
     let graph = (args.results.is_none() || args.detect)
         .then(|| eval_graph(args, &objects_dir, objects.keys().copied().collect()))
         .transpose()?;
@@ -588,11 +611,15 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         _ => None,
     };
 
-    let (estimates, csv, method) = match (&args.results, &graph) {
+    let (mut estimates, csv, method) = match (&args.results, &graph) {
         (Some(results), _) => (read_results(results)?, results.clone(), Method::Results { results: results.clone() }),
         (None, Some(graph)) => run_graph_on(args, &images, graph)?,
         (None, None) => unreachable!("the graph is built unless --results"),
     };
+    if let (Some(categories), None) = (&categories, &args.results) {
+        category::to_model_frames(&mut estimates, categories);
+        std::fs::write(&csv, to_csv(&bop_rows(&estimates))).with_context(|| format!("{}", csv.display()))?;
+    }
     let stages = args.results.is_none().then(|| stage_counts(&args.out.join("run.json"))).transpose()?;
     let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
     let (outcomes, unmatched_estimates) = evaluate(&images, &estimates, &objects, every_hypothesis)?;

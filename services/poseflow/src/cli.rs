@@ -37,6 +37,9 @@ pub enum Command {
     ImportModel(poseflow_datasets::import_model::ImportModelArgs),
     /// Generate procedural mugs, bowls, bottles and cans (category-level objects) into a BOP models directory.
     GenerateObjects(poseflow_datasets::generate_objects::GenerateObjectsArgs),
+    /// Record a model's category and canonical frame (categories.json), for category-level eval of meshes not
+    /// made in that frame.
+    AnnotateCategory(poseflow_datasets::annotate_category::AnnotateCategoryArgs),
     /// Sample antipodal, collision-free grasps on object models (the grasp flow's training data).
     GraspData(poseflow_datasets::grasp_data::GraspDataArgs),
     /// Write one dataset image's RGB, depth and visible masks side by side as a PNG.
@@ -67,6 +70,7 @@ pub fn run(command: Command, log_format: LogFormat) -> ExitCode {
         Command::Render(args) => done(poseflow_datasets::render::run(&args)),
         Command::ImportModel(args) => done(poseflow_datasets::import_model::run(&args)),
         Command::GenerateObjects(args) => done(poseflow_datasets::generate_objects::run(&args)),
+        Command::AnnotateCategory(args) => done(poseflow_datasets::annotate_category::run(&args)),
         Command::Preview(args) => done(poseflow_datasets::preview::run(&args)),
         Command::GraspData(args) => done(poseflow_datasets::grasp_data::run(&args)),
         Command::Observe(args) => done(poseflow_datasets::observe::run(&args)),

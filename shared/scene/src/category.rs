@@ -16,7 +16,8 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
+use poseflow_geometry::Pose;
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
@@ -502,6 +503,110 @@ pub struct CategoryEntry {
     /// handle, not body (metres); None for the other categories, or a mug
     /// whose file gives neither its shape parameters nor `handle_beyond_x_mm`.
     pub handle_beyond_x: Option<f64>,
+    /// Takes the object's model-frame points to its canonical frame:
+    /// identity for a generated instance, which is made in that frame; a
+    /// scanned mesh (a YCB mug) keeps its own model frame, so that the
+    /// dataset's poses stay valid, and [`annotate`] records this instead.
+    pub canonical_from_model: Pose,
+}
+
+/// Where an object's canonical category frame lies in its model frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CanonicalFrame {
+    /// Model-frame points (metres) to canonical-frame points.
+    pub canonical_from_model: Pose,
+    /// Extents of the canonical bounding box, metres.
+    pub size: Vector3<f64>,
+}
+
+/// The canonical frame of a mesh that was not made in it: canonical y
+/// along `up` (the model-frame direction from the object's base to its
+/// top), canonical x along `front` made perpendicular to `up` (a mug's
+/// handle; any direction across the axis for the other categories, where
+/// the turn about y is not scored), and the canonical box centred on the
+/// origin.
+pub fn canonical_frame(
+    mesh: &ObjectMesh,
+    up: &Vector3<f64>,
+    front: &Vector3<f64>,
+) -> Result<CanonicalFrame, crate::SceneError> {
+    let y = up
+        .try_normalize(1e-9)
+        .ok_or_else(|| crate::SceneError::Invalid(format!("up {up:?}: expected a non-zero direction")))?;
+    let across = front - y * front.dot(&y);
+    // A front within ~6° of the axis leaves its perpendicular part to noise.
+    let x = across.try_normalize(0.1 * front.norm()).ok_or_else(|| {
+        crate::SceneError::Invalid(format!("front {front:?}: expected a direction across up {up:?}, not along it"))
+    })?;
+    let z = x.cross(&y);
+    let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]));
+    let turned: Vec<Vector3<f64>> = mesh.vertices.iter().map(|v| rotation * v.coords.cast::<f64>()).collect();
+    let min = turned.iter().fold(Vector3::repeat(f64::INFINITY), |m, v| m.inf(v));
+    let max = turned.iter().fold(Vector3::repeat(f64::NEG_INFINITY), |m, v| m.sup(v));
+    if turned.is_empty() {
+        return Err(crate::SceneError::Invalid("a mesh without vertices has no canonical frame".into()));
+    }
+    Ok(CanonicalFrame { canonical_from_model: Pose::new(rotation, -(min + max) / 2.0), size: max - min })
+}
+
+/// The model axis most across `up`: a front for the categories whose turn
+/// about their axis is not scored.
+pub fn any_front(up: &Vector3<f64>) -> Vector3<f64> {
+    let axes = [Vector3::x(), Vector3::y(), Vector3::z()];
+    axes.into_iter().min_by(|a, b| a.dot(up).abs().total_cmp(&b.dot(up).abs())).expect("three axes")
+}
+
+/// Records object `obj_id` of `models_dir` as one of `category` in
+/// [`CATEGORIES_FILE`], with its canonical frame and size; other entries
+/// are kept. A mug's handle is taken to begin past its body, whose
+/// diameter is the canonical box's z extent (the handle only widens x).
+pub fn annotate(
+    models_dir: &std::path::Path,
+    obj_id: u32,
+    category: Category,
+    frame: &CanonicalFrame,
+) -> Result<CategoryEntry, crate::SceneError> {
+    let table_path = models_dir.join(CATEGORIES_FILE);
+    let mut table: serde_json::Map<String, serde_json::Value> =
+        if table_path.exists() { crate::bop::read_json(&table_path)? } else { serde_json::Map::new() };
+    let handle_beyond_x = (category == Category::Mug).then(|| -frame.size.x / 2.0 + frame.size.z + 0.001);
+    let rotation = frame.canonical_from_model.rotation.matrix();
+    let mut entry = serde_json::json!({
+        "category": category.name(),
+        "size_mm": (frame.size * 1e3).as_slice(),
+        "canonical_from_model": {
+            "rotation": (0..9).map(|i| rotation[(i / 3, i % 3)]).collect::<Vec<f64>>(),
+            "translation_mm": (frame.canonical_from_model.translation * 1e3).as_slice(),
+        },
+    });
+    if let Some(beyond_x) = handle_beyond_x {
+        entry["handle_beyond_x_mm"] = serde_json::json!(beyond_x * 1e3);
+    }
+    table.insert(obj_id.to_string(), entry);
+    crate::bop::write_json(&table_path, &table)?;
+    Ok(CategoryEntry { category, size: frame.size, handle_beyond_x, canonical_from_model: frame.canonical_from_model })
+}
+
+/// An entry's `canonical_from_model`: `rotation` nine values row-major,
+/// `translation_mm` three; identity when absent.
+fn read_canonical_from_model(entry: &serde_json::Value) -> Result<Pose, String> {
+    let Some(frame) = entry.get("canonical_from_model") else { return Ok(Pose::identity()) };
+    let rotation: [f64; 9] = frame
+        .get("rotation")
+        .and_then(|r| serde_json::from_value(r.clone()).ok())
+        .ok_or("\"canonical_from_model.rotation\" must be nine numbers, row-major")?;
+    let translation: [f64; 3] = frame
+        .get("translation_mm")
+        .and_then(|t| serde_json::from_value(t.clone()).ok())
+        .filter(|t: &[f64; 3]| t.iter().all(|v| v.is_finite()))
+        .ok_or("\"canonical_from_model.translation_mm\" must be three finite numbers (millimetres)")?;
+    let rotation = poseflow_geometry::pose::project_to_rotation(
+        &Matrix3::from_row_slice(&rotation),
+        "canonical_from_model.rotation",
+        1e-6,
+    )
+    .map_err(|e| e.to_string())?;
+    Ok(Pose::new(rotation, Vector3::from(translation) / 1e3))
 }
 
 /// Reads `<models_dir>/categories.json`: per object id its category, size
@@ -531,7 +636,9 @@ pub fn read_categories(models_dir: &std::path::Path) -> Result<BTreeMap<u32, Cat
             Category::Mug => explicit.or_else(|| mug_handle_start(entry.get("params_m")?, size.x)),
             _ => None,
         };
-        entries.insert(obj_id, CategoryEntry { category, size, handle_beyond_x });
+        let canonical_from_model =
+            read_canonical_from_model(entry).map_err(|detail| bad(format!("object {obj_id}: {detail}")))?;
+        entries.insert(obj_id, CategoryEntry { category, size, handle_beyond_x, canonical_from_model });
     }
     Ok(entries)
 }
@@ -763,7 +870,104 @@ mod tests {
         assert!("cup".parse::<Category>().unwrap_err().contains("mug, bowl, bottle, can"));
     }
 
+    /// `mesh` moved into a model frame by `model_from_canonical`.
+    fn moved(mesh: &ObjectMesh, model_from_canonical: &Pose) -> ObjectMesh {
+        let mut moved = mesh.clone();
+        for v in &mut moved.vertices {
+            *v = model_from_canonical.transform_point(&v.cast::<f64>()).cast::<f32>();
+        }
+        moved
+    }
+
+    #[test]
+    fn an_annotated_mug_reads_back_with_its_frame_and_where_its_handle_begins() {
+        // The generated mug as a scan would have it: z up, handle along +x,
+        // its origin off the box centre.
+        let mug = generate(Category::Mug, 3);
+        let model_from_canonical = Pose::new(
+            Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2),
+            Vector3::new(0.004, -0.002, 0.01),
+        );
+        let scan = moved(&mug.mesh, &model_from_canonical);
+        let frame = canonical_frame(&scan, &Vector3::z(), &Vector3::x()).unwrap();
+        let dir = std::env::temp_dir().join(format!("poseflow-annotate-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        annotate(&dir, 7, Category::Mug, &frame).unwrap();
+        let entry = &read_categories(&dir).unwrap()[&7];
+        let back = entry.canonical_from_model * model_from_canonical;
+        assert!((back.rotation.matrix() - Matrix3::identity()).abs().max() < 1e-9, "{back:?}");
+        assert!(back.translation.norm() < 1e-6, "{back:?}");
+        assert!((entry.size - mug.size.cast::<f64>()).abs().max() < 1e-6, "{:?}", entry.size);
+        // The box rule puts the handle's start where the generator's own
+        // parameters do.
+        let from_params = mug_handle_start(&serde_json::to_value(mug.params).unwrap(), entry.size.x).unwrap();
+        assert!((entry.handle_beyond_x.unwrap() - from_params).abs() < 1e-6);
+        // A rotation that is not one is named.
+        std::fs::write(
+            dir.join(CATEGORIES_FILE),
+            r#"{"7": {"category": "can", "size_mm": [1, 2, 3],
+                "canonical_from_model": {"rotation": [1, 0, 0, 0, 2, 0, 0, 0, 1], "translation_mm": [0, 0, 0]}}}"#,
+        )
+        .unwrap();
+        let error = read_categories(&dir).unwrap_err().to_string();
+        assert!(error.contains("object 7") && error.contains("canonical_from_model.rotation"), "{error}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_upright_scene_stands_an_annotated_scan_on_its_base() {
+        let dir = std::env::temp_dir().join(format!("poseflow-annotated-scene-{}", std::process::id()));
+        let model_from_canonical =
+            Pose::new(Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::FRAC_PI_2), Vector3::zeros());
+        let scan = moved(&generate(Category::Bottle, 4).mesh, &model_from_canonical);
+        crate::import::write_model(&scan, 1, Vec::new(), &dir).unwrap();
+        annotate(&dir, 1, Category::Bottle, &canonical_frame(&scan, &Vector3::z(), &Vector3::x()).unwrap()).unwrap();
+        let library = crate::ModelLibrary::load(&dir, &[]).unwrap();
+        let style = crate::scene::SceneStyle { upright: true, ..Default::default() };
+        for seed in 0..5 {
+            let mut rng = poseflow_geometry::sampling::seeded_rng(seed);
+            let scene = crate::scene::compose_styled_scene(&library, crate::scene::Occlusion::Low, &style, &mut rng);
+            let top = scene.objects[0].world_from_object.rotation * (model_from_canonical.rotation * Vector3::y());
+            assert!((top - Vector3::z()).norm() < 1e-9, "the bottle's top points {top:?}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_front_along_up_or_no_up_is_refused() {
+        let can = generate(Category::Can, 1).mesh;
+        let along = canonical_frame(&can, &Vector3::z(), &Vector3::new(0.0, 0.01, 1.0)).unwrap_err().to_string();
+        assert!(along.contains("front") && along.contains("across"), "{along}");
+        let none = canonical_frame(&can, &Vector3::zeros(), &Vector3::x()).unwrap_err().to_string();
+        assert!(none.contains("up"), "{none}");
+        assert_eq!(any_front(&Vector3::new(0.9, 0.1, 0.0)), Vector3::z());
+    }
+
     proptest! {
+        /// Whatever rigid motion took a generated instance into its model
+        /// frame, the canonical frame found from `up` and `front` (the
+        /// moved y and x, with a tilt of front towards up) undoes it.
+        #[test]
+        fn canonical_frame_undoes_any_rigid_motion(
+            seed in 0u64..1_000,
+            which in 0usize..4,
+            axis in proptest::array::uniform3(-1.0f64..1.0),
+            angle in 0.0f64..3.1,
+            shift in proptest::array::uniform3(-0.2f64..0.2),
+            tilt in -0.5f64..0.5,
+        ) {
+            let shape = generate(Category::ALL[which], seed);
+            let axis = nalgebra::Unit::try_new(Vector3::from(axis), 1e-3).unwrap_or(Vector3::z_axis());
+            let motion = Pose::new(Rotation3::from_axis_angle(&axis, angle), Vector3::from(shift));
+            let up = motion.rotation * Vector3::y();
+            let front = motion.rotation * Vector3::x() + up * tilt;
+            let frame = canonical_frame(&moved(&shape.mesh, &motion), &up, &front).unwrap();
+            let back = frame.canonical_from_model * motion;
+            prop_assert!((back.rotation.matrix() - Matrix3::identity()).abs().max() < 1e-9, "{:?}", back);
+            prop_assert!(back.translation.norm() < 1e-5, "{:?}", back);
+            prop_assert!((frame.size - shape.size.cast::<f64>()).abs().max() < 1e-5);
+        }
+
         /// Every instance is closed and wound outwards, centred on its
         /// box, within the documented size ranges, and the same seed gives
         /// the same shape.

@@ -167,15 +167,29 @@ fn add_rgb_noise<R: Rng + ?Sized>(rgb: &mut [[u8; 3]], sigma: f64, rng: &mut R) 
     }
 }
 
+fn same_file(a: &Path, b: &Path) -> bool {
+    a.canonicalize().ok().zip(b.canonicalize().ok()).is_some_and(|(a, b)| a == b)
+}
+
 fn copy_models(library: &ModelLibrary, out: &Path) -> Result<(), SceneError> {
     let models = out.join("models");
     std::fs::create_dir_all(&models).map_err(|source| SceneError::Write { path: models.clone(), source })?;
     let info = library.dir.join("models_info.json");
     let files = library.objects.iter().map(|o| (o.path.clone(), models.join(model_file_name(o.obj_id))));
     for (from, to) in files.chain([(info, models.join("models_info.json"))]) {
-        let same = from.canonicalize().ok().zip(to.canonicalize().ok()).is_some_and(|(a, b)| a == b);
-        if !same {
+        if !same_file(&from, &to) {
             std::fs::copy(&from, &to).map_err(|source| SceneError::Write { path: to.clone(), source })?;
+        }
+    }
+    // The rendered objects' categories and canonical frames go along, for
+    // `poseflow eval --category` on the dataset.
+    let categories = library.dir.join(crate::category::CATEGORIES_FILE);
+    let copied = models.join(crate::category::CATEGORIES_FILE);
+    if categories.is_file() && !same_file(&categories, &copied) {
+        let mut table: serde_json::Map<String, serde_json::Value> = crate::bop::read_json(&categories)?;
+        table.retain(|key, _| library.objects.iter().any(|o| o.obj_id.to_string() == *key));
+        if !table.is_empty() {
+            crate::bop::write_json(&copied, &table)?;
         }
     }
     Ok(())

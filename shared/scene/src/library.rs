@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
+use poseflow_geometry::Pose;
 use poseflow_geometry::models_info::{ModelInfo, ModelsInfo};
 
 use crate::{ObjectMesh, RenderModel, SceneError, load_mesh};
@@ -17,6 +18,10 @@ pub struct LibraryObject {
     pub path: PathBuf,
     pub info: ModelInfo,
     pub model: RenderModel,
+    /// Its category's canonical frame, from the directory's
+    /// `categories.json` (identity without one): how an upright scene
+    /// stands it on its base.
+    pub canonical_from_model: Pose,
 }
 
 /// The objects a dataset is rendered from, in ascending `obj_id`.
@@ -87,6 +92,11 @@ impl ModelLibrary {
                 dir.display()
             )));
         }
+        let categories = if dir.join(crate::category::CATEGORIES_FILE).is_file() {
+            crate::category::read_categories(dir)?
+        } else {
+            Default::default()
+        };
         let mut objects = Vec::with_capacity(wanted.len());
         for obj_id in wanted {
             let info = info.get(obj_id).cloned().ok_or_else(|| {
@@ -99,7 +109,8 @@ impl ModelLibrary {
             let path = dir.join(model_file_name(obj_id));
             let mesh = load_bop_model(&path, info.diameter)?;
             let model = RenderModel::new(mesh).map_err(|source| SceneError::TriMesh { path: path.clone(), source })?;
-            objects.push(LibraryObject { obj_id, path, info, model });
+            let canonical_from_model = categories.get(&obj_id).map_or(Pose::identity(), |c| c.canonical_from_model);
+            objects.push(LibraryObject { obj_id, path, info, model, canonical_from_model });
         }
         objects.sort_by_key(|o| o.obj_id);
         objects.dedup_by_key(|o| o.obj_id);

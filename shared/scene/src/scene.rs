@@ -78,9 +78,10 @@ pub struct SceneStyle {
     /// Up to this many meshes from [`ModelLibrary::distractors`] stand among
     /// the targets, unannotated, as other objects do in a real scene.
     pub distractors: u32,
-    /// Targets stand with their object +y axis up (the canonical frame of
-    /// category objects: mugs, bowls, bottles and cans stand on their base)
-    /// at a uniform yaw, instead of on a random face of their box.
+    /// Targets stand with their canonical +y axis up (the category frame:
+    /// mugs, bowls, bottles and cans stand on their base; the object's own
+    /// +y without a category entry) at a uniform yaw, instead of on a
+    /// random face of their box.
     pub upright: bool,
     /// Each scene holds this many of the library's objects, drawn anew per
     /// scene (0: every object): thousands of generated instances make
@@ -172,7 +173,7 @@ pub fn compose_styled_scene<R: Rng + ?Sized>(
         let object = &library.objects[index];
         let (min, max) = object.model.mesh.bounds();
         let rotation = if style.upright {
-            upright_rotation(rng.random_range(0.0..std::f64::consts::TAU))
+            upright_rotation(rng.random_range(0.0..std::f64::consts::TAU)) * object.canonical_from_model.rotation
         } else {
             resting_rotation(&(max - min), rng)
         };
