@@ -918,6 +918,58 @@ fn import_model_finds_the_bowls_symmetry_and_not_the_mugs() {
 /// scored per category; the figures themselves come from the metric's
 /// closed-form tests in `poseflow_geometry::category`).
 #[test]
+fn annotate_category_then_eval_category_scores_the_real_frames_cans_only() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let dir = scratch("annotate-category");
+    let models = dir.join("models");
+    std::fs::create_dir_all(&models).unwrap();
+    for file in ["models_info.json", "obj_000014.ply"] {
+        std::fs::copy(root.join("objects/ycbv/mug-bowl").join(file), models.join(file)).unwrap();
+    }
+    let annotate = ["annotate-category", "--models", models.to_str().unwrap(), "--obj-id", "14", "--category", "mug"];
+    let out = poseflow(&[&annotate[..], &["--up", "0,0,1"]].concat());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("--front"), "a mug needs its handle's direction: {stderr}");
+    let out = poseflow(&[&annotate[..], &["--up", "0,0,1", "--front", "1,0,0"]].concat());
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success() && stdout.contains("is a mug") && stdout.contains("handle"), "{stdout}");
+    // The same mesh as the vendored set's mug, annotated the same way.
+    let read =
+        |path: PathBuf| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap() };
+    let ours = read(models.join("categories.json"));
+    let vendored = read(root.join("objects/ycbv/models/categories.json"));
+    for k in 0..3 {
+        let (a, b) = (ours["14"]["size_mm"][k].as_f64().unwrap(), vendored["14"]["size_mm"][k].as_f64().unwrap());
+        assert!((a - b).abs() < 0.5, "{ours} against {vendored}");
+    }
+
+    // The real frame: two cans among four objects; only the cans go in.
+    let out_dir = dir.join("eval");
+    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(["--log-format", "json", "eval", "--json", "--category", "--samples", "8", "--steps", "2"])
+        .args(["--model", "models/test-tiny-cat", "--dataset", REAL_FRAME, "--objects", "objects/ycbv/models"])
+        .args(["--out", out_dir.to_str().unwrap()])
+        .current_dir(&root)
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let per_category = summary["category"]["per_category"].as_object().unwrap();
+    assert_eq!(per_category.keys().collect::<Vec<_>>(), ["can"], "{summary}");
+    assert_eq!(
+        (per_category["can"]["instances"].as_u64(), per_category["can"]["estimated"].as_u64()),
+        (Some(2), Some(2))
+    );
+    assert_eq!(summary["instances"], 2, "the sugar box and the pitcher are not scored: {summary}");
+    let targets = read(out_dir.join("category_targets.json"));
+    let objects: Vec<u64> = targets.as_array().unwrap().iter().map(|t| t["obj_id"].as_u64().unwrap()).collect();
+    assert_eq!(objects, [1, 9], "{targets}");
+    let run = read(out_dir.join("run.json"));
+    assert_eq!(run["stages"]["inference"]["errors"], 0, "no object without a category reached the model: {run}");
+}
+
+#[test]
 fn eval_category_scores_generated_instances_per_category() {
     let dir = scratch("eval-category");
     let data = dir.join("data");
