@@ -125,9 +125,9 @@ fn handle_visible(
 pub fn to_model_frames(estimates: &mut [Estimated], categories: &BTreeMap<u32, CategoryEntry>) {
     for estimate in estimates {
         if let Some(entry) = categories.get(&estimate.obj_id) {
-            let to_model = |pose: &Pose| *pose * entry.canonical_from_model;
-            estimate.selected = to_model(&estimate.selected);
-            estimate.hypotheses = estimate.hypotheses.iter().map(to_model).collect();
+            for pose in std::iter::once(&mut estimate.selected).chain(&mut estimate.hypotheses) {
+                *pose = *pose * entry.canonical_from_model;
+            }
         }
     }
 }
