@@ -42,9 +42,10 @@ def evaluation_section(label, summary):
         size = row.get("median_size_error")
         rows.append((name, row["instances"], row["estimated"], *[pct(a) for a in row["accuracy"]],
                      *[pct(a) for a in row["iou"]], pct(row.get("median_rotation_deg")),
-                     pct(row.get("median_translation_cm")), "–" if size is None else f"{100 * size:.1f}"))
+                     pct(row.get("median_translation_cm")), "–" if size is None else f"{100 * size:.1f}",
+                     pct(row.get("median_axis_spread_deg"))))
     header = ["category", "instances", "estimated", *ACCURACY, "IoU25", "IoU50", "med rot °", "med cm",
-              "med size err %"]
+              "med size err %", "axis spread °"]
     return f"""### {label}
 
 `{summary['dataset']}` split `{summary['split']}`: selection {summary['selection']}, {summary['samples']} samples,
@@ -140,7 +141,10 @@ development split; per-sample accuracy of N = 50 samples, K = 5 steps):
 
 Turns about the axis are not scored for bottles, bowls, cans and mugs whose
 handle the image does not show; IoU is of oriented boxes. Ground-truth
-masks; shares of instances.
+masks; shares of instances. Axis spread: the median circular standard
+deviation of the samples' turn about the axis around the selected pose (at
+most 180°, about 113° for samples uniform around the axis): wide where the
+turn is ambiguous, narrow where the image decides it.
 
 {"".join(evaluations)}
 {args.note}

@@ -19,7 +19,7 @@ use std::path::Path;
 use anyhow::Context;
 use nalgebra::{Point3, Vector3};
 use poseflow_geometry::Pose;
-use poseflow_geometry::category::{PlacedBox, category_iou, rotation_error_deg, translation_error_cm};
+use poseflow_geometry::category::{PlacedBox, axis_spread_deg, category_iou, rotation_error_deg, translation_error_cm};
 use poseflow_geometry::metrics::Pinhole;
 use poseflow_scene::bop::{Raster, SceneDir, read_depth_png, read_mask_png};
 use poseflow_scene::category::{Category, CategoryEntry};
@@ -46,6 +46,11 @@ pub struct CategoryErrors {
     pub iou: f64,
     /// Mean over the three extents of |estimated − true| / true.
     pub size_error: f64,
+    /// How widely the samples turn about the canonical axis around the
+    /// selected pose (`axis_spread_deg`): wide where the turn is ambiguous
+    /// (an axis-symmetric object, a mug whose handle is hidden), narrow
+    /// where the image decides it. None without samples.
+    pub axis_spread_deg: Option<f64>,
 }
 
 /// One scored instance.
@@ -178,13 +183,16 @@ pub fn score(
             let truth_box = PlacedBox { pose: truth, size: entry.size };
             let errors = by_instance.get(&(image.scene_id, image.im_id, instance.obj_id)).and_then(|estimate| {
                 let size = Vector3::from(estimate.category?.size.map(f64::from));
-                let estimated = estimate.selected * entry.canonical_from_model.inverse();
+                let to_canonical = entry.canonical_from_model.inverse();
+                let estimated = estimate.selected * to_canonical;
+                let samples: Vec<_> = estimate.hypotheses.iter().map(|h| (*h * to_canonical).rotation).collect();
                 let estimated_box = PlacedBox { pose: estimated, size };
                 Some(CategoryErrors {
                     rotation_deg: rotation_error_deg(&estimated, &truth, axis_ignored),
                     translation_cm: translation_error_cm(&estimated, &truth),
                     iou: category_iou(&estimated_box, &truth_box, axis_ignored),
                     size_error: (0..3).map(|i| (size[i] - entry.size[i]).abs() / entry.size[i]).sum::<f64>() / 3.0,
+                    axis_spread_deg: axis_spread_deg(&estimated.rotation, &samples),
                 })
             });
             outcomes.push(CategoryOutcome {
@@ -213,6 +221,7 @@ pub struct CategoryRow {
     pub median_rotation_deg: Option<f64>,
     pub median_translation_cm: Option<f64>,
     pub median_size_error: Option<f64>,
+    pub median_axis_spread_deg: Option<f64>,
 }
 
 fn median(mut values: Vec<f64>) -> Option<f64> {
@@ -234,6 +243,7 @@ impl CategoryRow {
             median_rotation_deg: median(errors.iter().map(|e| e.rotation_deg).collect()),
             median_translation_cm: median(errors.iter().map(|e| e.translation_cm).collect()),
             median_size_error: median(errors.iter().map(|e| e.size_error).collect()),
+            median_axis_spread_deg: median(errors.iter().filter_map(|e| e.axis_spread_deg).collect()),
         }
     }
 
@@ -249,6 +259,7 @@ impl CategoryRow {
             median_rotation_deg: None,
             median_translation_cm: None,
             median_size_error: None,
+            median_axis_spread_deg: None,
         }
     }
 }
@@ -282,12 +293,12 @@ pub fn print(summary: &CategorySummary) {
         "\ncategory-level (REAL275 protocol; turns about the axis ignored for bottles, bowls, cans and mugs whose handle is hidden; % of instances):"
     );
     println!(
-        "category         instances  estimated  5°2cm  5°5cm  10°2cm  10°5cm  IoU25  IoU50  med rot °  med cm  med size err %"
+        "category         instances  estimated  5°2cm  5°5cm  10°2cm  10°5cm  IoU25  IoU50  med rot °  med cm  med size err %  axis spread °"
     );
     let optional = |v: Option<f64>, scale: f64| v.map_or("-".to_string(), |v| format!("{:.1}", v * scale));
     let row = |label: &str, r: &CategoryRow| {
         println!(
-            "{label:<15}  {:>9}  {:>9}  {:>5.1}  {:>5.1}  {:>6.1}  {:>6.1}  {:>5.1}  {:>5.1}  {:>9}  {:>6}  {:>14}",
+            "{label:<15}  {:>9}  {:>9}  {:>5.1}  {:>5.1}  {:>6.1}  {:>6.1}  {:>5.1}  {:>5.1}  {:>9}  {:>6}  {:>14}  {:>13}",
             r.instances,
             r.estimated,
             r.accuracy[0],
@@ -298,7 +309,8 @@ pub fn print(summary: &CategorySummary) {
             r.iou[1],
             optional(r.median_rotation_deg, 1.0),
             optional(r.median_translation_cm, 1.0),
-            optional(r.median_size_error, 100.0)
+            optional(r.median_size_error, 100.0),
+            optional(r.median_axis_spread_deg, 1.0)
         );
     };
     for (name, r) in &summary.per_category {
@@ -316,12 +328,13 @@ pub fn print(summary: &CategorySummary) {
 /// The per-instance CSV (`category.csv`).
 pub fn instances_csv(outcomes: &[CategoryOutcome]) -> String {
     let mut out = String::from(
-        "scene_id,im_id,obj_id,category,handle_visible,axis_ignored,rotation_deg,translation_cm,iou,size_error\n",
+        "scene_id,im_id,obj_id,category,handle_visible,axis_ignored,rotation_deg,translation_cm,iou,size_error,axis_spread_deg\n",
     );
     for o in outcomes {
         let handle = o.handle_visible.map_or(String::new(), |v| v.to_string());
-        let errors = o.errors.map_or(",,,".to_string(), |e| {
-            format!("{:.3},{:.3},{:.4},{:.4}", e.rotation_deg, e.translation_cm, e.iou, e.size_error)
+        let errors = o.errors.map_or(",,,,".to_string(), |e| {
+            let spread = e.axis_spread_deg.map_or(String::new(), |d| format!("{d:.1}"));
+            format!("{:.3},{:.3},{:.4},{:.4},{spread}", e.rotation_deg, e.translation_cm, e.iou, e.size_error)
         });
         out.push_str(&format!(
             "{},{},{},{},{handle},{},{errors}\n",
@@ -403,6 +416,7 @@ mod tests {
         assert!(outcome.axis_ignored);
         assert!((errors.rotation_deg - 3.0).abs() < 1e-6, "{errors:?}");
         assert!(errors.translation_cm < 1e-9 && errors.size_error < 1e-6, "{errors:?}");
+        assert_eq!(errors.axis_spread_deg, None, "one sample has no spread");
         // Only the objects with a category are targets.
         let targets = targets(&[image_of(&[(5, truth), (3, truth), (5, truth)])], &categories);
         assert_eq!(targets, [serde_json::json!({"scene_id": 0, "im_id": 0, "obj_id": 5, "inst_count": 2})]);
@@ -439,7 +453,7 @@ mod tests {
             category,
             handle_visible: None,
             axis_ignored: true,
-            errors: Some(CategoryErrors { rotation_deg, translation_cm, iou, size_error: 0.1 }),
+            errors: Some(CategoryErrors { rotation_deg, translation_cm, iou, size_error: 0.1, axis_spread_deg: None }),
         }
     }
 

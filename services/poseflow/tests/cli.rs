@@ -1006,7 +1006,7 @@ fn eval_category_scores_generated_instances_per_category() {
     assert_eq!(category["mean"]["instances"], summary["instances"], "{summary}");
     let csv = std::fs::read_to_string(out_dir.join("category.csv")).unwrap();
     assert_eq!(csv.lines().count() as u64, 1 + summary["instances"].as_u64().unwrap(), "{csv}");
-    assert!(csv.lines().skip(1).all(|line| line.split(',').count() == 10 && !line.ends_with(",,,")), "{csv}");
+    assert!(csv.lines().skip(1).all(|line| line.split(',').count() == 11 && !line.ends_with(",,,,")), "{csv}");
 
     // Without categories.json the run stops and names the file.
     std::fs::remove_file(models.join("categories.json")).unwrap();

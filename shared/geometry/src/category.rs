@@ -31,6 +31,30 @@ pub fn rotation_error_deg(estimate: &Pose, truth: &Pose, about_axis_ignored: boo
     }
 }
 
+/// How widely `samples` spread in their turn about the canonical y axis
+/// relative to `reference`: the circular standard deviation, in degrees,
+/// of each sample's twist about y (the swing–twist split of `Rᵣᵀ Rₛ`).
+/// A few degrees for a peaked distribution; about 113° for 50 samples
+/// drawn uniformly around the axis, as an axis-symmetric object (or a mug
+/// whose handle is hidden) should give; at most 180°. None for fewer than
+/// two samples.
+pub fn axis_spread_deg(reference: &Rotation3<f64>, samples: &[Rotation3<f64>]) -> Option<f64> {
+    if samples.len() < 2 {
+        return None;
+    }
+    let (mut cos_sum, mut sin_sum) = (0.0, 0.0);
+    for sample in samples {
+        // The twist about y of q = (w, x, y, z) is 2·atan2(y, w).
+        let relative = nalgebra::UnitQuaternion::from_rotation_matrix(&(reference.inverse() * sample));
+        let twist = 2.0 * relative.j.atan2(relative.w);
+        cos_sum += twist.cos();
+        sin_sum += twist.sin();
+    }
+    let resultant = (cos_sum.hypot(sin_sum) / samples.len() as f64).clamp(1e-12, 1.0);
+    // Capped: past a half turn the figure only says "all around".
+    Some((-2.0 * resultant.ln()).sqrt().to_degrees().min(180.0))
+}
+
 /// Translation error in centimetres.
 pub fn translation_error_cm(estimate: &Pose, truth: &Pose) -> f64 {
     (estimate.translation - truth.translation).norm() * 100.0
@@ -114,6 +138,25 @@ pub fn category_iou(estimate: &PlacedBox, truth: &PlacedBox, about_axis_ignored:
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn axis_spread_is_the_circular_deviation_of_the_twist_about_y() {
+        let about_y = |deg: f64| Rotation3::from_axis_angle(&Vector3::y_axis(), deg.to_radians());
+        let reference = Rotation3::from_euler_angles(0.4, -1.1, 2.0);
+        let turned = |deg: f64| reference * about_y(deg);
+        // Two samples at ±10°: mean resultant cos 10°, deviation √(−2 ln cos 10°).
+        let two = axis_spread_deg(&reference, &[turned(10.0), turned(-10.0)]).unwrap();
+        let expected = (-2.0 * 10f64.to_radians().cos().ln()).sqrt().to_degrees();
+        assert!((two - expected).abs() < 1e-9, "{two} against {expected}");
+        // The same turn for all: none; a tilt across the axis is not a twist.
+        let tilt = Rotation3::from_axis_angle(&Vector3::x_axis(), 0.3);
+        let same = axis_spread_deg(&reference, &[turned(30.0), turned(30.0) * tilt]).unwrap();
+        assert!(same < 1e-6, "{same}");
+        // Evenly around the axis: the resultant vanishes, the deviation is large.
+        let even: Vec<_> = (0..50).map(|k| turned(7.2 * k as f64)).collect();
+        assert_eq!(axis_spread_deg(&reference, &even), Some(180.0));
+        assert_eq!(axis_spread_deg(&reference, &even[..1]), None);
+    }
     use proptest::prelude::*;
 
     fn placed(rotation: Rotation3<f64>, translation: [f64; 3], size: [f64; 3]) -> PlacedBox {
