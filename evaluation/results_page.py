@@ -212,8 +212,9 @@ def category_section(directory):
         return []
     return ["## Category level (REAL275 protocol)", "",
             "`evaluation/run category`: `poseflow eval --category` with the category-level model "
-            "`models/poseflow-cat` (see its model card and docs/categories.md) on objects it never saw, rendered "
-            "with reporting seeds never used for a decision, plus the real development frame. Turns about the axis "
+            "`models/poseflow-cat` (see its model card and docs/categories.md) on objects its category training never saw "
+            "(but the YCB bowl and mug were instance-level objects of the run its weights start from: see the model "
+            "card), rendered with reporting seeds never used for a decision, plus the real development frame. Turns about the axis "
             "are not scored for bottles, bowls, cans and mugs whose handle is hidden; IoU of oriented boxes "
             "(predicted size at the estimated pose against the true box); ground-truth masks; % of instances; the "
             "mean weighs the categories equally. Axis spread: the median over instances of the circular standard "

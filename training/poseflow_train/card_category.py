@@ -52,6 +52,7 @@ def evaluation_section(label, summary):
 {summary['steps']} steps.
 
 {table(rows, header)}
+
 """
 
 
@@ -121,7 +122,8 @@ hand.
 `training/make-data-cat`: {len(shards)} shards, {sum(len(s) for s in shards):,} observations of 2,000
 generated instances (500 a category, seed 1) in upright scenes of 6 with
 up to 3 LM-O distractors, patterned tables, the realistic sensor model and
-imperfect, detector-like training masks. No YCB mesh is ever trained on.
+imperfect, detector-like training masks. No YCB mesh is in this data
+(the initial weights are another matter: see the note under Evaluation).
 
 ## Training
 

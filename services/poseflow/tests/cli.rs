@@ -967,6 +967,23 @@ fn annotate_category_then_eval_category_scores_the_real_frames_cans_only() {
     assert_eq!(objects, [1, 9], "{targets}");
     let run = read(out_dir.join("run.json"));
     assert_eq!(run["stages"]["inference"]["errors"], 0, "no object without a category reached the model: {run}");
+
+    // The shipped category model places both real cans (never trained on:
+    // no YCB can is in its data) within 10°5cm; an untrained one does not.
+    let trained_dir = dir.join("eval-trained");
+    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
+        .args(["--log-format", "json", "eval", "--json", "--category", "--dataset", REAL_FRAME])
+        .args(["--objects", "objects/ycbv/models", "--out", trained_dir.to_str().unwrap()])
+        .current_dir(&root)
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["model"], "models/poseflow-cat");
+    let can = &summary["category"]["per_category"]["can"];
+    assert_eq!(can["accuracy"][3], 100.0, "both cans within 10°5cm: {can}");
+    assert!(can["median_size_error"].as_f64().unwrap() < 0.3, "sizes within 30 %: {can}");
 }
 
 #[test]
