@@ -71,6 +71,12 @@ def plot(curve, path):
     fig.savefig(path, dpi=110)
 
 
+def trained_run(config):
+    """The run directory of a config and its checkpoint (on the CPU)."""
+    run = Path(config["out"])
+    return run, torch.load(run / "checkpoint.pt", weights_only=False, map_location="cpu")
+
+
 def parameter_count(saved):
     return sum(v.numel() for part in ("encoder", "velocity") for v in saved[part].values() if v.is_floating_point())
 
@@ -243,8 +249,7 @@ def main():
     config = load_config(args.config)
     cfg = config["model"]
     out = Path(args.model)
-    run = Path(config["out"])
-    saved = torch.load(run / "checkpoint.pt", weights_only=False, map_location="cpu")
+    run, saved = trained_run(config)
     state = saved["state"]
     curve = learning_curve([*args.earlier_logs, run / "log.jsonl"])
     plot(curve, out / "learning-curve.png")

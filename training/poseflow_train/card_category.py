@@ -12,9 +12,7 @@ import argparse
 import json
 from pathlib import Path
 
-import torch
-
-from .card import files_section, learning_curve, plot, table
+from .card import files_section, learning_curve, plot, table, trained_run
 from .data import Shard
 from .model import SIZE_REFERENCE_M
 from .train import load_config
@@ -68,8 +66,7 @@ def main():
     config = load_config(args.config)
     cfg = config["model"]
     out = Path(args.model)
-    run = Path(config["out"])
-    saved = torch.load(run / "checkpoint.pt", weights_only=False, map_location="cpu")
+    run, saved = trained_run(config)
     state = saved["state"]
     curve = learning_curve([run / "log.jsonl"])
     plot(curve, out / "learning-curve.png")

@@ -944,17 +944,20 @@ fn annotate_category_then_eval_category_scores_the_real_frames_cans_only() {
     }
 
     // The real frame: two cans among four objects; only the cans go in.
+    let eval_real_frame = |out_dir: &Path, options: &[&str]| -> serde_json::Value {
+        let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
+            .args(["--log-format", "json", "eval", "--json", "--category", "--dataset", REAL_FRAME])
+            .args(["--objects", "objects/ycbv/models", "--out", out_dir.to_str().unwrap()])
+            .args(options)
+            .current_dir(&root)
+            .env_remove("RUST_LOG")
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
     let out_dir = dir.join("eval");
-    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
-        .args(["--log-format", "json", "eval", "--json", "--category", "--samples", "8", "--steps", "2"])
-        .args(["--model", "models/test-tiny-cat", "--dataset", REAL_FRAME, "--objects", "objects/ycbv/models"])
-        .args(["--out", out_dir.to_str().unwrap()])
-        .current_dir(&root)
-        .env_remove("RUST_LOG")
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let summary = eval_real_frame(&out_dir, &["--model", "models/test-tiny-cat", "--samples", "8", "--steps", "2"]);
     let per_category = summary["category"]["per_category"].as_object().unwrap();
     assert_eq!(per_category.keys().collect::<Vec<_>>(), ["can"], "{summary}");
     assert_eq!(
@@ -970,16 +973,7 @@ fn annotate_category_then_eval_category_scores_the_real_frames_cans_only() {
 
     // The shipped category model places both real cans (never trained on:
     // no YCB can is in its data) within 10°5cm; an untrained one does not.
-    let trained_dir = dir.join("eval-trained");
-    let out = Command::new(env!("CARGO_BIN_EXE_poseflow"))
-        .args(["--log-format", "json", "eval", "--json", "--category", "--dataset", REAL_FRAME])
-        .args(["--objects", "objects/ycbv/models", "--out", trained_dir.to_str().unwrap()])
-        .current_dir(&root)
-        .env_remove("RUST_LOG")
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let summary = eval_real_frame(&dir.join("eval-trained"), &[]);
     assert_eq!(summary["model"], "models/poseflow-cat");
     let can = &summary["category"]["per_category"]["can"];
     assert_eq!(can["accuracy"][3], 100.0, "both cans within 10°5cm: {can}");
