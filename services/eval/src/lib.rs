@@ -444,10 +444,13 @@ fn eval_graph(args: &EvalArgs, objects_dir: &Path, object_ids: Vec<u32>) -> anyh
 
 /// Runs `run` over the dataset; its estimates and the results file written
 /// from them.
+/// With `categories`, estimates of category objects are carried to their
+/// model frames before the results file is written.
 fn run_graph_on(
     args: &EvalArgs,
     images: &[TruthImage],
     run: &Graph,
+    categories: Option<&BTreeMap<u32, poseflow_scene::category::CategoryEntry>>,
 ) -> anyhow::Result<(Vec<Estimated>, PathBuf, Method)> {
     let graph_file = args.graph_file();
     let name = graph_file.file_name().map_or("graph.toml".into(), |n| n.to_string_lossy().into_owned());
@@ -458,7 +461,10 @@ fn run_graph_on(
     let mut progress = Progress::new("eval", detections as u64);
     run_graph(run, &recording, "estimates", || progress.update(count_estimates(&recording), "estimates"))?;
     progress.update(detections as u64, "estimates");
-    let estimates = read_recording(&recording, images)?;
+    let mut estimates = read_recording(&recording, images)?;
+    if let Some(categories) = categories {
+        category::to_model_frames(&mut estimates, categories);
+    }
     let dataset_name = args.dataset.file_name().map_or("dataset".into(), |n| n.to_string_lossy().into_owned());
     let csv = args.out.join(format!("poseflow_{dataset_name}-{}.csv", args.split));
     std::fs::write(&csv, to_csv(&bop_rows(&estimates))).with_context(|| format!("{}", csv.display()))?;
@@ -611,15 +617,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         _ => None,
     };
 
-    let (mut estimates, csv, method) = match (&args.results, &graph) {
+    let (estimates, csv, method) = match (&args.results, &graph) {
         (Some(results), _) => (read_results(results)?, results.clone(), Method::Results { results: results.clone() }),
-        (None, Some(graph)) => run_graph_on(args, &images, graph)?,
+        (None, Some(graph)) => run_graph_on(args, &images, graph, categories.as_ref())?,
         (None, None) => unreachable!("the graph is built unless --results"),
     };
-    if let (Some(categories), None) = (&categories, &args.results) {
-        category::to_model_frames(&mut estimates, categories);
-        std::fs::write(&csv, to_csv(&bop_rows(&estimates))).with_context(|| format!("{}", csv.display()))?;
-    }
     let stages = args.results.is_none().then(|| stage_counts(&args.out.join("run.json"))).transpose()?;
     let every_hypothesis = args.results.is_none() && args.selection == SelectionArg::None;
     let (outcomes, unmatched_estimates) = evaluate(&images, &estimates, &objects, every_hypothesis)?;
