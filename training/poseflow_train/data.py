@@ -10,9 +10,18 @@ import torch
 
 MAGIC = b"POSEFLOW-OBS v1"
 
+# Which file of the dataset's models directory gives the objects'
+# symmetries: the real, printed objects' as BOP records them, or the
+# one-coloured shapes' (`poseflow import-model --shape-symmetries`), up to
+# which renders without the print are ambiguous.
+SYMMETRY_FILES = {"models-info": "models_info.json", "shape": "models_info_shape.json"}
+
 
 class Shard:
-    def __init__(self, path):
+    def __init__(self, path, symmetries="models-info"):
+        if symmetries not in SYMMETRY_FILES:
+            raise SystemExit(f"symmetries {symmetries!r}: expected one of {sorted(SYMMETRY_FILES)}")
+        self.symmetry_file = SYMMETRY_FILES[symmetries]
         self.path = Path(path)
         with open(self.path, "rb") as f:
             magic = f.readline().rstrip(b"\n")
@@ -45,16 +54,18 @@ class Shard:
         self.records = np.memmap(self.path, dtype=self.dtype, mode="r", offset=offset, shape=(size // self.dtype.itemsize,))
 
     def find_models_info(self):
-        """The dataset's models_info.json: where the shard says the dataset
-        is (relative to where `poseflow observe` ran), or the shard's own
-        folder (where training/make-data puts it)."""
+        """The dataset's models_info.json (or its shape twin, see
+        `SYMMETRY_FILES`): where the shard says the dataset is (relative to
+        where `poseflow observe` ran), or the shard's own folder (where
+        training/make-data puts it)."""
         for root in (Path(self.info["dataset"]), self.path.parent):
-            candidate = root / "models" / "models_info.json"
+            candidate = root / "models" / self.symmetry_file
             if candidate.is_file():
                 return candidate
         raise ValueError(
-            f"{self.path}: no models/models_info.json under {self.info['dataset']!r} or {str(self.path.parent)!r} "
-            "(needed for the objects' symmetries)"
+            f"{self.path}: no models/{self.symmetry_file} under {self.info['dataset']!r} or {str(self.path.parent)!r} "
+            "(needed for the objects' symmetries"
+            + ("; `poseflow import-model --shape-symmetries` writes it)" if self.symmetry_file != "models_info.json" else ")")
         )
 
     def __len__(self):
@@ -116,10 +127,12 @@ class Observations:
     object, yielding torch batches. With `categories`, `object_ids` are
     category codes (`CATEGORY_IDS`) and each observation's object index is
     its instance's category (from each shard's categories.json); batches
-    then also hold the instance's `size` (box extents, metres)."""
+    then also hold the instance's `size` (box extents, metres).
+    `symmetries` names the symmetry file (`SYMMETRY_FILES`)."""
 
-    def __init__(self, paths, object_ids, min_visib_fract=0.1, hidden_arcs=False, categories=False):
-        self.shards = [Shard(p) for p in paths]
+    def __init__(self, paths, object_ids, min_visib_fract=0.1, hidden_arcs=False, categories=False,
+                 symmetries="models-info"):
+        self.shards = [Shard(p, symmetries) for p in paths]
         # Per shard, {obj_id: (category code, size)} of a category model.
         self.categories = [read_categories(shard) for shard in self.shards] if categories else None
         # Per shard, the turns that keep a part hidden ([records, bins]

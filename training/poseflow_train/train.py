@@ -498,15 +498,19 @@ def main():
     if config.get("hidden_arcs") and not equivalent:
         raise SystemExit("config: hidden_arcs needs equivalent_targets")
     categories = cfg.size_head
+    # "shape": targets, loss and validation up to the one-coloured shapes'
+    # symmetries, the ambiguity renders without the print really have.
+    symmetries = config.get("symmetries", "models-info")
     train = Observations(config["train"], cfg.object_ids, config.get("min_visib_fract", 0.1), config.get("hidden_arcs", False),
-                         categories)
+                         categories, symmetries)
     # `validate_also` {name: [shards]}: more held-out sets scored at each
     # validation (say, views where the mug's handle is hidden), logged as
     # `validation_<name>`.
-    val = {"val": Observations(config["val"], cfg.object_ids, config.get("min_visib_fract", 0.1), categories=categories)}
+    val = {"val": Observations(config["val"], cfg.object_ids, config.get("min_visib_fract", 0.1), categories=categories,
+                               symmetries=symmetries)}
     for name, patterns in config.get("validate_also", {}).items():
         val[name] = Observations(shard_paths(patterns, f"validate_also.{name}"), cfg.object_ids,
-                                 config.get("min_visib_fract", 0.1), categories=categories)
+                                 config.get("min_visib_fract", 0.1), categories=categories, symmetries=symmetries)
     for key in ("image_size", "patch_grid", "point_count"):
         if train.info[key] != getattr(cfg, key):
             raise SystemExit(f"{config['train'][0]}: {key} {train.info[key]}, the model config says {getattr(cfg, key)}")

@@ -7,7 +7,7 @@ use anyhow::bail;
 use clap::Args;
 use nalgebra::Vector3;
 use poseflow_scene::import::{ImportSpec, import_model};
-use poseflow_scene::symmetry::Symmetry;
+use poseflow_scene::symmetry::{Symmetry, turn};
 
 #[derive(Debug, Args)]
 pub struct ImportModelArgs {
@@ -35,6 +35,12 @@ pub struct ImportModelArgs {
     /// symmetric, so pass this only for objects that look the same.
     #[arg(long, value_name = "FRACTION")]
     pub find_symmetries: Option<f64>,
+    /// Also search for the symmetries of the shape alone, within this many millimetres, and record them in
+    /// models_info_shape.json beside models_info.json: the turns a render of the one-coloured mesh cannot tell
+    /// apart (a box's half turns, a labelled can's), for training targets and `poseflow eval --symmetries shape`.
+    /// 8 mm is about the depth camera's quantisation step at 1.6 m.
+    #[arg(long, value_name = "MM")]
+    pub shape_symmetries: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -74,6 +80,7 @@ pub fn run(args: &ImportModelArgs) -> anyhow::Result<()> {
         colour: args.colour,
         symmetry_axis: args.symmetry_axis,
         find_symmetries: args.find_symmetries,
+        shape_symmetries_mm: args.shape_symmetries,
     };
     let imported = import_model(&spec, &args.models)?;
     println!(
@@ -87,31 +94,40 @@ pub fn run(args: &ImportModelArgs) -> anyhow::Result<()> {
         imported.size.z * 1e3,
     );
     for symmetry in &imported.symmetries {
-        match symmetry {
-            Symmetry::Continuous { axis, offset } => println!(
-                "  symmetry: any turn about ({:.3}, {:.3}, {:.3}) through ({:.1}, {:.1}, {:.1}) mm",
-                axis.x,
-                axis.y,
-                axis.z,
-                offset.x * 1e3,
-                offset.y * 1e3,
-                offset.z * 1e3
-            ),
-            Symmetry::Discrete(pose) => {
-                let (axis, angle) =
-                    pose.rotation.axis_angle().map_or((Vector3::z(), 0.0), |(a, t)| (a.into_inner(), t));
-                println!(
-                    "  symmetry: {:.0}° about ({:.3}, {:.3}, {:.3}), then ({:.1}, {:.1}, {:.1}) mm",
-                    angle.to_degrees(),
-                    axis.x,
-                    axis.y,
-                    axis.z,
-                    pose.translation.x * 1e3,
-                    pose.translation.y * 1e3,
-                    pose.translation.z * 1e3
-                )
-            }
+        println!("  symmetry: {}", describe(symmetry));
+    }
+    if let Some(shape) = &imported.shape_symmetries {
+        println!("  shape symmetries ({}): {}", poseflow_scene::import::SHAPE_SYMMETRIES_FILE, shape.len());
+        for symmetry in shape {
+            println!("    {}", describe(symmetry));
         }
     }
     Ok(())
+}
+
+fn describe(symmetry: &Symmetry) -> String {
+    match symmetry {
+        Symmetry::Continuous { axis, offset } => format!(
+            "any turn about ({:.3}, {:.3}, {:.3}) through ({:.1}, {:.1}, {:.1}) mm",
+            axis.x,
+            axis.y,
+            axis.z,
+            offset.x * 1e3,
+            offset.y * 1e3,
+            offset.z * 1e3
+        ),
+        Symmetry::Discrete(pose) => {
+            let (axis, angle) = turn(&pose.rotation).map_or((Vector3::z(), 0.0), |(a, t)| (a.into_inner(), t));
+            format!(
+                "{:.0}° about ({:.3}, {:.3}, {:.3}), then ({:.1}, {:.1}, {:.1}) mm",
+                angle.to_degrees(),
+                axis.x,
+                axis.y,
+                axis.z,
+                pose.translation.x * 1e3,
+                pose.translation.y * 1e3,
+                pose.translation.z * 1e3
+            )
+        }
+    }
 }

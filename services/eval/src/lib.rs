@@ -23,12 +23,14 @@ use anyhow::{Context, bail};
 use clap::Args;
 use nalgebra::Point3;
 use poseflow_geometry::metrics::NearestPoints;
+use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_geometry::sampling::sample_seed;
 use poseflow_geometry::symmetry::BOP_MAX_SYMMETRY_STEP;
 use poseflow_geometry::{Pose, SymmetrySet};
 use poseflow_graph::Graph;
 use poseflow_ingest::sources::{BopFrames, Masks};
 use poseflow_scene::ModelLibrary;
+use poseflow_scene::import::SHAPE_SYMMETRIES_FILE;
 use serde::Serialize;
 
 use self::bop_csv::to_csv;
@@ -148,6 +150,19 @@ pub struct EvalArgs {
     /// The model defaults to models/poseflow-cat, and `--selection sdf` (the default) scores as `chamfer`.
     #[arg(long, conflicts_with_all = ["detect", "results"])]
     pub category: bool,
+    /// The symmetries a pose is scored up to: `models-info` (models_info.json, the real object's as BOP records
+    /// them, print included) or `shape` (models_info_shape.json, the one-coloured shape's: what a render without
+    /// the print can show; `poseflow import-model --shape-symmetries`).
+    #[arg(long, value_enum, default_value_t = SymmetriesArg::ModelsInfo)]
+    pub symmetries: SymmetriesArg,
+}
+
+/// Which file's symmetries score a pose (`--symmetries`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SymmetriesArg {
+    ModelsInfo,
+    Shape,
 }
 
 /// The graph `--detect` runs when `--graph` was left at its default.
@@ -212,6 +227,8 @@ enum Method {
 struct EvalReport {
     dataset: PathBuf,
     split: String,
+    /// The symmetries the poses were scored up to.
+    symmetries: SymmetriesArg,
     #[serde(flatten)]
     method: Method,
     /// Estimates that match no scored instance (an object not in the image,
@@ -256,14 +273,28 @@ fn check(args: &EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The metrics' view of every object of the library.
-fn scored_objects(library: &ModelLibrary) -> BTreeMap<u32, ScoredObject> {
+/// The metrics' view of every object of the library, scored up to the
+/// symmetries of `symmetries` (models_info.json's when `None`).
+fn scored_objects(
+    library: &ModelLibrary,
+    symmetries: Option<&ModelsInfo>,
+) -> anyhow::Result<BTreeMap<u32, ScoredObject>> {
     library
         .objects
         .iter()
         .map(|object| {
             let points: Vec<Point3<f64>> = object.model.mesh.vertices.iter().map(|v| v.cast::<f64>()).collect();
-            let symmetries = SymmetrySet::from_model_info(&object.info, BOP_MAX_SYMMETRY_STEP);
+            let info = match symmetries {
+                None => &object.info,
+                Some(table) => table.get(object.obj_id).with_context(|| {
+                    format!(
+                        "--symmetries shape: {} has no entry for object {} (import it with --shape-symmetries)",
+                        library.dir.join(SHAPE_SYMMETRIES_FILE).display(),
+                        object.obj_id
+                    )
+                })?,
+            };
+            let symmetries = SymmetrySet::from_model_info(info, BOP_MAX_SYMMETRY_STEP);
             let scored = ScoredObject {
                 nearest: NearestPoints::new(&points),
                 points,
@@ -271,7 +302,7 @@ fn scored_objects(library: &ModelLibrary) -> BTreeMap<u32, ScoredObject> {
                 symmetries,
                 model: object.model.clone(),
             };
-            (object.obj_id, scored)
+            Ok((object.obj_id, scored))
         })
         .collect()
 }
@@ -574,7 +605,16 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let objects_dir = args.objects.clone().unwrap_or_else(|| args.dataset.join("models"));
     let library = ModelLibrary::load(&objects_dir, &[])
         .with_context(|| format!("--objects {}: cannot load the object models", objects_dir.display()))?;
-    let objects = scored_objects(&library);
+    let shape_symmetries = match args.symmetries {
+        SymmetriesArg::ModelsInfo => None,
+        SymmetriesArg::Shape => {
+            let path = objects_dir.join(SHAPE_SYMMETRIES_FILE);
+            Some(ModelsInfo::from_path(&path).with_context(|| {
+                format!("--symmetries shape: {} (poseflow import-model --shape-symmetries writes it)", path.display())
+            })?)
+        }
+    };
+    let objects = scored_objects(&library, shape_symmetries.as_ref())?;
     let categories = args
         .category
         .then(|| {
@@ -638,6 +678,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let report = EvalReport {
         dataset: args.dataset.clone(),
         split: args.split.clone(),
+        symmetries: args.symmetries,
         method,
         unmatched_estimates,
         csv,
@@ -697,6 +738,9 @@ fn print_table(report: &EvalReport) {
         Method::Results { results } => format!("{}; accuracies in % of instances", results.display()),
     };
     println!("{} ({}): {method}", report.dataset.display(), report.split);
+    if report.symmetries == SymmetriesArg::Shape {
+        println!("scored up to the shape's symmetries ({SHAPE_SYMMETRIES_FILE}), not the printed object's");
+    }
     println!(
         "object  instances  estimated  5°2cm  5°5cm  10°2cm  10°5cm  ADD(-S)  MSSD  MSPD   VSD  modes  med rot °  ms/object p50/p99"
     );

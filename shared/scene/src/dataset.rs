@@ -176,7 +176,11 @@ fn copy_models(library: &ModelLibrary, out: &Path) -> Result<(), SceneError> {
     std::fs::create_dir_all(&models).map_err(|source| SceneError::Write { path: models.clone(), source })?;
     let info = library.dir.join("models_info.json");
     let files = library.objects.iter().map(|o| (o.path.clone(), models.join(model_file_name(o.obj_id))));
-    for (from, to) in files.chain([(info, models.join("models_info.json"))]) {
+    // The shape's symmetries go along: the rendered objects are one-coloured,
+    // so the training data is ambiguous up to them.
+    let shape = library.dir.join(crate::import::SHAPE_SYMMETRIES_FILE);
+    let shape = shape.is_file().then(|| (shape, models.join(crate::import::SHAPE_SYMMETRIES_FILE)));
+    for (from, to) in files.chain([(info, models.join("models_info.json"))]).chain(shape) {
         if !same_file(&from, &to) {
             std::fs::copy(&from, &to).map_err(|source| SceneError::Write { path: to.clone(), source })?;
         }

@@ -33,7 +33,19 @@ pub struct ImportSpec {
     /// Search the mesh for its symmetries ([`find_symmetries`]) with this
     /// tolerance, a fraction of the diameter, and record what it finds.
     pub find_symmetries: Option<f64>,
+    /// Search the mesh for the turns that move no surface point farther
+    /// than this many millimetres from the surface, and record them in
+    /// [`SHAPE_SYMMETRIES_FILE`]: what a render of the one-coloured mesh
+    /// cannot tell apart, whatever the real object's print shows.
+    pub shape_symmetries_mm: Option<f64>,
 }
+
+/// The models directory's second `models_info.json`: the same entries with
+/// the symmetries of the shape alone (`ImportSpec::shape_symmetries_mm`).
+/// `models_info.json` keeps the symmetries of the real, printed object, as
+/// BOP records them; a model trained on one-coloured renders can only be
+/// asked for a pose up to these.
+pub const SHAPE_SYMMETRIES_FILE: &str = "models_info_shape.json";
 
 /// The entry written for the imported object.
 #[derive(Debug, Clone, PartialEq)]
@@ -47,6 +59,8 @@ pub struct Imported {
     pub size: Vector3<f64>,
     /// The symmetries recorded in `models_info.json`.
     pub symmetries: Vec<Symmetry>,
+    /// The shape's, when searched, as recorded in [`SHAPE_SYMMETRIES_FILE`].
+    pub shape_symmetries: Option<Vec<Symmetry>>,
 }
 
 /// Writes the object into `models_dir` (created if missing), replacing an
@@ -76,7 +90,30 @@ pub fn import_model(spec: &ImportSpec, models_dir: &Path) -> Result<Imported, Sc
         }
         symmetries.extend(find_symmetries(&mesh, diameter, tolerance)?);
     }
-    write_model(&mesh, spec.obj_id, symmetries, models_dir)
+    let shape_symmetries = spec
+        .shape_symmetries_mm
+        .map(|mm| {
+            if !(mm.is_finite() && mm > 0.0 && mm < 0.5 * diameter * METRES_TO_BOP) {
+                return Err(SceneError::Invalid(format!(
+                    "shape symmetry tolerance {mm} mm: expected millimetres in (0, {:.0}), half the diameter, e.g. 8",
+                    0.5 * diameter * METRES_TO_BOP
+                )));
+            }
+            find_symmetries(&mesh, diameter, mm / METRES_TO_BOP / diameter)
+        })
+        .transpose()?;
+    let imported = write_model(&mesh, spec.obj_id, symmetries, models_dir)?;
+    let shape_path = models_dir.join(SHAPE_SYMMETRIES_FILE);
+    // Once a directory has the file, every object gets an entry, so the
+    // file never silently lacks one: an object imported without a search
+    // has the symmetries it was given.
+    if shape_symmetries.is_some() || shape_path.exists() {
+        let symmetries = shape_symmetries.as_deref().unwrap_or(&imported.symmetries);
+        let mut shape: Map<String, Value> = if shape_path.exists() { bop::read_json(&shape_path)? } else { Map::new() };
+        shape.insert(spec.obj_id.to_string(), info_entry(&mesh, symmetries));
+        bop::write_json(&shape_path, &shape)?;
+    }
+    Ok(Imported { shape_symmetries, ..imported })
 }
 
 /// Writes `mesh` (metres, object frame) into `models_dir` (created if
@@ -95,9 +132,27 @@ pub fn write_model(
         .map_err(|source| SceneError::Write { path: model_path.clone(), source })?;
 
     let (min, max) = bounding_box(&mesh.vertices);
-    let diameter = diameter(&mesh.vertices);
     let info_path = models_dir.join("models_info.json");
     let mut info: Map<String, Value> = if info_path.exists() { bop::read_json(&info_path)? } else { Map::new() };
+    let entry = info_entry(mesh, &symmetries);
+    info.insert(obj_id.to_string(), entry);
+    bop::write_json(&info_path, &info)?;
+    Ok(Imported {
+        model_path,
+        vertices: mesh.vertices.len(),
+        triangles: mesh.triangles.len(),
+        diameter: diameter(&mesh.vertices),
+        size: max - min,
+        symmetries,
+        shape_symmetries: None,
+    })
+}
+
+/// The `models_info.json` entry of `mesh` (metres) with these symmetries,
+/// in BOP's millimetres.
+fn info_entry(mesh: &ObjectMesh, symmetries: &[Symmetry]) -> Value {
+    let (min, max) = bounding_box(&mesh.vertices);
+    let diameter = diameter(&mesh.vertices);
     let mut entry = json!({
         "diameter": diameter * METRES_TO_BOP,
         "min_x": min.x * METRES_TO_BOP, "min_y": min.y * METRES_TO_BOP, "min_z": min.z * METRES_TO_BOP,
@@ -148,16 +203,7 @@ pub fn write_model(
     if !discrete.is_empty() {
         entry["symmetries_discrete"] = Value::Array(discrete);
     }
-    info.insert(obj_id.to_string(), entry);
-    bop::write_json(&info_path, &info)?;
-    Ok(Imported {
-        model_path,
-        vertices: mesh.vertices.len(),
-        triangles: mesh.triangles.len(),
-        diameter,
-        size: max - min,
-        symmetries,
-    })
+    entry
 }
 
 fn bounding_box(vertices: &[Point3<f32>]) -> (Vector3<f64>, Vector3<f64>) {
@@ -222,6 +268,7 @@ fn ascii_ply_mm(mesh: &ObjectMesh) -> String {
 mod tests {
     use super::*;
     use crate::ModelLibrary;
+    use poseflow_geometry::models_info::ModelsInfo;
 
     const CUBE_OBJ: &str = "v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nv 0 0 0.1\nv 0.1 0 0.1\nv 0.1 0.1 0.1\nv 0 0.1 0.1\n\
         f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\nf 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n";
@@ -246,6 +293,7 @@ mod tests {
             colour: Some([200, 30, 30]),
             symmetry_axis: Some(Vector3::new(0.0, 0.0, 2.0)),
             find_symmetries: None,
+            shape_symmetries_mm: None,
         };
         let imported = import_model(&spec, &models).unwrap();
         // Space diagonal of a 10 cm cube.
@@ -278,6 +326,7 @@ mod tests {
             colour: None,
             symmetry_axis: None,
             find_symmetries: None,
+            shape_symmetries_mm: None,
         };
         import_model(&spec(1, 1.0), &models).unwrap();
         import_model(&spec(2, 1.0), &models).unwrap();
@@ -287,6 +336,55 @@ mod tests {
         let ids: Vec<u32> = library.objects.iter().map(|o| o.obj_id).collect();
         assert_eq!(ids, [1, 2]);
         assert!((library.objects[0].info.diameter - again.diameter).abs() < 1e-6);
+    }
+
+    #[test]
+    fn shape_symmetries_go_to_their_own_file_and_every_later_object_gets_an_entry() {
+        let dir = scratch("shape");
+        // A 10 × 6 × 4 cm box: three half turns as a shape, none recorded
+        // for the printed object.
+        let box_obj = CUBE_OBJ
+            .lines()
+            .map(|line| match line.strip_prefix("v ") {
+                Some(v) => {
+                    let c: Vec<f64> = v.split(' ').map(|x| x.parse().unwrap()).collect();
+                    format!("v {} {} {}\n", c[0], c[1] * 0.6, c[2] * 0.4)
+                }
+                None => format!("{line}\n"),
+            })
+            .collect::<String>();
+        let mesh = dir.join("box.obj");
+        std::fs::write(&mesh, box_obj).unwrap();
+        let cube = dir.join("cube.obj");
+        std::fs::write(&cube, CUBE_OBJ).unwrap();
+        let models = dir.join("models");
+        let spec = |mesh: &PathBuf, obj_id, shape_symmetries_mm| ImportSpec {
+            mesh: mesh.clone(),
+            scale: 1.0,
+            obj_id,
+            colour: None,
+            symmetry_axis: None,
+            find_symmetries: None,
+            shape_symmetries_mm,
+        };
+        let imported = import_model(&spec(&mesh, 1, Some(2.0)), &models).unwrap();
+        assert!(imported.symmetries.is_empty());
+        assert_eq!(imported.shape_symmetries.as_ref().map(Vec::len), Some(3), "{imported:?}");
+        import_model(&spec(&cube, 2, None), &models).unwrap();
+
+        let shape = ModelsInfo::from_path(&models.join(SHAPE_SYMMETRIES_FILE)).unwrap();
+        let printed = ModelsInfo::from_path(&models.join("models_info.json")).unwrap();
+        assert_eq!(shape.get(1).unwrap().symmetries_discrete.len(), 3);
+        assert!(!printed.get(1).unwrap().is_symmetric());
+        // Imported without a search: the entry is there, with no symmetry
+        // it was not given.
+        assert!(!shape.get(2).unwrap().is_symmetric());
+        assert!((shape.get(2).unwrap().diameter - printed.get(2).unwrap().diameter).abs() < 1e-9);
+
+        for mm in [0.0, -1.0, f64::NAN, 500.0] {
+            let err = import_model(&spec(&mesh, 3, Some(mm)), &models).unwrap_err().to_string();
+            assert!(err.contains("shape symmetry tolerance") && err.contains("mm"), "{err}");
+        }
     }
 
     #[test]
@@ -301,6 +399,7 @@ mod tests {
             colour: None,
             symmetry_axis: Some(Vector3::zeros()),
             find_symmetries: None,
+            shape_symmetries_mm: None,
         };
         let err = import_model(&spec, &dir.join("models")).unwrap_err().to_string();
         assert!(err.contains("symmetry axis") && err.contains("non-zero"), "{err}");

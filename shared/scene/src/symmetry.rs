@@ -3,7 +3,7 @@
 //!
 //! Candidates are turns through the surface centroid (the point every
 //! symmetry of a surface keeps fixed) about the three principal axes of the
-//! surface (area-weighted covariance) and about the object frame's axes
+//! surface (its exact area-weighted second moment) and about the object frame's axes
 //! (where a cube's or a sphere's equal principal moments leave the
 //! principal axes arbitrary). A turn is accepted when every
 //! one of a fixed sample of surface points, turned, lies within `tolerance`
@@ -61,7 +61,7 @@ pub fn find_symmetries(mesh: &ObjectMesh, diameter: f64, tolerance: f64) -> Resu
         mesh.to_trimesh().map_err(|source| SceneError::Invalid(format!("mesh for the symmetry search: {source}")))?;
     let samples = surface_samples(mesh, SAMPLE_POINTS);
     let centroid = surface_centroid(mesh);
-    let principal = principal_axes(&samples, &centroid);
+    let principal = surface_principal_axes(mesh, &centroid);
     let mut axes: Vec<Unit<Vector3<f64>>> = Vec::new();
     // Frame axes first: a modelled object's axes are exact where sampled
     // principal axes are only close.
@@ -71,6 +71,12 @@ pub fn find_symmetries(mesh: &ObjectMesh, diameter: f64, tolerance: f64) -> Resu
         }
     }
     let limit = tolerance * diameter;
+    // Two turns are one symmetry when they differ by less than the tolerance
+    // moves the farthest surface point: a scan's principal axis a degree or
+    // two off its frame axis would otherwise give near-twin turns whose
+    // products never close into a group.
+    let radius = samples.iter().map(|p| (p - centroid).norm()).fold(0.0, f64::max);
+    let same_rotation = SAME_ROTATION_RAD.max(limit / radius.max(f64::MIN_POSITIVE));
     let allowed_outliers = SAMPLE_POINTS / OUTLIER_SHARE;
     let maps_onto_itself = |rotation: &Rotation3<f64>| {
         let mut outliers = 0;
@@ -96,7 +102,8 @@ pub fn find_symmetries(mesh: &ObjectMesh, diameter: f64, tolerance: f64) -> Resu
             })
             .collect()
     };
-    let trivial = |rotation: &Rotation3<f64>, free: &[Unit<Vector3<f64>>]| match rotation_axis(rotation) {
+    let trivial = |rotation: &Rotation3<f64>, free: &[Unit<Vector3<f64>>]| match rotation_axis(rotation, same_rotation)
+    {
         None => true,
         Some(axis) => free.iter().any(|f| f.dot(&axis).abs() >= SAME_AXIS_COS),
     };
@@ -155,13 +162,27 @@ pub fn find_symmetries(mesh: &ObjectMesh, diameter: f64, tolerance: f64) -> Resu
     Ok(found)
 }
 
-/// The axis of `rotation`, `None` within [`SAME_ROTATION_RAD`] of the
+/// The axis and angle (radians, in [0, π]) of `rotation`, `None` for the
+/// identity: unlike nalgebra's `axis_angle`, also at a half turn.
+pub fn turn(rotation: &Rotation3<f64>) -> Option<(Unit<Vector3<f64>>, f64)> {
+    let axis = rotation_axis(rotation, 1e-12)?;
+    Some((axis, clamped_angle(rotation)))
+}
+
+/// The rotation angle from the trace, clamped: a product of turns drifts a
+/// trace past 3 by rounding, where nalgebra's `angle` is NaN and the
+/// identity would pass for a turn.
+fn clamped_angle(rotation: &Rotation3<f64>) -> f64 {
+    ((rotation.matrix().trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos()
+}
+
+/// The axis of `rotation`, `None` within `same_rotation` (radians) of the
 /// identity. Near a half turn the axis is read from `(R + I) / 2 = a aᵀ`,
 /// where nalgebra's `axis_angle` (from the antisymmetric part, which
 /// vanishes there) has none.
-fn rotation_axis(rotation: &Rotation3<f64>) -> Option<Unit<Vector3<f64>>> {
-    let angle = rotation.angle();
-    if angle < SAME_ROTATION_RAD {
+fn rotation_axis(rotation: &Rotation3<f64>, same_rotation: f64) -> Option<Unit<Vector3<f64>>> {
+    let angle = clamped_angle(rotation);
+    if angle < same_rotation {
         return None;
     }
     if angle < std::f64::consts::PI - 1e-3 {
@@ -209,6 +230,23 @@ fn surface_centroid(mesh: &ObjectMesh) -> Point3<f64> {
         area += triangle_area;
     }
     Point3::from(weighted / area.max(f64::MIN_POSITIVE))
+}
+
+/// The principal axes of the surface from its exact area-weighted second
+/// moment: sampled points tilt a box's axes by a degree or two, which moves
+/// a half turn's far corners past a tight tolerance.
+fn surface_principal_axes(mesh: &ObjectMesh, centroid: &Point3<f64>) -> [Unit<Vector3<f64>>; 3] {
+    let mut moment = Matrix3::zeros();
+    for t in &mesh.triangles {
+        // ∫ x xᵀ dA over a triangle = A/12 (Σ vᵢvᵢᵀ + (Σ vᵢ)(Σ vᵢ)ᵀ), here
+        // with the vertices taken about the centroid.
+        let [a, b, c] = t.map(|i| mesh.vertices[i as usize].coords.cast::<f64>() - centroid.coords);
+        let area = 0.5 * (b - a).cross(&(c - a)).norm();
+        let sum = a + b + c;
+        moment += area / 12.0 * (a * a.transpose() + b * b.transpose() + c * c.transpose() + sum * sum.transpose());
+    }
+    let eigen = moment.symmetric_eigen();
+    [0, 1, 2].map(|i| Unit::new_normalize(eigen.eigenvectors.column(i).into_owned()))
 }
 
 /// The eigenvectors of the covariance of `points` about `centroid`: the
@@ -272,6 +310,22 @@ mod tests {
     }
 
     #[test]
+    fn a_box_scanned_a_little_askew_still_has_three_half_turns() {
+        // A scan's box sits turned in its own frame: its edges 33° about z
+        // from the frame axes and tipped 1.5° about x, so frame z is a near
+        // twin of a principal axis.
+        let mut cuboid = mesh_of(ClutterShape::Box { half_extents: Vector3::new(0.055, 0.045, 0.018) });
+        let askew = Rotation3::from_axis_angle(&Vector3::x_axis(), 1.5_f64.to_radians())
+            * Rotation3::from_axis_angle(&Vector3::z_axis(), 33_f64.to_radians());
+        for vertex in &mut cuboid.vertices {
+            *vertex = Point3::from((askew * vertex.coords.cast::<f64>()).cast::<f32>());
+        }
+        let found = find_symmetries(&cuboid, 0.146, 0.03).unwrap();
+        assert!(continuous_axes(&found).is_empty(), "{found:?}");
+        assert_eq!(found.len(), 3, "{found:?}");
+    }
+
+    #[test]
     fn a_cube_has_the_rotation_group_of_the_cube() {
         let cube = mesh_of(ClutterShape::Box { half_extents: Vector3::repeat(0.03) });
         let found = find_symmetries(&cube, 0.104, 0.01).unwrap();
@@ -284,11 +338,20 @@ mod tests {
     fn half_turns_have_their_axis() {
         for axis in [Vector3::x_axis(), Vector3::y_axis(), Unit::new_normalize(Vector3::new(1.0, -2.0, 0.5))] {
             for angle in [0.5, 2.0, std::f64::consts::PI] {
-                let found = rotation_axis(&Rotation3::from_axis_angle(&axis, angle)).unwrap();
+                let found = rotation_axis(&Rotation3::from_axis_angle(&axis, angle), SAME_ROTATION_RAD).unwrap();
                 assert!(found.dot(&axis).abs() > 1.0 - 1e-9, "{angle}: {found:?} vs {axis:?}");
             }
         }
-        assert!(rotation_axis(&Rotation3::identity()).is_none());
+        assert!(rotation_axis(&Rotation3::identity(), SAME_ROTATION_RAD).is_none());
+        // Rounding puts the trace of a product of half turns a hair above 3.
+        let rounded = Rotation3::from_matrix_unchecked(Matrix3::identity() * (1.0 + 1e-15));
+        assert!(rotation_axis(&rounded, SAME_ROTATION_RAD).is_none());
+        // A half turn built as a product of two has an exactly symmetric
+        // matrix, where nalgebra finds no axis.
+        let product = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+            * Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::PI);
+        let (axis, angle) = turn(&product).unwrap();
+        assert!(axis.z.abs() > 1.0 - 1e-9 && (angle - std::f64::consts::PI).abs() < 1e-9, "{axis:?} {angle}");
     }
 
     #[test]
