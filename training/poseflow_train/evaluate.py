@@ -263,6 +263,9 @@ def add_model_arguments(parser):
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--precision", choices=["fp32", "int8"], default="fp32",
                         help="int8: the quantised files (encoder.int8.onnx, velocity.int8.onnx)")
+    parser.add_argument("--symmetries", choices=["models-info", "shape"], default="models-info",
+                        help="score up to models_info.json's symmetries (the printed objects') or "
+                             "models_info_shape.json's (the one-coloured shapes', as poseflow eval --symmetries)")
 
 
 def load_model(args):
@@ -288,7 +291,7 @@ def main():
     parser.add_argument("--min-visib-fract", type=float, default=0.1)
     args = parser.parse_args()
     model, cfg = load_model(args)
-    observations = Observations(args.shard, model.object_ids, args.min_visib_fract)
+    observations = Observations(args.shard, model.object_ids, args.min_visib_fract, symmetries=args.symmetries)
     # A prefix of the observations (--count) is a quick look, not a figure
     # over the split: only the whole split counts its unobserved instances.
     missed = unobserved(observations, args.min_visib_fract) if args.count >= len(observations) else {}

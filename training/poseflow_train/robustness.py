@@ -233,14 +233,15 @@ def main():
             write_variant(args.dataset, args.split, root, VARIANTS[name], args.seed)
         shard = root / f"{args.split}.obs"
         observe(args.poseflow, root, args.split, shard, meta["image_size"], meta["patch_grid"], args.ingest_config)
-        observations = Observations([shard], model.object_ids)
+        observations = Observations([shard], model.object_ids, symmetries=args.symmetries)
         result = accuracy(model.encoder, model.velocity, observations, cfg, len(observations), args.samples,
                           args.steps, args.seed, unobserved(observations, 0.1))
         result.pop("per_object")
         rows[name] = result
         print(f"{name}: {result['observations']} observations, per-sample 10deg5cm {result['acc_10deg_5cm']} %, "
               f"coarse pose {result['coarse']['acc_10deg_5cm']} %", flush=True)
-    print(json.dumps({"model": args.model, "dataset": args.dataset, "split": args.split, "variants": rows}))
+    print(json.dumps({"model": args.model, "dataset": args.dataset, "split": args.split, "symmetries": args.symmetries,
+                      "variants": rows}))
 
 
 if __name__ == "__main__":
