@@ -110,7 +110,8 @@ pub fn import_model(spec: &ImportSpec, models_dir: &Path) -> Result<Imported, Sc
     if shape_symmetries.is_some() || shape_path.exists() {
         let symmetries = shape_symmetries.as_deref().unwrap_or(&imported.symmetries);
         let mut shape: Map<String, Value> = if shape_path.exists() { bop::read_json(&shape_path)? } else { Map::new() };
-        shape.insert(spec.obj_id.to_string(), info_entry(&mesh, symmetries));
+        let (min, max) = bounding_box(&mesh.vertices);
+        shape.insert(spec.obj_id.to_string(), info_entry(min, max, imported.diameter, symmetries));
         bop::write_json(&shape_path, &shape)?;
     }
     Ok(Imported { shape_symmetries, ..imported })
@@ -132,27 +133,25 @@ pub fn write_model(
         .map_err(|source| SceneError::Write { path: model_path.clone(), source })?;
 
     let (min, max) = bounding_box(&mesh.vertices);
+    let diameter = diameter(&mesh.vertices);
     let info_path = models_dir.join("models_info.json");
     let mut info: Map<String, Value> = if info_path.exists() { bop::read_json(&info_path)? } else { Map::new() };
-    let entry = info_entry(mesh, &symmetries);
-    info.insert(obj_id.to_string(), entry);
+    info.insert(obj_id.to_string(), info_entry(min, max, diameter, &symmetries));
     bop::write_json(&info_path, &info)?;
     Ok(Imported {
         model_path,
         vertices: mesh.vertices.len(),
         triangles: mesh.triangles.len(),
-        diameter: diameter(&mesh.vertices),
+        diameter,
         size: max - min,
         symmetries,
         shape_symmetries: None,
     })
 }
 
-/// The `models_info.json` entry of `mesh` (metres) with these symmetries,
-/// in BOP's millimetres.
-fn info_entry(mesh: &ObjectMesh, symmetries: &[Symmetry]) -> Value {
-    let (min, max) = bounding_box(&mesh.vertices);
-    let diameter = diameter(&mesh.vertices);
+/// The `models_info.json` entry of a mesh with this bounding box and
+/// diameter (metres) and these symmetries, in BOP's millimetres.
+fn info_entry(min: Vector3<f64>, max: Vector3<f64>, diameter: f64, symmetries: &[Symmetry]) -> Value {
     let mut entry = json!({
         "diameter": diameter * METRES_TO_BOP,
         "min_x": min.x * METRES_TO_BOP, "min_y": min.y * METRES_TO_BOP, "min_z": min.z * METRES_TO_BOP,
