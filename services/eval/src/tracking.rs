@@ -16,6 +16,7 @@ use poseflow_scene::bop::{GtEntry, GtInfoEntry, SceneDir, read_json};
 use poseflow_scene::video::EventRecord;
 use serde::Serialize;
 
+use crate::dataset::MIN_VISIB_FRACT;
 use crate::recovery::{EventOutcome, PROMPT_IMAGES, REAPPEARED_VISIBLE, outcomes};
 
 /// Accuracy thresholds of the report: (degrees, metres).
@@ -76,7 +77,12 @@ pub struct VideoSummary {
     /// Over every object and image.
     pub acc_5deg_5cm: f64,
     pub acc_10deg_5cm: f64,
+    /// The objects at least [`MIN_VISIB_FRACT`] visible in some image (all
+    /// annotated ones when the scene has no `scene_gt_info.json`).
     pub objects: Vec<TrackedObject>,
+    /// Annotated objects never that visible: out of the camera's view the
+    /// whole video, so not scored.
+    pub objects_never_visible: Vec<u32>,
     /// The video's occlusions and teleports and how soon each object was
     /// back within 10°5cm.
     pub events: Vec<EventOutcome>,
@@ -109,6 +115,8 @@ pub fn summarise_video(
     for entry in gt.values().flatten() {
         *annotated.entry(entry.obj_id).or_default() += 1;
     }
+    let objects_never_visible = never_visible(scene, &gt)?;
+    annotated.retain(|obj_id, _| !objects_never_visible.contains(obj_id));
     let mut by_object: BTreeMap<u32, Vec<&TrackedImage>> = BTreeMap::new();
     for image in images {
         by_object.entry(image.obj_id).or_default().push(image);
@@ -145,9 +153,28 @@ pub fn summarise_video(
         acc_5deg_5cm: percent(tight_all, frames_all as usize),
         acc_10deg_5cm: percent(loose_all, frames_all as usize),
         objects,
+        objects_never_visible,
         events_prompt_pct: percent(events.iter().filter(|e| e.prompt()).count(), events.len()),
         events,
     })
+}
+
+/// The annotated objects never at least [`MIN_VISIB_FRACT`] visible in
+/// the video (none without `scene_gt_info.json`).
+fn never_visible(scene: &SceneDir, gt: &BTreeMap<u32, Vec<GtEntry>>) -> anyhow::Result<Vec<u32>> {
+    if !scene.scene_gt_info().is_file() {
+        return Ok(Vec::new());
+    }
+    let info: BTreeMap<u32, Vec<GtInfoEntry>> = read_json(&scene.scene_gt_info())?;
+    let mut seen: BTreeMap<u32, bool> = BTreeMap::new();
+    for (im_id, entries) in gt {
+        let shares = info.get(im_id).map_or(&[][..], Vec::as_slice);
+        for (k, entry) in entries.iter().enumerate() {
+            let visible = shares.get(k).is_some_and(|share| share.visib_fract >= MIN_VISIB_FRACT);
+            *seen.entry(entry.obj_id).or_default() |= visible;
+        }
+    }
+    Ok(seen.into_iter().filter(|(_, visible)| !visible).map(|(obj_id, _)| obj_id).collect())
 }
 
 /// The outcomes of the video's events, if it has any.
@@ -232,6 +259,14 @@ pub fn print_video(video: &VideoSummary) {
             o.latency.p99_ms
         );
     }
+    if !video.objects_never_visible.is_empty() {
+        let ids: Vec<String> = video.objects_never_visible.iter().map(u32::to_string).collect();
+        println!(
+            "not scored: object(s) {} never ≥ {:.0} % visible in the video",
+            ids.join(", "),
+            MIN_VISIB_FRACT * 100.0
+        );
+    }
     if !video.events.is_empty() {
         println!(
             "events: {} of {} back within 10°5cm at most {PROMPT_IMAGES} images after the object reappeared (≥ {:.0} % visible) or moved ({:.1} %)",
@@ -298,6 +333,32 @@ mod tests {
         assert_eq!((o.frames, o.estimated, o.tracked, o.lost, o.unsure, o.reinitialised), (4, 3, 2, 1, 1, 1));
         assert_eq!((o.acc_5deg_5cm, o.acc_10deg_5cm), (25.0, 50.0));
         assert!(video.events.is_empty());
+        assert!(video.objects_never_visible.is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_object_never_in_view_is_named_and_not_scored() {
+        let dir = std::env::temp_dir().join(format!("poseflow-tracking-unseen-{}", std::process::id()));
+        let scene = SceneDir::new(&dir, 0);
+        std::fs::create_dir_all(&scene.path).unwrap();
+        // Objects 1 and 2 annotated in images 0–1; 1 is 5 % then 40 %
+        // visible, 2 is 5 % then out of the image.
+        let pose =
+            |obj_id| serde_json::json!({"obj_id": obj_id, "cam_R_m2c": [1,0,0,0,1,0,0,0,1], "cam_t_m2c": [0,0,500]});
+        let share = |visib_fract| {
+            serde_json::json!({"bbox_obj": [0, 0, 1, 1], "bbox_visib": [0, 0, 1, 1], "px_count_all": 100,
+                "px_count_valid": 100, "px_count_visib": 10, "visib_fract": visib_fract})
+        };
+        let gt = serde_json::json!({"0": [pose(1), pose(2)], "1": [pose(1), pose(2)]});
+        let info = serde_json::json!({"0": [share(0.05), share(0.05)], "1": [share(0.4), share(0.0)]});
+        std::fs::write(scene.scene_gt(), gt.to_string()).unwrap();
+        std::fs::write(scene.scene_gt_info(), info.to_string()).unwrap();
+        let video = summarise_video(&dir, 0, 2, &[image(1, 1.0, 0)]).unwrap();
+        assert_eq!(video.objects.iter().map(|o| o.obj_id).collect::<Vec<_>>(), [1]);
+        assert_eq!(video.objects_never_visible, [2]);
+        // A hidden image of an object in the video is still a miss.
+        assert_eq!((video.objects[0].frames, video.acc_10deg_5cm), (2, 50.0));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
