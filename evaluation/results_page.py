@@ -223,6 +223,61 @@ def category_section(directory):
             "84.0 — on real images with a GPU-trained model, not comparable figure for figure.", "", *lines]
 
 
+YCBV_NAMES = {1: "master chef can", 2: "cracker box", 3: "sugar box", 4: "tomato soup can", 5: "mustard bottle",
+              6: "tuna fish can", 7: "pudding box", 8: "gelatin box", 9: "potted meat can", 10: "banana",
+              11: "pitcher base", 12: "bleach cleanser", 13: "bowl", 14: "mug", 15: "power drill", 16: "wood block",
+              17: "scissors", 18: "large marker", 19: "large clamp", 20: "extra large clamp", 21: "foam brick"}
+
+
+def ycbv_section(directory):
+    """The YCB-V model (`evaluation/run ycbv`): held-out renders through the
+    graph, and the real development frame per object."""
+    renders = [(label, load(directory / f"{name}.json")) for name, label in
+               [("heldout2-sdf-refine", "sdf + refine"), ("heldout2-none", "none (one random sample)")]]
+    renders = [(label, s) for label, s in renders if s]
+    real = load(directory / "real-frame.json")
+    real_rows = instances(directory / "real-frame.instances.csv")
+    per_sample = load(directory / "real-frame-per-sample.json")
+    if not renders and not real:
+        return []
+    lines = ["## YCB-V objects (`models/poseflow-ycbv`)", "",
+             "`evaluation/run ycbv`: the YCB-V model (see its model card) through the estimation graph, 50 samples, "
+             "5 steps. Targets (issue 28): held-out renders with the sensor effects on, sdf + refine 10°5cm ≥ 80 % and "
+             "per sample ≥ 50 %; on the real development frame at least 3 of its 4 objects within 10°5cm.", ""]
+    if renders:
+        s = renders[0][1]
+        lines += [f"### Held-out renders (`{s['dataset']}` split `{s['split']}`: seed 3, never used for a decision)", "",
+                  f"{s['instances']} instances at least 10 % visible, all 21 objects, medium occlusion, every sensor "
+                  "effect of docs/datasets.md, the YCB-V camera. Scored up to the one-coloured shapes' symmetries "
+                  "(`models_info_shape.json`): the vendored meshes have no print, so a box turned end over end looks "
+                  "the same in these renders.", "", HEADER]
+        lines += [row(label, s) for label, s in renders]
+        lines.append("")
+    if real and real_rows:
+        sample_share = (per_sample or {}).get("per_object", {})
+        lines += ["### The real development frame (`tests/data/real/ycbv-frame`, a YCB-Video test image)", "",
+                  "sdf + refine, scored up to BOP's symmetries (`models_info.json`: the real objects have print). "
+                  "Per sample: the share of the 50 samples within 10°5cm (`poseflow_train.evaluate` on the frame's "
+                  "observations, no selection). One frame: a look at real sensor data, not a benchmark.", "",
+                  "| object | visible fraction | rotation error ° | translation error cm | within 10°5cm | "
+                  "samples within 10°5cm % |", "|---|---:|---:|---:|---|---:|"]
+        for r in real_rows:
+            obj = int(r["obj_id"])
+            estimated = r["estimated"] == "1"
+            rot = float(r["rotation_error_deg"]) if estimated else None
+            trans = float(r["translation_error_cm"]) if estimated else None
+            within = estimated and rot < 10 and trans < 5
+            share = sample_share.get(str(obj), {}).get("acc_10deg_5cm")
+            visible = float(r["visib_fract"])
+            lines.append(f"| {obj} {YCBV_NAMES.get(obj, '')} | {fmt(visible, 2)} | {fmt(rot)} | "
+                         f"{fmt(trans, 2)} | {'yes' if within else 'no'} | {fmt(share)} |")
+        hits = sum(1 for r in real_rows if r["estimated"] == "1" and float(r["rotation_error_deg"]) < 10
+                   and float(r["translation_error_cm"]) < 5)
+        per_sample_all = f"; per sample {fmt(per_sample['acc_10deg_5cm'])} %" if per_sample else ""
+        lines += ["", f"{hits} of {len(real_rows)} objects within 10°5cm{per_sample_all}.", ""]
+    return lines
+
+
 GRASP_RUNS = [("sim", "any"), ("sim-handle", "handle")]
 
 
@@ -451,6 +506,7 @@ def main():
     lines += ambiguity_section(results / "ambiguity")
     lines += recovery_section(results / "recovery")
     lines += category_section(results / "category")
+    lines += ycbv_section(results / "ycbv")
     lines += grasp_section(results / "grasp")
     lines += nbv_section(results / "nbv")
 

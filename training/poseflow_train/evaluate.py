@@ -297,7 +297,8 @@ def main():
     missed = unobserved(observations, args.min_visib_fract) if args.count >= len(observations) else {}
     result = accuracy(model.encoder, model.velocity, observations, cfg, args.count, args.samples, args.steps, args.seed,
                       missed)
-    result.update({"model": args.model, "shard": args.shard, "min_visib_fract": args.min_visib_fract})
+    result.update({"model": args.model, "shard": args.shard, "min_visib_fract": args.min_visib_fract,
+                   "symmetries": args.symmetries})
     print(json.dumps(result))
 
 

@@ -208,7 +208,8 @@ def main():
     parser.add_argument("--dataset", required=True, help="BOP dataset root (models/, camera.json, the split)")
     parser.add_argument("--split", required=True, help="split folder (not named test*: that reads test targets)")
     parser.add_argument("--out", required=True, help="scratch folder for the perturbed copies and their shards")
-    parser.add_argument("--only", nargs="+", choices=list(VARIANTS), help="these variants only")
+    parser.add_argument("--only", nargs="+", choices=[*VARIANTS, *sensor_variants()],
+                        help="these variants only (with --sensor-effects, of its renders: \"sensor: ...\")")
     parser.add_argument("--poseflow", default="../target/release/poseflow")
     parser.add_argument("--ingest-config", help="ingest parameters (TOML, as config/ingest.toml) for `poseflow observe`")
     parser.add_argument("--sensor-effects", metavar="RENDER_ARGS",
@@ -221,7 +222,11 @@ def main():
     meta = model.encoder_session.get_modelmeta().custom_metadata_map
     rows = {}
     sensors = sensor_variants() if args.sensor_effects else {}
-    names = list(sensors) if args.sensor_effects else (args.only or VARIANTS)
+    names = args.only or list(sensors if args.sensor_effects else VARIANTS)
+    wrong = [name for name in names if name not in (sensors if args.sensor_effects else VARIANTS)]
+    if wrong:
+        parser.error(f"--only {wrong[0]!r}: " + ("not a --sensor-effects render" if args.sensor_effects else
+                                                 "a --sensor-effects render; add --sensor-effects"))
     for number, name in enumerate(names):
         root = Path(args.out) / f"variant{number:02d}"
         if args.sensor_effects:
