@@ -6,7 +6,7 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use poseflow_scene::camera_path::CameraPath;
-use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset, ycbv_camera};
+use poseflow_scene::dataset::{RenderSpec, YCBV_DISTANCE, lmo_camera, write_dataset, ycbv_camera};
 use poseflow_scene::part::{ObjectPart, PartVisibility, ViewCondition};
 use poseflow_scene::scene::{Occlusion, SceneStyle, ViewRange};
 use poseflow_scene::sensor::SensorModel;
@@ -21,9 +21,6 @@ use poseflow_runtime::timing::Timing;
 const MAX_IMAGE_SIDE: u32 = 8192;
 /// Largest orbit step: beyond it consecutive images are not a video.
 const MAX_ORBIT_STEP_DEG: f64 = 90.0;
-/// Camera distances for the YCB-V intrinsics: about the LM-O range's image
-/// scales at 1.9× its focal length, clipped to a tabletop's reach.
-const YCBV_DISTANCE: (f64, f64) = (0.6, 1.6);
 /// Per-channel RGB noise of the default (realistic) render, 8-bit levels.
 const RGB_NOISE: f64 = 2.0;
 

@@ -273,38 +273,61 @@ fn check(args: &EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The metrics' view of every object of the library, scored up to the
-/// symmetries of `symmetries` (models_info.json's when `None`).
-fn scored_objects(
+/// Each object of `library` with its symmetries as `source` records them,
+/// continuous ones discretised at `step` radians: BOP's models_info.json
+/// beside the meshes, or the shape's own file
+/// ([`SHAPE_SYMMETRIES_FILE`]), which must then have an entry for every
+/// object.
+pub(crate) fn object_symmetries(
     library: &ModelLibrary,
-    symmetries: Option<&ModelsInfo>,
-) -> anyhow::Result<BTreeMap<u32, ScoredObject>> {
+    source: SymmetriesArg,
+    step: f64,
+) -> anyhow::Result<BTreeMap<u32, SymmetrySet>> {
+    let shape_path = library.dir.join(SHAPE_SYMMETRIES_FILE);
+    let shape = match source {
+        SymmetriesArg::ModelsInfo => None,
+        SymmetriesArg::Shape => Some(ModelsInfo::from_path(&shape_path).with_context(|| {
+            format!("--symmetries shape: {} (poseflow import-model --shape-symmetries writes it)", shape_path.display())
+        })?),
+    };
     library
         .objects
         .iter()
         .map(|object| {
-            let points: Vec<Point3<f64>> = object.model.mesh.vertices.iter().map(|v| v.cast::<f64>()).collect();
-            let info = match symmetries {
+            let info = match &shape {
                 None => &object.info,
                 Some(table) => table.get(object.obj_id).with_context(|| {
                     format!(
                         "--symmetries shape: {} has no entry for object {} (import it with --shape-symmetries)",
-                        library.dir.join(SHAPE_SYMMETRIES_FILE).display(),
+                        shape_path.display(),
                         object.obj_id
                     )
                 })?,
             };
-            let symmetries = SymmetrySet::from_model_info(info, BOP_MAX_SYMMETRY_STEP);
+            Ok((object.obj_id, SymmetrySet::from_model_info(info, step)))
+        })
+        .collect()
+}
+
+/// The metrics' view of every object of the library, scored up to the
+/// symmetries of `source`.
+fn scored_objects(library: &ModelLibrary, source: SymmetriesArg) -> anyhow::Result<BTreeMap<u32, ScoredObject>> {
+    let mut symmetries = object_symmetries(library, source, BOP_MAX_SYMMETRY_STEP)?;
+    Ok(library
+        .objects
+        .iter()
+        .map(|object| {
+            let points: Vec<Point3<f64>> = object.model.mesh.vertices.iter().map(|v| v.cast::<f64>()).collect();
             let scored = ScoredObject {
                 nearest: NearestPoints::new(&points),
                 points,
                 diameter: object.info.diameter,
-                symmetries,
+                symmetries: symmetries.remove(&object.obj_id).expect("one set per object of the library"),
                 model: object.model.clone(),
             };
-            Ok((object.obj_id, scored))
+            (object.obj_id, scored)
         })
-        .collect()
+        .collect())
 }
 
 /// Messages in and out, drops and errors of every stage, from the run's
@@ -605,16 +628,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let objects_dir = args.objects.clone().unwrap_or_else(|| args.dataset.join("models"));
     let library = ModelLibrary::load(&objects_dir, &[])
         .with_context(|| format!("--objects {}: cannot load the object models", objects_dir.display()))?;
-    let shape_symmetries = match args.symmetries {
-        SymmetriesArg::ModelsInfo => None,
-        SymmetriesArg::Shape => {
-            let path = objects_dir.join(SHAPE_SYMMETRIES_FILE);
-            Some(ModelsInfo::from_path(&path).with_context(|| {
-                format!("--symmetries shape: {} (poseflow import-model --shape-symmetries writes it)", path.display())
-            })?)
-        }
-    };
-    let objects = scored_objects(&library, shape_symmetries.as_ref())?;
+    let objects = scored_objects(&library, args.symmetries)?;
     let categories = args
         .category
         .then(|| {

@@ -44,6 +44,10 @@ pub fn ycbv_camera(width: u32, height: u32) -> Camera {
     Camera { fx: 1066.778 * sx, fy: 1067.487 * sy, cx: 312.9869 * sx, cy: 241.3109 * sy, width, height }
 }
 
+/// Camera distances (metres) for [`ycbv_camera`]: about the LM-O range's
+/// image scales at 1.9× its focal length, clipped to a tabletop's reach.
+pub const YCBV_DISTANCE: (f64, f64) = (0.6, 1.6);
+
 /// The LM-O (Kinect v1) intrinsics at 640×480, scaled to another image size.
 pub fn lmo_camera(width: u32, height: u32) -> Camera {
     let (sx, sy) = (f64::from(width) / 640.0, f64::from(height) / 480.0);

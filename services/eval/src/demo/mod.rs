@@ -17,17 +17,18 @@ use poseflow_graph::Graph;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 use poseflow_scene::bop::{CameraEntry, GtEntry, SceneDir, read_json, read_rgb_png};
 use poseflow_scene::camera_path::CameraPath;
-use poseflow_scene::dataset::{RenderSpec, lmo_camera, write_dataset};
-use poseflow_scene::scene::{Occlusion, ViewRange};
+use poseflow_scene::dataset::{RenderSpec, YCBV_DISTANCE, lmo_camera, write_dataset, ycbv_camera};
+use poseflow_scene::scene::{Occlusion, SceneStyle, ViewRange};
+use poseflow_scene::sensor::SensorModel;
 use poseflow_scene::video::VideoEvents;
 use poseflow_scene::{DepthNoise, ModelLibrary};
 use serde::Serialize;
 
 use self::graph::{Overrides, graph_with_overrides};
 use self::pictures::{Outlined, SamplePanel, mollweide_panels, overlay};
+use crate::SymmetriesArg;
 
-/// Rotation steps of continuous symmetries in the reported errors (BOP's
-/// discretisation).
+/// Rotation steps of continuous symmetries in the reported errors.
 const SYMMETRY_STEP_DEG: f64 = 1.0;
 /// Hypotheses outlined per object.
 const OUTLINED_HYPOTHESES: usize = 5;
@@ -70,6 +71,68 @@ impl DetectorMode {
     }
 }
 
+/// How a set's scenes are rendered: as its model saw them in training.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Look {
+    /// LM-O's camera, plain depth noise, one-coloured support.
+    Plain,
+    /// The YCB-V camera at 0.6–1.6 m, every sensor effect of docs/datasets.md, textured table and backdrop.
+    RealCamera,
+}
+
+/// A vendored object set `--objects` knows by name.
+struct ObjectSet {
+    name: &'static str,
+    objects: &'static str,
+    model: &'static str,
+    look: Look,
+    /// What its renders can show: the vendored YCB-V meshes have no print, so a box turned end over end looks
+    /// the same.
+    symmetries: SymmetriesArg,
+}
+
+const OBJECT_SETS: [ObjectSet; 2] = [
+    ObjectSet {
+        name: "lmo",
+        objects: "objects/lmo",
+        model: "models/poseflow-lmo10",
+        look: Look::Plain,
+        symmetries: SymmetriesArg::ModelsInfo,
+    },
+    ObjectSet {
+        name: "ycbv",
+        objects: "objects/ycbv/models",
+        model: "models/poseflow-ycbv",
+        look: Look::RealCamera,
+        symmetries: SymmetriesArg::Shape,
+    },
+];
+
+/// `--objects`, `--model` and `--symmetries` resolved against [`OBJECT_SETS`].
+pub(crate) struct Setup {
+    pub objects: PathBuf,
+    pub model: PathBuf,
+    look: Look,
+    symmetries: SymmetriesArg,
+}
+
+impl Setup {
+    fn of(args: &DemoArgs) -> anyhow::Result<Self> {
+        let set = OBJECT_SETS.iter().find(|set| set.name == args.objects);
+        if set.is_none() && !Path::new(&args.objects).is_dir() {
+            let names: Vec<&str> = OBJECT_SETS.iter().map(|set| set.name).collect();
+            bail!("--objects {}: expected a known set ({}) or a BOP models directory", args.objects, names.join(", "));
+        }
+        let default_set = &OBJECT_SETS[0];
+        Ok(Self {
+            objects: set.map_or_else(|| PathBuf::from(&args.objects), |set| PathBuf::from(set.objects)),
+            model: args.model.clone().unwrap_or_else(|| PathBuf::from(set.unwrap_or(default_set).model)),
+            look: set.map_or(Look::Plain, |set| set.look),
+            symmetries: args.symmetries.unwrap_or(set.map_or(SymmetriesArg::ModelsInfo, |set| set.symmetries)),
+        })
+    }
+}
+
 #[derive(Debug, Args)]
 #[command(after_help = "Run from the repository root after `cargo build --release --workspace` (the stages are \
     separate executables). Writes <out>/scene (the rendered BOP scene), <out>/estimation.toml (the graph run), \
@@ -87,12 +150,21 @@ pub struct DemoArgs {
     /// Seed of the rendered scene.
     #[arg(long, default_value_t = 3)]
     pub seed: u64,
-    /// Model directory (encoder.onnx, velocity.onnx).
-    #[arg(long, default_value = "models/poseflow-lmo10")]
-    pub model: PathBuf,
-    /// BOP models directory of the objects to render and score.
-    #[arg(long, default_value = "objects/lmo")]
-    pub objects: PathBuf,
+    /// The objects to render and score: `lmo` (objects/lmo: three LM-O objects, with models/poseflow-lmo10), `ycbv`
+    /// (objects/ycbv/models: the 21 YCB-V objects, with models/poseflow-ycbv, seen by the YCB-V camera with every
+    /// sensor effect on textured surroundings, scored up to the shape's symmetries), or a BOP models directory
+    /// (write ./lmo for a folder of that name).
+    #[arg(long, default_value = "lmo", value_name = "SET|DIR")]
+    pub objects: String,
+    /// Model directory (encoder.onnx, velocity.onnx) [default: the set's model; models/poseflow-lmo10 for a
+    /// directory].
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// The symmetries the errors are scored up to: `models-info` (models_info.json, the printed object's) or
+    /// `shape` (models_info_shape.json, what a one-coloured render can show) [default: shape for ycbv, else
+    /// models-info].
+    #[arg(long, value_enum)]
+    pub symmetries: Option<SymmetriesArg>,
     /// The graph to run [default: deploy/estimation.toml, with --track deploy/tracking.toml; with --detect
     /// their -detect twins].
     #[arg(long)]
@@ -169,6 +241,8 @@ struct Report {
     out: PathBuf,
     selection: &'static str,
     refined: bool,
+    /// The symmetries the errors were scored up to.
+    symmetries: SymmetriesArg,
     objects: Vec<ObjectReport>,
     overlay: PathBuf,
     mollweide: PathBuf,
@@ -224,13 +298,14 @@ pub(crate) fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
 
 /// Renders one scene of `frames` images (independent views, or an orbit of
 /// `orbit_step_deg` per image) as the `test` split of a BOP dataset.
-pub(crate) fn render_scene(
+fn render_scene(
     library: &ModelLibrary,
-    seed: u64,
+    (seed, look): (u64, Look),
     frames: u32,
     path: CameraPath,
     out: &Path,
 ) -> anyhow::Result<()> {
+    let plain = look == Look::Plain;
     let spec = RenderSpec {
         split: "test".into(),
         first_scene: 0,
@@ -238,13 +313,13 @@ pub(crate) fn render_scene(
         frames_per_scene: frames,
         seed,
         occlusion: Occlusion::Medium,
-        camera: lmo_camera(640, 480),
-        views: ViewRange::default(),
+        camera: if plain { lmo_camera(640, 480) } else { ycbv_camera(640, 480) },
+        views: if plain { ViewRange::default() } else { ViewRange { distance: YCBV_DISTANCE, ..ViewRange::default() } },
         path,
-        depth_noise: Some(DepthNoise::default()),
-        rgb_noise: 2.0,
-        sensor: None,
-        style: Default::default(),
+        depth_noise: plain.then(DepthNoise::default),
+        rgb_noise: if plain { 2.0 } else { 0.0 },
+        sensor: (!plain).then(SensorModel::default),
+        style: SceneStyle { textured: !plain, ..SceneStyle::default() },
         condition: None,
     };
     write_dataset(library, &spec, out, |_| {}).with_context(|| format!("{}: cannot write the scene", out.display()))
@@ -312,16 +387,16 @@ pub(crate) fn ground_truth(dataset: &Path) -> anyhow::Result<BTreeMap<u32, Vec<(
         .collect()
 }
 
-/// The symmetries of `obj_id` in `library`, as the reported errors use them.
-pub(crate) fn symmetries(library: &ModelLibrary, obj_id: u32) -> anyhow::Result<SymmetrySet> {
-    let object = library.objects.iter().find(|o| o.obj_id == obj_id).context("an object of the scene")?;
-    Ok(SymmetrySet::from_model_info(&object.info, SYMMETRY_STEP_DEG.to_radians()))
+/// Each object's symmetries, as the reported errors use them.
+fn symmetries(library: &ModelLibrary, setup: &Setup) -> anyhow::Result<BTreeMap<u32, SymmetrySet>> {
+    crate::object_symmetries(library, setup.symmetries, SYMMETRY_STEP_DEG.to_radians())
 }
 
 /// Renders the scene, writes the graph with the demo's overrides and runs
 /// it: the shared first half of both demos. Returns the recording's path.
 fn render_and_run(
     args: &DemoArgs,
+    setup: &Setup,
     library: &ModelLibrary,
     scene: (u32, CameraPath),
     graph_file: &Path,
@@ -329,13 +404,13 @@ fn render_and_run(
 ) -> anyhow::Result<PathBuf> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
     let dataset = args.out.join("scene");
-    render_scene(library, args.seed, scene.0, scene.1, &dataset)?;
+    render_scene(library, (args.seed, setup.look), scene.0, scene.1, &dataset)?;
     let overrides = Overrides {
         dataset: &dataset,
         split: "test",
         targets: None,
-        model: &args.model,
-        object_models: &args.objects,
+        model: &setup.model,
+        object_models: &setup.objects,
         selection: args.selection.name(),
         refine: !args.no_refine,
         samples: args.samples,
@@ -388,17 +463,19 @@ fn default_graph(name: &str, detect: bool) -> PathBuf {
 
 pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     check(args)?;
-    let library = ModelLibrary::load(&args.objects, &[])
-        .with_context(|| format!("--objects {}: cannot load the object models", args.objects.display()))?;
+    let setup = Setup::of(args)?;
+    let library = ModelLibrary::load(&setup.objects, &[])
+        .with_context(|| format!("--objects {}: cannot load the object models", setup.objects.display()))?;
+    let symmetries = symmetries(&library, &setup)?;
     if args.track {
         let graph = args.graph.clone().unwrap_or_else(|| default_graph("tracking", args.detect));
         let events = VideoEvents { occlusions: args.occlusions, teleports: args.teleports };
         let path = CameraPath::Orbit { step_deg: args.orbit_step_deg, events };
-        let recording = render_and_run(args, &library, (args.frames, path), &graph, "estimates")?;
-        return tracking::report(args, &library, &recording);
+        let recording = render_and_run(args, &setup, &library, (args.frames, path), &graph, "estimates")?;
+        return tracking::report(args, (&symmetries, setup.symmetries), &recording);
     }
     let graph = args.graph.clone().unwrap_or_else(|| default_graph("estimation", args.detect));
-    let recording = render_and_run(args, &library, (1, CameraPath::Random), &graph, "hypotheses,estimates")?;
+    let recording = render_and_run(args, &setup, &library, (1, CameraPath::Random), &graph, "hypotheses,estimates")?;
     let recorded = read_recording(&recording)?;
 
     let dataset = args.out.join("scene");
@@ -416,7 +493,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         let obj_id = estimate.header.object_id;
         let Some((_, truth)) = truths.iter().find(|(id, _)| *id == obj_id) else { continue };
         let object = library.objects.iter().find(|o| o.obj_id == obj_id).context("an object of the scene")?;
-        let symmetries = symmetries(&library, obj_id)?;
+        let symmetries = symmetries.get(&obj_id).context("an object of the scene")?;
         let best = Pose::from_f32_row_major(&estimate.best)?;
         let error = symmetries.pose_error(&best, truth);
         let within = entry
@@ -468,11 +545,20 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         out: args.out.clone(),
         selection: args.selection.name(),
         refined: !args.no_refine,
+        symmetries: setup.symmetries,
         objects,
         overlay: overlay_path,
         mollweide: mollweide_path,
     };
     print_report(&report, args.json, print_table)
+}
+
+/// How the table names a scoring up to the shape's symmetries.
+pub(crate) fn symmetries_note(symmetries: SymmetriesArg) -> &'static str {
+    match symmetries {
+        SymmetriesArg::ModelsInfo => "",
+        SymmetriesArg::Shape => " (the shape's, models_info_shape.json: the renders show no print)",
+    }
 }
 
 /// Prints `report` as one JSON object, or as the text `table` writes.
@@ -488,9 +574,10 @@ pub(crate) fn print_report<R: Serialize>(report: &R, json: bool, table: impl Fn(
 fn print_table(report: &Report) {
     println!(
         "selection {}{}; errors against the ground truth and rotation spread (largest std of the kept hypotheses) \
-         folded by the object's symmetries; translation spread = √trace of their covariance",
+         folded by the object's symmetries{}; translation spread = √trace of their covariance",
         report.selection,
-        if report.refined { " + refinement" } else { "" }
+        if report.refined { " + refinement" } else { "" },
+        symmetries_note(report.symmetries)
     );
     println!(
         "object  t (m)                    rot err °  trans err cm  rot spread °  trans spread cm  modes  samples ≤10°5cm"

@@ -5,14 +5,14 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use poseflow_contracts::{StampSlot, flags};
-use poseflow_geometry::Pose;
-use poseflow_scene::ModelLibrary;
+use poseflow_geometry::{Pose, SymmetrySet};
 use serde::Serialize;
 
 use super::pictures::{ErrorSeries, error_plot};
-use super::{DemoArgs, ground_truth, print_report, read_recording, symmetries};
+use super::{DemoArgs, ground_truth, print_report, read_recording, symmetries_note};
+use crate::SymmetriesArg;
 use crate::tracking::{TrackedImage, VideoSummary, print_video, summarise_video, write_per_image};
 
 #[derive(Debug, Serialize)]
@@ -20,6 +20,8 @@ struct TrackingReport {
     out: PathBuf,
     orbit_step_deg: f64,
     rate_hz: f64,
+    /// The symmetries the errors were scored up to.
+    symmetries: SymmetriesArg,
     #[serde(flatten)]
     video: VideoSummary,
     /// Every estimate: image, object, errors and track flags (CSV).
@@ -27,12 +29,14 @@ struct TrackingReport {
     plot: PathBuf,
 }
 
-pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyhow::Result<()> {
+pub fn report(
+    args: &DemoArgs,
+    (symmetries, source): (&BTreeMap<u32, SymmetrySet>, SymmetriesArg),
+    recording: &Path,
+) -> anyhow::Result<()> {
     let truths = ground_truth(&args.out.join("scene"))?;
     // One scene whose every image is a target: frame k is image k.
     let mut images = Vec::new();
-    // Built once per object: a continuous symmetry is hundreds of transforms.
-    let mut symmetry_sets = BTreeMap::new();
     for entry in read_recording(recording)? {
         let header = &entry.estimate.header;
         let Ok(im_id) = u32::try_from(header.frame_id) else { continue };
@@ -40,10 +44,7 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
             continue;
         };
         let best = Pose::from_f32_row_major(&entry.estimate.best)?;
-        let symmetries = match symmetry_sets.entry(header.object_id) {
-            std::collections::btree_map::Entry::Occupied(set) => set.into_mut(),
-            std::collections::btree_map::Entry::Vacant(slot) => slot.insert(symmetries(library, header.object_id)?),
-        };
+        let symmetries = symmetries.get(&header.object_id).context("an object of the video")?;
         let error = symmetries.pose_error(&best, &truth.1);
         images.push(TrackedImage {
             im_id,
@@ -78,6 +79,7 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
         out: args.out.clone(),
         orbit_step_deg: args.orbit_step_deg,
         rate_hz: args.rate_hz,
+        symmetries: source,
         video,
         table,
         plot,
@@ -87,12 +89,14 @@ pub fn report(args: &DemoArgs, library: &ModelLibrary, recording: &Path) -> anyh
 
 fn print_table(report: &TrackingReport) {
     println!(
-        "tracking over {} images (camera orbit {}°/image at {} Hz): 5°5cm {:.1} %, 10°5cm {:.1} % of object-images",
+        "tracking over {} images (camera orbit {}°/image at {} Hz): 5°5cm {:.1} %, 10°5cm {:.1} % of object-images, \
+         up to the objects' symmetries{}",
         report.video.frames,
         report.orbit_step_deg,
         report.rate_hz,
         report.video.acc_5deg_5cm,
-        report.video.acc_10deg_5cm
+        report.video.acc_10deg_5cm,
+        symmetries_note(report.symmetries)
     );
     print_video(&report.video);
     println!("per image: {}", report.table.display());
