@@ -142,7 +142,8 @@ impl Setup {
     With --track: <out>/scene (the rendered video), <out>/tracking.toml, <out>/tracking.rec (its estimates) and \
     <out>/tracking.png (rotation error per image, 0–20°, one colour per object, grey lines at 5° and 10°).\n\n\
     Examples:\n  poseflow demo\n  poseflow demo --track\n  poseflow demo --track --graph deploy/estimation.toml \
-    --out target/demo-per-image   (the same video estimated image by image)")]
+    --out target/demo-per-image   (the same video estimated image by image)\n  poseflow demo --objects ycbv   \
+    (the 21 YCB-V objects with models/poseflow-ycbv)\n  poseflow demo --objects my-objects --model models/mine")]
 pub struct DemoArgs {
     /// Output folder.
     #[arg(long, default_value = "target/demo")]
@@ -153,7 +154,7 @@ pub struct DemoArgs {
     /// The objects to render and score: `lmo` (objects/lmo: three LM-O objects, with models/poseflow-lmo10), `ycbv`
     /// (objects/ycbv/models: the 21 YCB-V objects, with models/poseflow-ycbv, seen by the YCB-V camera with every
     /// sensor effect on textured surroundings, scored up to the shape's symmetries), or a BOP models directory
-    /// (write ./lmo for a folder of that name).
+    /// (rendered as lmo is; write ./lmo for a folder of that name).
     #[arg(long, default_value = "lmo", value_name = "SET|DIR")]
     pub objects: String,
     /// Model directory (encoder.onnx, velocity.onnx) [default: the set's model; models/poseflow-lmo10 for a
