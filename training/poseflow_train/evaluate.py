@@ -58,10 +58,11 @@ def rollout(velocity, condition, mask, cfg, samples, steps, generator):
     can score what K steps produce (`rollout_energy`)."""
     b = condition.shape[0]
     m = b * samples
-    r = se3.uniform_rotation((m,), generator=generator)
-    p = torch.randn(m, 3, generator=generator) * cfg.translation_noise_std
+    # Drawn on the generator's CPU, carried where the condition is.
+    r = se3.uniform_rotation((m,), generator=generator).to(condition.device)
+    p = (torch.randn(m, 3, generator=generator) * cfg.translation_noise_std).to(condition.device)
     for k in range(steps):
-        t = torch.full((m,), k / steps)
+        t = torch.full((m,), k / steps, device=condition.device)
         v_rot, v_pos = velocity(condition, mask, r, p, t)
         r, p = se3.euler_step(r, p, v_rot, v_pos, 1.0 / steps)
     return r.reshape(b, samples, 3, 3), p.reshape(b, samples, 3)
@@ -186,12 +187,21 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed, 
     return result
 
 
+def on_cpu(module):
+    """`module` as a callable taking and returning CPU tensors wherever its
+    parameters are (a GPU during training): what `accuracy` scores."""
+    device = next(module.parameters()).device
+    if device.type == "cpu":
+        return module
+    return lambda *inputs: tuple(out.cpu() for out in module(*(x.to(device) for x in inputs)))
+
+
 def validate(encoder, velocity, observations, cfg, count, samples, steps, seed):
     """`accuracy` of the modules in eval mode, during training."""
     encoder.eval()
     velocity.eval()
     try:
-        return accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed)
+        return accuracy(on_cpu(encoder), on_cpu(velocity), observations, cfg, count, samples, steps, seed)
     finally:
         encoder.train()
         velocity.train()

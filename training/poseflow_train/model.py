@@ -352,7 +352,7 @@ def hint_token(rotation, translation, cfg, size=None):
     if size is not None:
         parts.append(size / cfg.translation_scale)
     values = torch.cat(parts, -1)
-    return torch.cat([values, torch.zeros(b, cfg.width - values.shape[1], dtype=values.dtype)], -1)[:, None, :]
+    return torch.cat([values, torch.zeros(b, cfg.width - values.shape[1], dtype=values.dtype, device=values.device)], -1)[:, None, :]
 
 
 def read_size(condition, cfg):
@@ -532,7 +532,7 @@ class VelocityNet(nn.Module):
         p1 = base_p + self.translation_head(x[:, 1]) * scale
         if self.cfg.relative_pose:
             base_r = hint_r[:, None].expand(bc, samples, 3, 3).reshape(-1, 3, 3)
-            identity_6d = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0], dtype=x.dtype)
+            identity_6d = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0], dtype=x.dtype, device=x.device)
             return base_r @ se3.rotation_from_6d(identity_6d + self.rotation_head(x[:, 0])), p1
         base_6d = torch.cat([hint_r[:, :, 0], hint_r[:, :, 1]], -1)[:, None, :].expand(bc, samples, 6).reshape(-1, 6)
         return se3.rotation_from_6d(base_6d + self.rotation_head(x[:, 0])), p1

@@ -1,4 +1,5 @@
-"""Flow-matching training on CPU with checkpoints and resume.
+"""Flow-matching training with checkpoints and resume, on a GPU when there
+is one (`training_device`), else on the CPU.
 
     python -m poseflow_train.train --config training/configs/lmo.json
 
@@ -45,21 +46,54 @@ class LossModule(torch.nn.Module):
         return compute()
 
 
+def training_device(requested="auto"):
+    """The device a process trains on: `requested` ("auto", "cpu", "cuda" or
+    a torch device string); "auto" is the process's own GPU (LOCAL_RANK, as
+    `torchrun` sets it) when PyTorch sees one, else the CPU."""
+    if requested == "auto":
+        requested = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(requested)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise SystemExit(f"config: device {requested!r}, but PyTorch sees no GPU (torch.cuda.is_available())")
+        if device.index is None:
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return device
+
+
+def moved(value, device):
+    """`value` (a tensor, or a dict, list or tuple of them) on `device`."""
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
+    if isinstance(value, dict):
+        return {k: moved(v, device) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(moved(v, device) for v in value)
+    return value
+
+
 class Replicas:
     """Data-parallel training through PyTorch's own launcher. Under
     `torchrun` (WORLD_SIZE > 1) every process trains a replica on batches of
     its own (so the global batch is `batch` x processes), DistributedData-
-    Parallel averages the gradients over the gloo backend, and rank 0 alone
-    logs, validates and writes the checkpoint, in the same format as a
-    single process. Alone, nothing changes. Training runs on the CPU: the
-    tensors are not placed on a GPU yet."""
+    Parallel averages the gradients (over NCCL between GPUs, gloo between
+    CPU processes), and rank 0 alone logs, validates and writes the
+    checkpoint, in the same format as a single process. Alone, nothing
+    changes."""
 
-    def __init__(self):
+    def __init__(self, device):
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
+        self.device = device
         self.ddp = None
         if self.world > 1:
-            dist.init_process_group("gloo")
+            if device.type == "cuda":
+                torch.cuda.set_device(device)
+            dist.init_process_group(self.backend)
+
+    @property
+    def backend(self):
+        return "nccl" if self.device.type == "cuda" else "gloo"
 
     @property
     def main(self):
@@ -68,7 +102,8 @@ class Replicas:
     def wrap(self, modules):
         """Replicas start from rank 0's weights (DDP broadcasts them)."""
         if self.world > 1:
-            self.ddp = DistributedDataParallel(LossModule(modules), find_unused_parameters=True)
+            on_gpu = [self.device] if self.device.type == "cuda" else None
+            self.ddp = DistributedDataParallel(LossModule(modules), device_ids=on_gpu, find_unused_parameters=True)
 
     def loss(self, compute):
         """`compute()` (the step's loss and its parts), through DDP when
@@ -83,7 +118,7 @@ class Replicas:
         """True on every process if `flag` is true on any (a stop request)."""
         if self.world == 1:
             return flag
-        value = torch.tensor([float(flag)])
+        value = torch.tensor([float(flag)], device=self.device)
         dist.all_reduce(value, op=dist.ReduceOp.MAX)
         return bool(value.item())
 
@@ -133,13 +168,14 @@ def equivalent_targets(batch, samples, table, generator, turns=None):
         hidden = turns.any(1)
         # A uniform bin among the allowed ones, then uniform within it.
         weights = torch.where(hidden[:, None], turns.float(), torch.ones_like(turns, dtype=torch.float32))
-        k = torch.multinomial(weights, 1, generator=generator)[:, 0].float()
-        phi = (k + torch.rand(m, generator=generator) - 0.5) * (2 * math.pi / bins)
-        phi = torch.where(hidden, phi, torch.zeros_like(phi))
-        r = r @ se3.so3_exp(phi[:, None] * torch.tensor([0.0, 0.0, 1.0]))
+        k = torch.multinomial(weights.cpu(), 1, generator=generator)[:, 0].float()
+        phi = ((k + torch.rand(m, generator=generator) - 0.5) * (2 * math.pi / bins)).to(r.device)
+        phi = torch.where(hidden.to(r.device), phi, torch.zeros_like(phi))
+        r = r @ se3.so3_exp(phi[:, None] * torch.tensor([0.0, 0.0, 1.0], device=r.device))
     sym_r, sym_t, count = table
     obj = batch["object_index"].repeat_interleave(samples, 0)
-    k = (torch.rand(m, generator=generator) * count[obj]).long().clamp_max(sym_r.shape[1] - 1)
+    # The generator draws on the CPU (its state is the checkpoint's on any device).
+    k = (torch.rand(m, generator=generator).to(count.device) * count[obj]).long().clamp_max(sym_r.shape[1] - 1)
     s_r, s_t = sym_r[obj, k], sym_t[obj, k]
     return r @ s_r, (r @ s_t[..., None])[..., 0] + p
 
@@ -174,16 +210,17 @@ def flow_batch(batch, cfg, samples, steps, generator, hint=None, hint_paths=0.0,
         p1 = batch["translation"].repeat_interleave(samples, 0)
     else:
         r1, p1 = targets
-    r0 = se3.uniform_rotation((m,), generator=generator)
-    p0 = torch.randn(m, 3, generator=generator) * cfg.translation_noise_std
+    device = r1.device
+    r0 = se3.uniform_rotation((m,), generator=generator).to(device)
+    p0 = (torch.randn(m, 3, generator=generator) * cfg.translation_noise_std).to(device)
     grid = torch.randint(0, steps, (m,), generator=generator).float() / steps
     anywhere = torch.rand(m, generator=generator) * (steps - 1) / steps
-    t = torch.where(torch.rand(m, generator=generator) < 0.5, grid, anywhere)
+    t = torch.where(torch.rand(m, generator=generator) < 0.5, grid, anywhere).to(device)
     r_end, p_end = r1, p1
     if hint is not None and hint_paths > 0.0:
-        to_hint = (torch.rand(m, generator=generator) < hint_paths)
-        hint_r = hint[0].detach().repeat_interleave(samples, 0)
-        hint_p = hint[1].detach().repeat_interleave(samples, 0)
+        to_hint = (torch.rand(m, generator=generator) < hint_paths).to(device)
+        hint_r = hint[0].detach().to(device).repeat_interleave(samples, 0)
+        hint_p = hint[1].detach().to(device).repeat_interleave(samples, 0)
         r_end = torch.where(to_hint[:, None, None], hint_r, r1)
         p_end = torch.where(to_hint[:, None], hint_p, p1)
     r_t, p_t = se3.interpolate(r0, p0, r_end, p_end, t)
@@ -272,8 +309,9 @@ def rollout_energy(config, cfg, velocity, train, cache, weights, target_table, r
     settings = config["rollout_energy"]
     count, samples = settings.get("observations", 16), settings.get("samples", 32)
     indices = np.sort(draw(rng, len(train), count, weights))
-    batch = train.poses(indices)
-    condition, mask = (torch.from_numpy(np.asarray(c[indices])) for c in cache)
+    device = next(velocity.parameters()).device
+    batch = moved(train.poses(indices), device)
+    condition, mask = (torch.from_numpy(np.asarray(c[indices])).to(device) for c in cache)
     targets = targets_of(train, indices, batch, samples, target_table, generator)
     if targets is None:
         targets = (batch["rotation"].repeat_interleave(samples, 0), batch["translation"].repeat_interleave(samples, 0))
@@ -328,10 +366,10 @@ def perturbed(rotation, translation, max_deg, max_cm, generator):
     """Each pose turned by a uniform angle up to `max_deg` about a uniform
     axis and moved by up to `max_cm` in a uniform direction."""
     b = rotation.shape[0]
-    axis = torch.randn(b, 3, generator=generator)
-    angle = torch.rand(b, 1, generator=generator) * math.radians(max_deg)
-    shift = torch.randn(b, 3, generator=generator)
-    length = torch.rand(b, 1, generator=generator) * max_cm / 100.0
+    axis = torch.randn(b, 3, generator=generator).to(rotation.device)
+    angle = (torch.rand(b, 1, generator=generator) * math.radians(max_deg)).to(rotation.device)
+    shift = torch.randn(b, 3, generator=generator).to(rotation.device)
+    length = (torch.rand(b, 1, generator=generator) * max_cm / 100.0).to(rotation.device)
     turned = rotation @ se3.so3_exp(axis / axis.norm(dim=-1, keepdim=True) * angle)
     return turned, translation + shift / shift.norm(dim=-1, keepdim=True) * length
 
@@ -347,7 +385,7 @@ def correspondence_losses(encoder, batch, table, cfg, config, generator):
     if cfg.refine_iterations > 0:
         max_deg, max_cm = config.get("refine_perturbation", [40.0, 2.0])
         r, p = perturbed(batch["rotation"], batch["translation"], max_deg, max_cm, generator)
-        from_first = torch.rand(r.shape[0], generator=generator) < 0.5
+        from_first = (torch.rand(r.shape[0], generator=generator) < 0.5).to(r.device)
         rotation = torch.where(from_first[:, None, None], rotation, r)
         translation = torch.where(from_first[:, None], translation, p)
         refined, _, _ = encoder.refine(batch["points"], batch["object_index"], rotation, translation)
@@ -379,7 +417,7 @@ def learning_rate(config, state):
     return decay["final"] + (lr - decay["final"]) * 0.5 * (1.0 + math.cos(math.pi * min(max(done, 0.0), 1.0)))
 
 
-def condition_cache(encoder, observations, path, source, batch=64):
+def condition_cache(encoder, observations, path, source, device, batch=64):
     """Every observation's condition tokens and mask under a frozen encoder
     ([n, T, D] and [n, T] float32, memory-mapped): computed once and stored
     at `path`.condition.npy / .mask.npy beside `path`.json, which names the
@@ -400,14 +438,14 @@ def condition_cache(encoder, observations, path, source, batch=64):
     started = time.monotonic()
     with torch.no_grad():
         for start in range(0, len(observations), batch):
-            b = observations.batch(range(start, min(start + batch, len(observations))))
+            b = moved(observations.batch(range(start, min(start + batch, len(observations)))), device)
             condition, mask = encoder(b["image"], b["token_mask"], b["points"], b["object_index"])
             if arrays is None:
                 arrays = [np.lib.format.open_memmap(f.with_suffix(".tmp.npy"), mode="w+", dtype=np.float32,
                                                     shape=(len(observations), *x.shape[1:]))
                           for f, x in zip(files, (condition, mask))]
-            arrays[0][start:start + len(condition)] = condition.numpy()
-            arrays[1][start:start + len(condition)] = mask.numpy()
+            arrays[0][start:start + len(condition)] = condition.cpu().numpy()
+            arrays[1][start:start + len(condition)] = mask.cpu().numpy()
             if start // batch % 50 == 0:
                 print(f"condition cache: {start + len(condition)} of {len(observations)} "
                       f"({time.monotonic() - started:.0f} s)", flush=True)
@@ -422,14 +460,15 @@ def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
     """Everything a later run needs to continue, written atomically; and
     beside it `weights.pt`, the portable resume point small enough for git
     (half-precision weights, step, time and random state, no optimiser)."""
-    saved = {name: module.state_dict() for name, module in modules.items()}
-    saved.update({"optimiser": optimiser.state_dict(), "state": state, "generator": generator.get_state(),
+    # On the CPU whatever the device trained on: one format, resumable anywhere.
+    saved = {name: moved(module.state_dict(), "cpu") for name, module in modules.items()}
+    saved.update({"optimiser": moved(optimiser.state_dict(), "cpu"), "state": state, "generator": generator.get_state(),
                   "rng": rng.bit_generator.state, "model_config": cfg.to_dict()})
     tmp = path.with_suffix(".tmp")
     torch.save(saved, tmp)
     os.replace(tmp, path)
-    portable = {name: {k: v.half() if v.is_floating_point() else v for k, v in module.state_dict().items()}
-                for name, module in modules.items()}
+    portable = {name: {k: v.half() if v.is_floating_point() else v for k, v in saved[name].items()}
+                for name in modules}
     portable.update({k: saved[k] for k in ("state", "generator", "rng", "model_config")})
     tmp = path.with_name("weights.tmp")
     torch.save(portable, tmp)
@@ -487,9 +526,12 @@ def main():
     parser.add_argument("--config", required=True)
     parser.add_argument("--max-minutes", type=float, help="stop after this much training time in this run")
     parser.add_argument("--replica-weights", help="(tests) each process writes its final weights to DIR/rank<r>.pt")
+    parser.add_argument("--device", help="auto (a GPU when PyTorch sees one, else the CPU), cpu, cuda or cuda:N; "
+                                         "overrides the config's \"device\" (default auto)")
     args = parser.parse_args()
-    replicas = Replicas()
     config = load_config(args.config)
+    device = training_device(args.device or config.get("device", "auto"))
+    replicas = Replicas(device)
     cfg = config["model"]
     out = Path(config["out"])
     out.mkdir(parents=True, exist_ok=True)
@@ -514,15 +556,17 @@ def main():
     for key in ("image_size", "patch_grid", "point_count"):
         if train.info[key] != getattr(cfg, key):
             raise SystemExit(f"{config['train'][0]}: {key} {train.info[key]}, the model config says {getattr(cfg, key)}")
-    encoder, velocity = Encoder(cfg), VelocityNet(cfg)
+    # On the device before the optimiser is made and any state is loaded
+    # (load_state_dict copies into the parameters where they are).
+    encoder, velocity = Encoder(cfg).to(device), VelocityNet(cfg).to(device)
     modules = {"encoder": encoder, "velocity": velocity}
     # A category model's symmetries are its categories' (object index =
     # category), an instance model's its objects'.
     symmetry_source = category_models_info(cfg.object_ids) if categories else train.models_info
-    table = symmetry_table(symmetry_source, cfg.object_ids, config.get("loss_continuous_steps", 36))
+    table = moved(symmetry_table(symmetry_source, cfg.object_ids, config.get("loss_continuous_steps", 36)), device)
     # Flow targets drawn from every equivalent pose: continuous symmetries
     # at 1-degree steps.
-    target_table = symmetry_table(symmetry_source, cfg.object_ids, 360, counts=True) if equivalent else None
+    target_table = moved(symmetry_table(symmetry_source, cfg.object_ids, 360, counts=True), device) if equivalent else None
     # `frozen_encoder`: the encoder (from `init_from`) is fixed and its
     # conditions are computed once (`condition_cache`), so a step costs the
     # velocity network alone and can afford many more flow samples.
@@ -552,7 +596,7 @@ def main():
         # The full checkpoint, or on another machine the portable weights
         # committed with the run (a fresh optimiser, which AdamW rebuilds
         # within a few hundred steps).
-        saved = torch.load(checkpoint if checkpoint.exists() else portable, weights_only=False)
+        saved = torch.load(checkpoint if checkpoint.exists() else portable, weights_only=False, map_location="cpu")
         for name, module in modules.items():
             module.load_state_dict({k: v.to(module.state_dict()[k].dtype) for k, v in saved[name].items()})
         if "optimiser" in saved:
@@ -573,7 +617,7 @@ def main():
         # A new run continuing an earlier one with a grown model: its weights
         # (modules it lacks start fresh), step and training time (so the
         # learning curve stays cumulative); a fresh optimiser.
-        saved = torch.load(config["init_from"], weights_only=False)
+        saved = torch.load(config["init_from"], weights_only=False, map_location="cpu")
         for name, module in modules.items():
             # A tensor whose shape changed (the object tokens of another
             # object set) starts fresh like a missing one.
@@ -600,16 +644,16 @@ def main():
         # The frozen encoder of another checkpoint (the one a condition
         # cache was built with), over whatever init_from held; a resumed run
         # has it in its own checkpoint, so encoder_from may be gone.
-        encoder.load_state_dict(torch.load(config["encoder_from"], weights_only=False)["encoder"])
+        encoder.load_state_dict(torch.load(config["encoder_from"], weights_only=False, map_location="cpu")["encoder"])
     source = config.get("encoder_from") or config.get("init_from")
     cache = None
     if frozen:
         # Rank 0 writes the cache; the others read it once it is there.
         if replicas.main:
-            cache = condition_cache(encoder, train, config["condition_cache"], source)
+            cache = condition_cache(encoder, train, config["condition_cache"], source, device)
         replicas.barrier()
         if not replicas.main:
-            cache = condition_cache(encoder, train, config["condition_cache"], source)
+            cache = condition_cache(encoder, train, config["condition_cache"], source, device)
     replicas.wrap(modules)
     log = open(out / "log.jsonl", "a") if replicas.main else None
     batch_size, samples, steps = config.get("batch", 16), config.get("samples_per_observation", 16), config.get("steps", 5)
@@ -617,7 +661,7 @@ def main():
     run_started = time.monotonic()
     marks = {"checkpoint": state["train_s"], "validation": state["train_s"]}
     weights = draw_weights(train.obj_ids(), config.get("oversample", {}))
-    print(f"{len(train)} training and {len(val['val'])} validation observations", flush=True)
+    print(f"{len(train)} training and {len(val['val'])} validation observations, training on {device}", flush=True)
     # SIGTERM / SIGINT end the run after the current step, with a checkpoint.
     stop = []
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -629,8 +673,8 @@ def main():
         started = time.monotonic()
         if cache is not None:
             indices = np.sort(draw(rng, len(train), batch_size, weights))
-            batch = train.poses(indices)
-            condition, mask = (torch.from_numpy(np.asarray(c[indices])) for c in cache)
+            batch = moved(train.poses(indices), device)
+            condition, mask = (torch.from_numpy(np.asarray(c[indices])).to(device) for c in cache)
             targets = targets_of(train, indices, batch, samples, target_table, generator)
             flow = flow_batch(batch, cfg, samples, steps, generator, read_hint(condition, cfg), config.get("hint_paths", 0.0),
                               targets)
@@ -651,7 +695,7 @@ def main():
                         checkpoint, modules, optimiser, generator, rng, marks)
             continue
         indices = draw(rng, len(train), batch_size, weights)
-        batch = train.batch(indices)
+        batch = moved(train.batch(indices), device)
         # Warm-ups: the correspondence network (and refiner) alone, many
         # times faster per observation than the whole model: for the first
         # `correspondence_warmup_s` of training, and for the first
@@ -663,9 +707,10 @@ def main():
 
         def whole_loss():
             if warming_up:
-                more = train.batch(draw(rng, len(train), batch_size + config.get("correspondence_extra_batch", 0), weights))
+                more = moved(train.batch(draw(rng, len(train), batch_size + config.get("correspondence_extra_batch", 0),
+                                                    weights)), device)
                 loss_corr = correspondence_losses(encoder, more, table, cfg, config, generator)
-                loss_rot = loss_pos = torch.zeros(())
+                loss_rot = loss_pos = torch.zeros((), device=device)
             else:
                 condition, mask, coordinates = encoder.encode(batch["image"], batch["token_mask"], batch["points"],
                                                               batch["object_index"])
@@ -678,7 +723,7 @@ def main():
             if extra and not warming_up:
                 # The correspondences are the slow part to learn and cheap to
                 # train alone: each step also trains them on more observations.
-                more = train.batch(draw(rng, len(train), extra, weights))
+                more = moved(train.batch(draw(rng, len(train), extra, weights)), device)
                 loss_more = correspondence_losses(encoder, more, table, cfg, config, generator)
                 loss_corr = (batch_size * loss_corr + extra * loss_more) / (batch_size + extra)
             loss = lam * loss_pos + loss_rot + config.get("correspondence", 1.0) * loss_corr
@@ -692,7 +737,7 @@ def main():
         save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
     if args.replica_weights:
         Path(args.replica_weights).mkdir(parents=True, exist_ok=True)
-        torch.save({name: module.state_dict() for name, module in modules.items()},
+        torch.save({name: moved(module.state_dict(), "cpu") for name, module in modules.items()},
                    Path(args.replica_weights) / f"rank{replicas.rank}.pt")
     replicas.close()
     print(f"stopped at step {state['step']} after {state['train_s'] / 60:.1f} min of training", flush=True)

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from poseflow_train.detector import HEIGHT, WIDTH, Detector, evaluate_arrays, to_input
+from poseflow_train.detector import HEIGHT, WIDTH, Detector, class_weights, evaluate_arrays, to_input
 
 
 def squares(n, rng):
@@ -39,9 +39,11 @@ def test_a_trained_detector_finds_the_objects_an_untrained_one_misses():
     model = Detector(3, width=8)
     untrained = evaluate_arrays(model, rgb, depth, labels, [1, 2])["mean_iou"]
     optimiser = torch.optim.AdamW(model.parameters(), lr=5e-3)
+    weights = torch.tensor(class_weights(2))
     for _ in range(60):
         model.train()
-        loss = F.cross_entropy(model(to_input(rgb, depth)), torch.as_tensor(labels, dtype=torch.long))
+        # The training loss's class weights, which the evaluation divides out.
+        loss = F.cross_entropy(model(to_input(rgb, depth)), torch.as_tensor(labels, dtype=torch.long), weight=weights)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()

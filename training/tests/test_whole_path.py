@@ -89,6 +89,9 @@ def test_an_own_object_goes_from_mesh_to_estimates_through_the_graph(data):
     subprocess.run([sys.executable, "-m", "poseflow_train.export", "--checkpoint", str(out / "checkpoint.pt"),
                     "--out", str(model), "--models-info", str(data / "models" / "models_info.json")],
                    cwd=TRAINING, env=env, check=True, capture_output=True)
+    # The INT8 files the inference stage serves by default.
+    subprocess.run([sys.executable, "-m", "poseflow_train.quantize", "--model", str(model)],
+                   cwd=TRAINING, env=env, check=True, capture_output=True)
     assert json.loads((model / "objects.json").read_text())["object_ids"] == [7]
     summary = json.loads(run(POSEFLOW, "eval", "--dataset", data / "data", "--objects", data / "models",
                              "--model", model, "--samples", "4", "--steps", "2", "--out", data / "eval", "--json"))
