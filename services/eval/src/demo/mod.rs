@@ -109,9 +109,9 @@ const OBJECT_SETS: [ObjectSet; 2] = [
 ];
 
 /// `--objects`, `--model` and `--symmetries` resolved against [`OBJECT_SETS`].
-pub(crate) struct Setup {
-    pub objects: PathBuf,
-    pub model: PathBuf,
+struct Setup {
+    objects: PathBuf,
+    model: PathBuf,
     look: Look,
     symmetries: SymmetriesArg,
 }
@@ -301,7 +301,8 @@ pub(crate) fn read_recording(path: &Path) -> anyhow::Result<Vec<Recorded>> {
 /// `orbit_step_deg` per image) as the `test` split of a BOP dataset.
 fn render_scene(
     library: &ModelLibrary,
-    (seed, look): (u64, Look),
+    seed: u64,
+    look: Look,
     frames: u32,
     path: CameraPath,
     out: &Path,
@@ -405,7 +406,7 @@ fn render_and_run(
 ) -> anyhow::Result<PathBuf> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("--out {}", args.out.display()))?;
     let dataset = args.out.join("scene");
-    render_scene(library, (args.seed, setup.look), scene.0, scene.1, &dataset)?;
+    render_scene(library, args.seed, setup.look, scene.0, scene.1, &dataset)?;
     let overrides = Overrides {
         dataset: &dataset,
         split: "test",
@@ -473,7 +474,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         let events = VideoEvents { occlusions: args.occlusions, teleports: args.teleports };
         let path = CameraPath::Orbit { step_deg: args.orbit_step_deg, events };
         let recording = render_and_run(args, &setup, &library, (args.frames, path), &graph, "estimates")?;
-        return tracking::report(args, (&symmetries, setup.symmetries), &recording);
+        return tracking::report(args, &symmetries, setup.symmetries, &recording);
     }
     let graph = args.graph.clone().unwrap_or_else(|| default_graph("estimation", args.detect));
     let recording = render_and_run(args, &setup, &library, (1, CameraPath::Random), &graph, "hypotheses,estimates")?;

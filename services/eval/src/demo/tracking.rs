@@ -29,9 +29,12 @@ struct TrackingReport {
     plot: PathBuf,
 }
 
+/// Scores the tracking graph's `recording` against the video's ground
+/// truth, up to `symmetries` (read from `source`), and prints the report.
 pub fn report(
     args: &DemoArgs,
-    (symmetries, source): (&BTreeMap<u32, SymmetrySet>, SymmetriesArg),
+    symmetries: &BTreeMap<u32, SymmetrySet>,
+    source: SymmetriesArg,
     recording: &Path,
 ) -> anyhow::Result<()> {
     let truths = ground_truth(&args.out.join("scene"))?;
