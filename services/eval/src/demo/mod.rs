@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use poseflow_contracts::{EstimateHeader, HypothesesHeader, POSE_LEN};
-use poseflow_geometry::{Pose, SymmetrySet};
+use poseflow_geometry::Pose;
 use poseflow_graph::Graph;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 use poseflow_scene::bop::{CameraEntry, GtEntry, SceneDir, read_json, read_rgb_png};
@@ -389,11 +389,6 @@ pub(crate) fn ground_truth(dataset: &Path) -> anyhow::Result<BTreeMap<u32, Vec<(
         .collect()
 }
 
-/// Each object's symmetries, as the reported errors use them.
-fn symmetries(library: &ModelLibrary, setup: &Setup) -> anyhow::Result<BTreeMap<u32, SymmetrySet>> {
-    crate::object_symmetries(library, setup.symmetries, SYMMETRY_STEP_DEG.to_radians())
-}
-
 /// Renders the scene, writes the graph with the demo's overrides and runs
 /// it: the shared first half of both demos. Returns the recording's path.
 fn render_and_run(
@@ -468,7 +463,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let setup = Setup::of(args)?;
     let library = ModelLibrary::load(&setup.objects, &[])
         .with_context(|| format!("--objects {}: cannot load the object models", setup.objects.display()))?;
-    let symmetries = symmetries(&library, &setup)?;
+    let symmetries = crate::object_symmetries(&library, setup.symmetries, SYMMETRY_STEP_DEG.to_radians())?;
     if args.track {
         let graph = args.graph.clone().unwrap_or_else(|| default_graph("tracking", args.detect));
         let events = VideoEvents { occlusions: args.occlusions, teleports: args.teleports };
