@@ -62,6 +62,13 @@ pub struct TrackedObject {
     /// as a miss.
     pub acc_5deg_5cm: f64,
     pub acc_10deg_5cm: f64,
+    /// Images in which the object is at least [`MIN_VISIB_FRACT`] visible
+    /// (BOP's `visib_fract`, which counts the part beyond the image
+    /// border): all annotated ones without `scene_gt_info.json`.
+    pub visible_frames: u32,
+    /// Percent of those images whose estimate is within 10°/5 cm: how the
+    /// object was tracked while it could be seen.
+    pub acc_10deg_5cm_visible: f64,
     pub median_rotation_error_deg: f64,
     pub max_rotation_error_deg: f64,
     pub median_translation_error_cm: f64,
@@ -115,7 +122,8 @@ pub fn summarise_video(
     for entry in gt.values().flatten() {
         *annotated.entry(entry.obj_id).or_default() += 1;
     }
-    let objects_never_visible = never_visible(scene, &gt)?;
+    let visibility = visible_fractions(scene, &gt)?;
+    let objects_never_visible = never_visible(&gt, visibility.as_ref());
     annotated.retain(|obj_id, _| !objects_never_visible.contains(obj_id));
     let mut by_object: BTreeMap<u32, Vec<&TrackedImage>> = BTreeMap::new();
     for image in images {
@@ -128,6 +136,12 @@ pub fn summarise_video(
         let count = |bit: u32| estimates.iter().filter(|e| e.flags & bit != 0).count() as u32;
         let tight = estimates.iter().filter(|e| e.within(TIGHT)).count();
         let loose = estimates.iter().filter(|e| e.within(LOOSE)).count();
+        let seen = |im_id: u32| {
+            visibility.as_ref().is_none_or(|v| v.get(&(im_id, obj_id)).is_some_and(|&f| f >= MIN_VISIB_FRACT))
+        };
+        let visible_frames =
+            gt.iter().filter(|(im_id, entries)| entries.iter().any(|e| e.obj_id == obj_id) && seen(**im_id)).count();
+        let loose_visible = estimates.iter().filter(|e| e.within(LOOSE) && seen(e.im_id)).count();
         (tight_all, loose_all, frames_all) = (tight_all + tight, loose_all + loose, frames_all + annotated_frames);
         objects.push(TrackedObject {
             obj_id,
@@ -139,6 +153,8 @@ pub fn summarise_video(
             reinitialised: count(flags::REINITIALISED),
             acc_5deg_5cm: percent(tight, annotated_frames as usize),
             acc_10deg_5cm: percent(loose, annotated_frames as usize),
+            visible_frames: visible_frames as u32,
+            acc_10deg_5cm_visible: percent(loose_visible, visible_frames),
             median_rotation_error_deg: median(estimates.iter().map(|e| e.rotation_error_deg).collect()),
             max_rotation_error_deg: estimates.iter().map(|e| e.rotation_error_deg).fold(0.0, f64::max),
             median_translation_error_cm: median(estimates.iter().map(|e| e.translation_error_m * 100.0).collect()),
@@ -146,7 +162,7 @@ pub fn summarise_video(
         });
     }
     let within: BTreeMap<(u32, u32), bool> = images.iter().map(|e| ((e.im_id, e.obj_id), e.within(LOOSE))).collect();
-    let events = event_outcomes(scene, &gt, &within, frames)?;
+    let events = event_outcomes(scene, visibility.as_ref(), &within, frames)?;
     Ok(VideoSummary {
         scene_id,
         frames,
@@ -159,28 +175,45 @@ pub fn summarise_video(
     })
 }
 
-/// The annotated objects never at least [`MIN_VISIB_FRACT`] visible in
-/// the video (none without `scene_gt_info.json`).
-fn never_visible(scene: &SceneDir, gt: &BTreeMap<u32, Vec<GtEntry>>) -> anyhow::Result<Vec<u32>> {
+/// Each annotated object's visible fraction per image, keyed by (image,
+/// object); `None` without `scene_gt_info.json`.
+fn visible_fractions(
+    scene: &SceneDir,
+    gt: &BTreeMap<u32, Vec<GtEntry>>,
+) -> anyhow::Result<Option<BTreeMap<(u32, u32), f64>>> {
     if !scene.scene_gt_info().is_file() {
-        return Ok(Vec::new());
+        return Ok(None);
     }
     let info: BTreeMap<u32, Vec<GtInfoEntry>> = read_json(&scene.scene_gt_info())?;
-    let mut seen: BTreeMap<u32, bool> = BTreeMap::new();
+    let mut fractions = BTreeMap::new();
     for (im_id, entries) in gt {
         let shares = info.get(im_id).map_or(&[][..], Vec::as_slice);
-        for (k, entry) in entries.iter().enumerate() {
-            let visible = shares.get(k).is_some_and(|share| share.visib_fract >= MIN_VISIB_FRACT);
+        for (entry, share) in entries.iter().zip(shares) {
+            let fraction = fractions.entry((*im_id, entry.obj_id)).or_insert(0.0f64);
+            *fraction = fraction.max(share.visib_fract);
+        }
+    }
+    Ok(Some(fractions))
+}
+
+/// The annotated objects never at least [`MIN_VISIB_FRACT`] visible in
+/// the video (none without visible fractions).
+fn never_visible(gt: &BTreeMap<u32, Vec<GtEntry>>, visibility: Option<&BTreeMap<(u32, u32), f64>>) -> Vec<u32> {
+    let Some(visibility) = visibility else { return Vec::new() };
+    let mut seen: BTreeMap<u32, bool> = BTreeMap::new();
+    for (im_id, entries) in gt {
+        for entry in entries {
+            let visible = visibility.get(&(*im_id, entry.obj_id)).is_some_and(|&f| f >= MIN_VISIB_FRACT);
             *seen.entry(entry.obj_id).or_default() |= visible;
         }
     }
-    Ok(seen.into_iter().filter(|(_, visible)| !visible).map(|(obj_id, _)| obj_id).collect())
+    seen.into_iter().filter(|(_, visible)| !visible).map(|(obj_id, _)| obj_id).collect()
 }
 
 /// The outcomes of the video's events, if it has any.
 fn event_outcomes(
     scene: &SceneDir,
-    gt: &BTreeMap<u32, Vec<GtEntry>>,
+    visibility: Option<&BTreeMap<(u32, u32), f64>>,
     within: &BTreeMap<(u32, u32), bool>,
     frames: u32,
 ) -> anyhow::Result<Vec<EventOutcome>> {
@@ -188,15 +221,9 @@ fn event_outcomes(
         return Ok(Vec::new());
     }
     let events: Vec<EventRecord> = read_json(&scene.video_events())?;
-    let info: BTreeMap<u32, Vec<GtInfoEntry>> = read_json(&scene.scene_gt_info())?;
-    let visible = gt
-        .iter()
-        .flat_map(|(im_id, entries)| {
-            let shares = info.get(im_id).map_or(&[][..], Vec::as_slice);
-            entries.iter().zip(shares).map(move |(entry, share)| ((*im_id, entry.obj_id), share.visib_fract))
-        })
-        .collect();
-    Ok(outcomes(&events, &visible, within, frames))
+    let visibility = visibility
+        .with_context(|| format!("{} has events but no {}", scene.path.display(), scene.scene_gt_info().display()))?;
+    Ok(outcomes(&events, visibility, within, frames))
 }
 
 /// The track flags of an Estimate header, `|`-separated (`-` for none).
@@ -238,11 +265,11 @@ pub fn write_per_image(path: &Path, videos: &[(u32, &[TrackedImage])]) -> anyhow
 /// Prints the per-object table and the events.
 pub fn print_video(video: &VideoSummary) {
     println!(
-        "object  estimated  tracked  lost  unsure  reinit  5°5cm %  10°5cm %  median rot °  max rot °  median trans cm  latency p50/p99 ms"
+        "object  estimated  tracked  lost  unsure  reinit  5°5cm %  10°5cm %  visible  10°5cm % of visible  median rot °  max rot °  median trans cm  latency p50/p99 ms"
     );
     for o in &video.objects {
         println!(
-            "{:>6}  {:>4}/{:<4}  {:>7}  {:>4}  {:>6}  {:>6}  {:>7.1}  {:>8.1}  {:>12.2}  {:>9.1}  {:>15.2}  {:>8.1}/{:.1}",
+            "{:>6}  {:>4}/{:<4}  {:>7}  {:>4}  {:>6}  {:>6}  {:>7.1}  {:>8.1}  {:>7}  {:>19.1}  {:>12.2}  {:>9.1}  {:>15.2}  {:>8.1}/{:.1}",
             o.obj_id,
             o.estimated,
             o.frames,
@@ -252,6 +279,8 @@ pub fn print_video(video: &VideoSummary) {
             o.reinitialised,
             o.acc_5deg_5cm,
             o.acc_10deg_5cm,
+            o.visible_frames,
+            o.acc_10deg_5cm_visible,
             o.median_rotation_error_deg,
             o.max_rotation_error_deg,
             o.median_translation_error_cm,
@@ -332,6 +361,8 @@ mod tests {
         let o = &video.objects[0];
         assert_eq!((o.frames, o.estimated, o.tracked, o.lost, o.unsure, o.reinitialised), (4, 3, 2, 1, 1, 1));
         assert_eq!((o.acc_5deg_5cm, o.acc_10deg_5cm), (25.0, 50.0));
+        // Without visible fractions every annotated image counts as visible.
+        assert_eq!((o.visible_frames, o.acc_10deg_5cm_visible), (4, 50.0));
         assert!(video.events.is_empty());
         assert!(video.objects_never_visible.is_empty());
         std::fs::remove_dir_all(&dir).unwrap();
@@ -359,6 +390,8 @@ mod tests {
         assert_eq!(video.objects_never_visible, [2]);
         // A hidden image of an object in the video is still a miss.
         assert_eq!((video.objects[0].frames, video.acc_10deg_5cm), (2, 50.0));
+        // Of the images in which it could be seen, it was right in all.
+        assert_eq!((video.objects[0].visible_frames, video.objects[0].acc_10deg_5cm_visible), (1, 100.0));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

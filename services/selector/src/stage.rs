@@ -155,6 +155,12 @@ impl SelectorStage {
         {
             tracing::debug!(frame, object, "the pose the motion predicts fits better: selected");
         }
+        if let Some(model) = model
+            && let Some(remembered) = monitor.remembered(object, frame)
+            && selection.consider(&[remembered], model, seen, &self.params)
+        {
+            tracing::debug!(frame, object, "the pose the lost track's motion predicts fits better: selected");
+        }
         let settings = FitSettings {
             inlier_distance: monitor.params().inlier_distance,
             hidden_depth: INSIDE_DEPTH,

@@ -53,6 +53,14 @@
 //! predicts as a candidate ([`TrackMonitor::predicted`]): the samples of an
 //! unsure object may all have left a track that still fits.
 //!
+//! A lost track's motion is remembered for `remember_frames` frames, and
+//! the pose it predicts is tried while the object is lost or being
+//! confirmed again: an object that went out of view or behind an occluder
+//! while the camera moved on steadily is most often where that motion puts
+//! it when it shows again, and the prior, from a few of its pixels, is not.
+//! The remembered pose is a candidate like any other, scored by its fit;
+//! an object moved meanwhile is found by the samples.
+//!
 //! A residual grown against the track's usual one, and a silhouette the
 //! observed points do not cover, are weak failures: they make a tracked
 //! object unsure (n unchanged), so prior samples are mixed in, and are
@@ -89,6 +97,7 @@ use crate::visibility::{FreeSpace, PointFit, Silhouette};
 /// | `lost_after` | consecutive soft failures that declare the object lost | 2 |
 /// | `half_turns` | while not tracking: also try the best candidates turned half a turn about the object's principal axes (refined and scored) | true |
 /// | `motion_candidate` | tracking or unsure: also try where the track's motion predicts the object (refined and scored) | true |
+/// | `remember_frames` | lost or being confirmed: also try where the lost track's motion predicts the object, for this many frames after the track's last estimate that passed; 0 forgets at once | 30 |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrackCheckParams {
@@ -124,6 +133,8 @@ pub struct TrackCheckParams {
     pub half_turns: bool,
     #[serde(default = "default_true")]
     pub motion_candidate: bool,
+    #[serde(default = "default_remember_frames")]
+    pub remember_frames: u64,
 }
 
 fn default_min_points() -> usize {
@@ -167,6 +178,9 @@ fn default_true() -> bool {
 }
 fn default_lost_after() -> u32 {
     2
+}
+fn default_remember_frames() -> u64 {
+    30
 }
 
 impl Default for TrackCheckParams {
@@ -426,6 +440,8 @@ struct Track {
     /// Whether any of this object's samples continued its track: only then
     /// does the sampler track, and a sample set from the prior breaks it.
     ever_continued: bool,
+    /// The last lost track's `accepted`, until a track stands again.
+    remembered: VecDeque<(u64, Pose)>,
 }
 
 /// The per-object state machine (module docs).
@@ -471,6 +487,17 @@ impl TrackMonitor {
         predict(&track.accepted, frame)
     }
 
+    /// Where the motion of `object`'s lost track puts it at `frame`, while
+    /// the object is lost or a new candidate awaits confirmation and at most
+    /// `remember_frames` frames have passed since that track's last
+    /// estimate that passed; `None` otherwise.
+    pub fn remembered(&self, object: u32, frame: u64) -> Option<Pose> {
+        let track =
+            self.tracks.get(&object).filter(|t| matches!(t.state, TrackState::Lost | TrackState::Confirming { .. }))?;
+        let &(last, _) = track.remembered.back()?;
+        (frame.saturating_sub(last) <= self.params.remember_frames).then(|| predict(&track.remembered, frame)).flatten()
+    }
+
     /// Judges one estimate of `object` and moves its track on.
     pub fn check(&mut self, object: u32, evidence: &Evidence) -> Verdict {
         let fresh = Track {
@@ -479,6 +506,7 @@ impl TrackMonitor {
             residuals: VecDeque::new(),
             last_frame: evidence.frame_id,
             ever_continued: false,
+            remembered: VecDeque::new(),
         };
         let track = self.tracks.entry(object).or_insert_with(|| fresh.clone());
         if evidence.frame_id < track.last_frame {
@@ -571,9 +599,16 @@ impl TrackMonitor {
             }
         };
         // A lost object's motion no longer says where it is; a new
-        // candidate starts the motion afresh.
+        // candidate starts the motion afresh. Where the motion would have
+        // taken it stays a candidate for a while.
         if after == TrackState::Lost {
+            if !track.accepted.is_empty() && matches!(before, TrackState::Tracking | TrackState::Unsure(_)) {
+                track.remembered = std::mem::take(&mut track.accepted);
+            }
             track.accepted.clear();
+        }
+        if after == TrackState::Tracking {
+            track.remembered.clear();
         }
         if let TrackState::Confirming { .. } = after {
             track.accepted.clear();
@@ -625,8 +660,12 @@ fn usual_residual(residuals: &VecDeque<(u64, f64)>, frame: u64) -> Option<f64> {
 }
 
 /// Where constant velocity over the accepted estimates puts the object at
-/// `frame`: the last pose moved on by the last per-frame motion (camera
-/// frame), or the last pose when there is only one.
+/// `frame`: the last pose moved on by the last motion, `D = last · first⁻¹`
+/// (camera frame), as a constant twist, `exp(s · log D) · last` with `s`
+/// the frames ahead over the frames between them; the last pose when there
+/// is only one. A camera moving at constant velocity past a still object
+/// (an orbit, a robot's arm sweeping) moves the object's pose exactly so,
+/// turning its position with it, over however many frames.
 fn predict(accepted: &VecDeque<(u64, Pose)>, frame: u64) -> Option<Pose> {
     let &(last_frame, last) = accepted.back()?;
     let Some(&(first_frame, first)) = accepted.iter().rev().nth(1) else { return Some(last) };
@@ -635,9 +674,7 @@ fn predict(accepted: &VecDeque<(u64, Pose)>, frame: u64) -> Option<Pose> {
         return Some(last);
     }
     let scale = ahead as f64 / gap as f64;
-    let turn = so3::log(&(last.rotation * first.rotation.inverse())) * scale;
-    let shift = (last.translation - first.translation) * scale;
-    Some(Pose::new(so3::exp(&turn) * last.rotation, last.translation + shift))
+    Some(Pose::exp(&((last * first.inverse()).log() * scale)) * last)
 }
 
 #[cfg(test)]
@@ -833,6 +870,84 @@ mod tests {
         // A lost object has no motion to predict.
         monitor.check(1, &evidence(11, 0.1, turned(33.0)));
         assert_eq!(monitor.predicted(1, 12), None);
+    }
+
+    /// A camera orbiting a still object at constant speed: the pose
+    /// predicted from two frames is exact any number of frames ahead.
+    #[test]
+    fn constant_velocity_extrapolates_a_camera_orbit_exactly() {
+        let world_from_object =
+            Pose::new(Rotation3::from_euler_angles(0.3, -0.2, 1.1), Vector3::new(0.12, -0.05, 0.03));
+        // The camera 0.7 m from the orbit's axis (world z), 0.4 m up,
+        // looking at the axis, 3° further round each frame.
+        let camera_from_object = |frame: u64| {
+            let angle = (frame as f64 * 3.0).to_radians();
+            let eye = Vector3::new(0.7 * angle.cos(), 0.7 * angle.sin(), 0.4);
+            let forward = (-eye).normalize();
+            let right = forward.cross(&Vector3::z()).normalize();
+            let down = forward.cross(&right);
+            let world_from_camera = Pose::new(
+                Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[right, down, forward])),
+                eye,
+            );
+            world_from_camera.inverse() * world_from_object
+        };
+        let accepted: VecDeque<(u64, Pose)> = [(4, camera_from_object(4)), (5, camera_from_object(5))].into();
+        for ahead in [6, 9, 25] {
+            let (predicted, truth) = (predict(&accepted, ahead).unwrap(), camera_from_object(ahead));
+            assert!(so3::geodesic_angle(&predicted.rotation, &truth.rotation) < 1e-9, "frame {ahead}");
+            assert!(
+                (predicted.translation - truth.translation).norm() < 1e-9,
+                "frame {ahead}: {predicted:?} {truth:?}"
+            );
+        }
+        // Translating separately would put it centimetres off after 20 frames.
+        let (first, last) = (camera_from_object(4), camera_from_object(5));
+        let linear = last.translation + (last.translation - first.translation) * 20.0;
+        assert!((linear - camera_from_object(25).translation).norm() > 0.02);
+    }
+
+    #[test]
+    fn a_lost_tracks_motion_is_remembered_for_a_while() {
+        let mut monitor =
+            TrackMonitor::new(TrackCheckParams { check: true, remember_frames: 10, ..Default::default() });
+        for frame in 0..5 {
+            monitor.check(1, &evidence(frame, 1.0, turned(frame as f64 * 3.0)));
+        }
+        assert!(monitor.is_tracking(1));
+        assert_eq!(monitor.remembered(1, 5), None, "a standing track has its motion, not a memory");
+        // Hidden from frame 5: lost, and no motion to predict from.
+        let mut hidden = evidence(5, 1.0, turned(15.0));
+        hidden.observed_points = 0;
+        assert_eq!(monitor.check(1, &hidden).after, TrackState::Lost);
+        assert_eq!(monitor.predicted(1, 12), None);
+        // The remembered motion goes on through the loss, 10 frames from the
+        // last estimate that passed (frame 4).
+        let at = |monitor: &TrackMonitor, frame: u64| {
+            monitor.remembered(1, frame).map(|p| so3::geodesic_angle(&p.rotation, &turned(frame as f64 * 3.0).rotation))
+        };
+        assert!(at(&monitor, 12).unwrap() < 1e-9);
+        assert!(at(&monitor, 14).unwrap() < 1e-9);
+        assert_eq!(at(&monitor, 15), None);
+        // Back at frame 12 where the memory said: a candidate, then a track,
+        // and the memory is dropped.
+        assert_eq!(
+            monitor.check(1, &evidence(12, 1.0, turned(36.0))).after,
+            TrackState::Confirming { after_loss: true }
+        );
+        assert!(at(&monitor, 13).unwrap() < 1e-9, "kept while the candidate is confirmed");
+        assert_eq!(monitor.check(1, &evidence(13, 1.0, turned(39.0))).after, TrackState::Tracking);
+        assert_eq!(monitor.check(1, &evidence(14, 0.1, turned(42.0))).after, TrackState::Lost);
+        // A loss of the new track remembers the new track's motion.
+        assert!(at(&monitor, 16).unwrap() < 1e-9);
+        // With remember_frames = 0 nothing is kept.
+        let mut forgetful =
+            TrackMonitor::new(TrackCheckParams { check: true, remember_frames: 0, ..Default::default() });
+        for frame in 0..3 {
+            forgetful.check(1, &evidence(frame, 1.0, turned(0.0)));
+        }
+        forgetful.check(1, &hidden);
+        assert_eq!(forgetful.remembered(1, 6), None);
     }
 
     #[test]

@@ -429,7 +429,8 @@ fn write_scene(
             let visible: Vec<bool> = view.frame.label.iter().map(|&l| usize::from(l) == k + 1).collect();
             write_mask_png(&dir.mask(im_id, k), w, h, full)?;
             write_mask_png(&dir.mask_visib(im_id, k), w, h, &visible)?;
-            let px_count_all = full.iter().filter(|&&inside| inside).count() as u64;
+            // As BOP counts it: with the part the image border cuts off.
+            let px_count_all = full.iter().filter(|&&inside| inside).count() as u64 + view.truncated[k];
             let px_count_visib = visible.iter().filter(|&&inside| inside).count() as u64;
             info.push(GtInfoEntry {
                 bbox_obj: bounding_box(full, w),

@@ -34,4 +34,4 @@ pub use library::{LibraryObject, ModelLibrary, load_bop_model, model_file_name};
 pub use mesh::{MeshFormat, ObjectMesh, load_mesh, oriented_trimesh, parse_mesh, surface_points};
 pub use noise::DepthNoise;
 pub use object_geometry::{ObjectGeometry, ObjectLibrary};
-pub use render::{Camera, Frame, Light, Placed, RenderModel, object_depth, render, silhouettes};
+pub use render::{Camera, Frame, Light, Placed, RenderModel, object_depth, render, silhouettes, truncated_pixels};

@@ -217,20 +217,59 @@ pub fn object_depth(camera: &Camera, object: &Placed<'_>) -> Vec<f32> {
     depth
 }
 
+/// The pixels of `object`'s silhouette that lie outside the image but
+/// within one image width and height of it: BOP's `calc_gt_info` counts
+/// the silhouette on a canvas three times the image's size, so that an
+/// object the image border cuts off has a `visib_fract` below 1. The whole
+/// silhouette's `px_count_all` is this plus its pixels in the image.
+pub fn truncated_pixels(camera: &Camera, object: &Placed<'_>) -> u64 {
+    let (w, h) = (i64::from(camera.width), i64::from(camera.height));
+    let Some((u0, v0, u1, v1)) = projected_bounds(camera, object, (-w, -h, 2 * w - 1, 2 * h - 1)) else {
+        return 0;
+    };
+    let pose = isometry(object.pose);
+    (v0..=v1)
+        .into_par_iter()
+        .map(|v| {
+            let in_image_row = (0..h).contains(&v);
+            (u0..=u1)
+                .filter(|u| !(in_image_row && (0..w).contains(u)))
+                .filter(|&u| {
+                    let direction = camera.ray_direction(u as f64, v as f64).cast::<f32>();
+                    object.model.trimesh.intersects_ray(&pose, &Ray::new(Point3::origin(), direction), f32::MAX)
+                })
+                .count() as u64
+        })
+        .sum()
+}
+
 /// The inclusive pixel box `(u0, v0, u1, v1)` that may see `object`: the
 /// bounds of its projected vertices, clipped to the image; the whole image
 /// when a vertex is behind the camera, `None` when it is outside.
 fn projected_box(camera: &Camera, object: &Placed<'_>) -> Option<(usize, usize, usize, usize)> {
-    let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+    let (w, h) = (i64::from(camera.width), i64::from(camera.height));
+    let (u0, v0, u1, v1) = projected_bounds(camera, object, (0, 0, w - 1, h - 1))?;
+    Some((u0 as usize, v0 as usize, u1 as usize, v1 as usize))
+}
+
+/// The bounds of `object`'s projected vertices, clipped to the inclusive
+/// pixel box `canvas`; all of `canvas` when a vertex is behind the camera,
+/// `None` when the object is outside it.
+fn projected_bounds(
+    camera: &Camera,
+    object: &Placed<'_>,
+    canvas: (i64, i64, i64, i64),
+) -> Option<(i64, i64, i64, i64)> {
+    let (cu0, cv0, cu1, cv1) = (canvas.0 as f64, canvas.1 as f64, canvas.2 as f64, canvas.3 as f64);
     let mut bounds = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
     for vertex in &object.model.mesh.vertices {
         let Some((u, v)) = camera.project(&object.pose.transform_point(&vertex.cast::<f64>())) else {
-            bounds = (0.0, 0.0, w - 1.0, h - 1.0);
+            bounds = (cu0, cv0, cu1, cv1);
             break;
         };
         bounds = (bounds.0.min(u), bounds.1.min(v), bounds.2.max(u), bounds.3.max(v));
     }
-    let (u0, v0) = (bounds.0.floor().max(0.0), bounds.1.floor().max(0.0));
-    let (u1, v1) = (bounds.2.ceil().min(w - 1.0), bounds.3.ceil().min(h - 1.0));
-    (u0 <= u1 && v0 <= v1).then_some((u0 as usize, v0 as usize, u1 as usize, v1 as usize))
+    let (u0, v0) = (bounds.0.floor().max(cu0), bounds.1.floor().max(cv0));
+    let (u1, v1) = (bounds.2.ceil().min(cu1), bounds.3.ceil().min(cv1));
+    (u0 <= u1 && v0 <= v1).then_some((u0 as i64, v0 as i64, u1 as i64, v1 as i64))
 }

@@ -11,7 +11,7 @@ use poseflow_geometry::Pose;
 use rand::Rng;
 
 use crate::primitives::{ClutterShape, Texture, support_plane};
-use crate::{Camera, Frame, Light, ModelLibrary, Placed, RenderModel, render, silhouettes};
+use crate::{Camera, Frame, Light, ModelLibrary, Placed, RenderModel, render, silhouettes, truncated_pixels};
 
 /// How crowded a scene is: how many clutter shapes, how big, and how close
 /// objects stand to each other.
@@ -351,6 +351,9 @@ pub struct View {
     pub object_poses: Vec<Pose>,
     /// Each object's full silhouette (as if alone), row-major.
     pub silhouettes: Vec<Vec<bool>>,
+    /// Each object's silhouette pixels beyond the image border
+    /// ([`truncated_pixels`]): with the silhouette's, BOP's `px_count_all`.
+    pub truncated: Vec<u64>,
 }
 
 /// Renders `scene` from `camera_from_world`, with the scene background
@@ -383,7 +386,8 @@ pub fn render_view(
             None => scene.background,
         };
     }
-    View { frame, silhouettes: silhouettes(camera, &targets), object_poses }
+    let truncated = targets.iter().map(|target| truncated_pixels(camera, target)).collect();
+    View { frame, silhouettes: silhouettes(camera, &targets), truncated, object_poses }
 }
 
 #[cfg(test)]

@@ -163,3 +163,26 @@ fn an_objects_own_depth_equals_the_rendered_depth_where_nothing_hides_it() {
     let hidden = own.iter().zip(&both.label).filter(|&(&z, &label)| z > 0.0 && label == 2).count();
     assert!(hidden > 50, "{hidden} pixels of the far sphere behind the near one");
 }
+
+#[test]
+fn the_part_of_a_silhouette_beyond_the_image_border_is_counted_as_bop_does() {
+    let model = RenderModel::new(sphere(0.1, 128, 64)).unwrap();
+    let on_axis = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, 0.6));
+    let placed = Placed { model: &model, pose: &on_axis };
+    let in_image = |camera: &Camera| {
+        poseflow_scene::silhouettes(camera, &[placed])[0].iter().filter(|inside| **inside).count() as u64
+    };
+    // Wholly inside the image: nothing is cut off.
+    assert_eq!(poseflow_scene::truncated_pixels(&CAMERA, &placed), 0);
+    let whole = in_image(&CAMERA);
+    // The principal point half a pixel left of the first column: the image
+    // holds the right half of the disc (columns u and −1 − u mirror).
+    let cut = Camera { cx: -0.5, ..CAMERA };
+    let (inside, beyond) = (in_image(&cut), poseflow_scene::truncated_pixels(&cut, &placed));
+    assert!(inside.abs_diff(beyond) <= whole / 100, "{inside} in the image, {beyond} beyond it");
+    assert!((inside + beyond).abs_diff(whole) <= whole / 100, "{} against {whole}", inside + beyond);
+    // Wholly outside the image, within the canvas BOP renders: all counted.
+    let outside = Camera { cx: -60.0, ..CAMERA };
+    assert_eq!(in_image(&outside), 0);
+    assert!(poseflow_scene::truncated_pixels(&outside, &placed).abs_diff(whole) <= whole / 100);
+}
