@@ -53,6 +53,10 @@
 //! predicts as a candidate ([`TrackMonitor::predicted`]): the samples of an
 //! unsure object may all have left a track that still fits.
 //!
+//! Carried more than [`SHORT_AHEAD`] frames (an object unseen for a
+//! while), the velocity is measured over up to [`MOTION_HISTORY`]
+//! estimates, not the last two, whose wobble it would multiply.
+//!
 //! A lost track's motion is remembered for `remember_frames` frames, and
 //! the pose it predicts is tried while the object is lost or being
 //! confirmed again: an object that went out of view or behind an occluder
@@ -430,7 +434,8 @@ impl Verdict {
 #[derive(Debug, Clone)]
 struct Track {
     state: TrackState,
-    /// The last two estimates that passed, oldest first.
+    /// The last [`MOTION_HISTORY`] estimates that passed on the current
+    /// motion, oldest first.
     accepted: VecDeque<(u64, Pose)>,
     /// The RMS residuals of the last estimates that passed while tracking,
     /// with their frames. Kept through a loss: how well the object fits
@@ -624,7 +629,7 @@ impl TrackMonitor {
                 track.accepted.clear();
             }
             track.accepted.push_back((evidence.frame_id, evidence.pose));
-            if track.accepted.len() > 2 {
+            if track.accepted.len() > MOTION_HISTORY {
                 track.accepted.pop_front();
             }
         }
@@ -659,16 +664,33 @@ fn usual_residual(residuals: &VecDeque<(u64, f64)>, frame: u64) -> Option<f64> {
     recent.get(recent.len() / 2).copied()
 }
 
+/// The accepted estimates a track keeps for its motion: ten frames of
+/// baseline make a velocity ten times less noisy than two consecutive
+/// estimates do, which matters when it is carried over a gap of 15 frames.
+const MOTION_HISTORY: usize = 10;
+
+/// Up to this many frames ahead, the velocity is the last two estimates':
+/// it follows a change of motion at once, and its noise is carried only
+/// so far. Further ahead (an object unseen for a while), it is measured
+/// between the oldest and the last accepted estimates.
+const SHORT_AHEAD: u64 = 2;
+
 /// Where constant velocity over the accepted estimates puts the object at
-/// `frame`: the last pose moved on by the last motion, `D = last · first⁻¹`
-/// (camera frame), as a constant twist, `exp(s · log D) · last` with `s`
-/// the frames ahead over the frames between them; the last pose when there
-/// is only one. A camera moving at constant velocity past a still object
-/// (an orbit, a robot's arm sweeping) moves the object's pose exactly so,
-/// turning its position with it, over however many frames.
+/// `frame`: the last pose moved on by the motion between two of them
+/// (the last two, or the oldest and the last beyond [`SHORT_AHEAD`]),
+/// `D = last · first⁻¹` (camera frame), as a constant twist,
+/// `exp(s · log D) · last` with `s` the frames ahead over the frames
+/// between them; the last pose when there is only one. A camera moving at
+/// constant velocity past a still object (an orbit, a robot's arm
+/// sweeping) moves the object's pose exactly so, turning its position with
+/// it, over however many frames.
 fn predict(accepted: &VecDeque<(u64, Pose)>, frame: u64) -> Option<Pose> {
     let &(last_frame, last) = accepted.back()?;
-    let Some(&(first_frame, first)) = accepted.iter().rev().nth(1) else { return Some(last) };
+    let first = match frame.saturating_sub(last_frame) {
+        ahead if ahead <= SHORT_AHEAD => accepted.iter().rev().nth(1),
+        _ => accepted.front().filter(|_| accepted.len() > 1),
+    };
+    let Some(&(first_frame, first)) = first else { return Some(last) };
     let (gap, ahead) = (last_frame.saturating_sub(first_frame), frame.saturating_sub(last_frame));
     if gap == 0 {
         return Some(last);
@@ -948,6 +970,32 @@ mod tests {
         }
         forgetful.check(1, &hidden);
         assert_eq!(forgetful.remembered(1, 6), None);
+    }
+
+    /// Estimates that wobble by half a degree: carried over 15 frames, the
+    /// velocity of the last two would be 15° off, that of ten frames is 2°.
+    #[test]
+    fn a_motion_carried_far_takes_its_velocity_over_the_longest_baseline() {
+        let mut monitor = monitor();
+        let wobble = |frame: u64| frame as f64 * 3.0 + if frame.is_multiple_of(2) { 0.5 } else { -0.5 };
+        for frame in 0..10 {
+            monitor.check(1, &evidence(frame, 1.0, turned(wobble(frame))));
+        }
+        let mut hidden = evidence(10, 1.0, turned(30.0));
+        hidden.observed_points = 0;
+        assert_eq!(monitor.check(1, &hidden).after, TrackState::Lost);
+        let frame = 24;
+        let off_at = |pose: Pose, frame: u64| {
+            so3::geodesic_angle(&pose.rotation, &turned(frame as f64 * 3.0).rotation).to_degrees()
+        };
+        let off = |pose: Pose| off_at(pose, frame);
+        let remembered = monitor.remembered(1, frame).unwrap();
+        assert!(off(remembered) < 2.5, "{}", off(remembered));
+        let last_two: VecDeque<_> = monitor.tracks[&1].remembered.iter().rev().take(2).rev().copied().collect();
+        assert!(off(predict(&last_two, frame).unwrap()) > 14.0);
+        // The next frame takes the last two (24.5° and 26.5°): 28.5°.
+        let next = predict(&monitor.tracks[&1].remembered, 10).unwrap();
+        assert!((off_at(next, 10) - 1.5).abs() < 1e-6, "{}", off_at(next, 10));
     }
 
     #[test]
