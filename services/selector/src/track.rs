@@ -901,7 +901,7 @@ mod tests {
         let world_from_object =
             Pose::new(Rotation3::from_euler_angles(0.3, -0.2, 1.1), Vector3::new(0.12, -0.05, 0.03));
         // The camera 0.7 m from the orbit's axis (world z), 0.4 m up,
-        // looking at the axis, 3° further round each frame.
+        // looking at the origin, 3° further round each frame.
         let camera_from_object = |frame: u64| {
             let angle = (frame as f64 * 3.0).to_radians();
             let eye = Vector3::new(0.7 * angle.cos(), 0.7 * angle.sin(), 0.4);
