@@ -97,6 +97,11 @@ pub struct EvalArgs {
     /// The graph to run.
     #[arg(long, default_value = "deploy/estimation.toml")]
     pub graph: PathBuf,
+    /// Override one stage parameter of the graph, after this command's own
+    /// options (repeatable), as for `poseflow run`: for example
+    /// `--set selector.tracking.remember_frames=0`.
+    #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+    pub set: Vec<String>,
     /// Model directory (encoder.onnx, velocity.onnx).
     #[arg(long, default_value = "models/poseflow-lmo10")]
     pub model: PathBuf,
@@ -489,7 +494,10 @@ fn eval_graph(args: &EvalArgs, objects_dir: &Path, object_ids: Vec<u32>) -> anyh
         classes: args.category.then_some(classes.as_path()),
     };
     let graph_file = args.graph_file();
-    let run = graph_with_overrides(&graph_file, &overrides)?;
+    let mut run = graph_with_overrides(&graph_file, &overrides)?;
+    for assignment in &args.set {
+        run.set_param(assignment)?;
+    }
     if args.detect && !run.stages.values().any(|stage| stage.exe_name() == "detector") {
         bail!("--detect --graph {}: the graph has no stage with exe = \"detector\"", graph_file.display());
     }

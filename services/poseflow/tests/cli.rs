@@ -316,8 +316,17 @@ fn eval_tracks_from_a_perturbed_ground_truth() {
     let graph = "evaluation/graphs/tracking-from-truth.toml";
     let out_dir = dir.join("eval");
     let args = ["--dataset", dataset.to_str().unwrap(), "--out", out_dir.to_str().unwrap(), "--graph", graph];
-    let out = eval(&[&args[..], &["--tracking-steps", "1"]].concat());
+    // A stage that is not in the graph is named before anything starts.
+    let unknown = eval(&[&args[..], &["--set", "tracker.samples=1"]].concat());
+    assert_eq!(unknown.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&unknown.stderr);
+    assert!(stderr.contains("--set tracker.samples=1") && stderr.contains("selector"), "{stderr}");
+    let set = ["--set", "selector.tracking.remember_frames=7"];
+    let out = eval(&[&args[..], &["--tracking-steps", "1"], &set].concat());
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // The graph as run has the override.
+    let ran = std::fs::read_to_string(out_dir.join("tracking-from-truth.toml")).unwrap();
+    assert!(ran.contains("remember_frames = 7"), "{ran}");
     let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let estimated = summary["estimated"].as_u64().unwrap();
     assert!(estimated >= 4 && summary["instances"].as_u64() == Some(estimated), "{summary}");
