@@ -149,17 +149,11 @@ impl SelectorStage {
         {
             tracing::debug!(frame, object, "a candidate turned half a turn fits better: selected");
         }
-        if let Some(model) = model.filter(|_| monitor.params().motion_candidate)
-            && let Some(predicted) = monitor.predicted(object, frame)
+        if let Some(model) = model
+            && let Some(predicted) = monitor.motion_candidate(object, frame)
             && selection.consider(&[predicted], model, seen, &self.params)
         {
             tracing::debug!(frame, object, "the pose the motion predicts fits better: selected");
-        }
-        if let Some(model) = model
-            && let Some(remembered) = monitor.remembered(object, frame)
-            && selection.consider(&[remembered], model, seen, &self.params)
-        {
-            tracing::debug!(frame, object, "the pose the lost track's motion predicts fits better: selected");
         }
         let settings = FitSettings {
             inlier_distance: monitor.params().inlier_distance,

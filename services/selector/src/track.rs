@@ -492,6 +492,17 @@ impl TrackMonitor {
         predict(&track.accepted, frame)
     }
 
+    /// The pose for the selector to try beside the samples: where the
+    /// track's motion puts `object` at `frame` while it is tracking or
+    /// unsure ([`Self::predicted`], with `motion_candidate`), or where its
+    /// lost track's motion does while it is lost or confirming
+    /// ([`Self::remembered`]).
+    pub fn motion_candidate(&self, object: u32, frame: u64) -> Option<Pose> {
+        self.predicted(object, frame)
+            .filter(|_| self.params.motion_candidate)
+            .or_else(|| self.remembered(object, frame))
+    }
+
     /// Where the motion of `object`'s lost track puts it at `frame`, while
     /// the object is lost or a new candidate awaits confirmation and at most
     /// `remember_frames` frames have passed since that track's last
