@@ -500,7 +500,9 @@ mod tests {
             cx in 0.0f64..64.0,
             cy in 0.0f64..48.0,
             down in 1usize..6,
-            depths in proptest::collection::vec(0.2f32..1.9, 64 * 48),
+            // Millimetres mapped to metres: proptest's own f32 range
+            // sampler trips a debug assertion on some seeds.
+            depths in proptest::collection::vec((200u16..1900).prop_map(|mm| f32::from(mm) / 1000.0), 64 * 48),
         ) {
             let camera = Pinhole { fx, fy, cx, cy };
             let rgb = vec![0.0; 3 * 64 * 48];

@@ -423,7 +423,9 @@ mod tests {
             strays in 0usize..12,
             repeats in 0usize..5,
             neighbours in 1usize..24,
-            radius_mm in 1.0f32..20.0,
+            // Tenths of a millimetre: proptest's f32 range sampler trips a
+            // debug assertion on some seeds.
+            radius_mm in proptest::strategy::Strategy::prop_map(10u16..200, |tenths| f32::from(tenths) / 10.0),
         ) {
             let mut rng = seeded_rng(seed);
             let mut points: Vec<Point3<f32>> = (0..surface)
