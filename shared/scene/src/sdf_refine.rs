@@ -40,17 +40,20 @@ fn huber_weight(r: f64, delta: f64) -> f64 {
     if r.abs() <= delta { 1.0 } else { delta / r.abs() }
 }
 
-/// The robust cost of `pose` and, when `system` is given, the normal
-/// equations `(JᵀWJ, JᵀWr)` at it.
-fn evaluate(
-    grid: &SignedDistanceGrid,
-    pose: &Pose,
-    points: &[Point3<f64>],
-    likelihood: &Likelihood,
-    mut system: Option<(&mut Matrix6<f64>, &mut Vector6<f64>)>,
-) -> f64 {
+/// The normal equations `(JᵀWJ, JᵀWr)` of a pose, with its robust cost.
+#[derive(Debug, Clone, Copy)]
+struct System {
+    cost: f64,
+    jtj: Matrix6<f64>,
+    jtr: Vector6<f64>,
+}
+
+/// The robust cost of `pose` and its normal equations. A refinement step
+/// that is accepted goes on from the system evaluated to judge it, so each
+/// iteration reads the grid once.
+fn evaluate(grid: &SignedDistanceGrid, pose: &Pose, points: &[Point3<f64>], likelihood: &Likelihood) -> System {
     let inverse = pose.inverse();
-    let mut cost = 0.0;
+    let mut system = System { cost: 0.0, jtj: Matrix6::zeros(), jtr: Vector6::zeros() };
     for x in points {
         let y = inverse.transform_point(x);
         let (r, gradient) = grid.value_and_gradient(&y);
@@ -58,16 +61,20 @@ fn evaluate(
             continue;
         }
         let w = huber_weight(r, likelihood.noise_std);
-        cost += 0.5 * w * r * r;
-        if let Some((jtj, jtr)) = system.as_mut() {
-            // ∂r/∂ρ = −∇sdf, ∂r/∂φ = ∇sdfᵀ [y]× = (∇sdf × y)ᵀ.
-            let rotational: Vector3<f64> = gradient.cross(&y.coords);
-            let row = Vector6::new(-gradient.x, -gradient.y, -gradient.z, rotational.x, rotational.y, rotational.z);
-            **jtj += row * row.transpose() * w;
-            **jtr += row * (w * r);
+        system.cost += 0.5 * w * r * r;
+        // ∂r/∂ρ = −∇sdf, ∂r/∂φ = ∇sdfᵀ [y]× = (∇sdf × y)ᵀ.
+        let rotational: Vector3<f64> = gradient.cross(&y.coords);
+        let row = [-gradient.x, -gradient.y, -gradient.z, rotational.x, rotational.y, rotational.z];
+        // The upper triangle only (JᵀWJ is symmetric); mirrored once below.
+        for i in 0..6 {
+            for j in i..6 {
+                system.jtj[(i, j)] += row[i] * row[j] * w;
+            }
+            system.jtr[i] += row[i] * (w * r);
         }
     }
-    cost
+    system.jtj.fill_lower_triangle_with_upper_triangle();
+    system
 }
 
 fn apply(pose: &Pose, step: &Vector6<f64>) -> Pose {
@@ -85,30 +92,28 @@ pub fn refine(
     iterations: usize,
 ) -> Refined {
     let mut current = *pose;
-    let initial_cost = evaluate(grid, &current, points, likelihood, None);
-    let mut cost = initial_cost;
+    let mut system = evaluate(grid, &current, points, likelihood);
+    let initial_cost = system.cost;
     let mut lambda = 1e-3;
     let mut done = 0;
     for _ in 0..iterations {
         done += 1;
-        let (mut jtj, mut jtr) = (Matrix6::zeros(), Vector6::zeros());
-        evaluate(grid, &current, points, likelihood, Some((&mut jtj, &mut jtr)));
         let mut improved = false;
         // Raise the damping until a step lowers the cost (a few tries).
         for _ in 0..5 {
-            let mut damped = jtj;
+            let mut damped = system.jtj;
             for k in 0..6 {
-                damped[(k, k)] += lambda * jtj[(k, k)].max(1e-9);
+                damped[(k, k)] += lambda * system.jtj[(k, k)].max(1e-9);
             }
-            let Some(step) = damped.cholesky().map(|c| c.solve(&(-jtr))) else {
+            let Some(step) = damped.cholesky().map(|c| c.solve(&(-system.jtr))) else {
                 lambda *= 10.0;
                 continue;
             };
             let candidate = apply(&current, &step);
-            let candidate_cost = evaluate(grid, &candidate, points, likelihood, None);
-            if candidate_cost < cost {
+            let judged = evaluate(grid, &candidate, points, likelihood);
+            if judged.cost < system.cost {
                 current = candidate;
-                cost = candidate_cost;
+                system = judged;
                 lambda = (lambda / 3.0).max(1e-7);
                 improved = true;
                 break;
@@ -119,5 +124,6 @@ pub fn refine(
             break;
         }
     }
+    let cost = system.cost;
     Refined { pose: current, initial_cost, final_cost: cost, iterations: done }
 }
