@@ -81,16 +81,25 @@ pub fn write_crop(
         }
     };
     let factors: [(f32, f32); 3] = std::array::from_fn(|c| (1.0 / (255.0 * norm.std[c]), norm.mean[c] / norm.std[c]));
+    // A sub-sample's column depends only on (j, sj) and its row only on
+    // (i, si): each pixel position and bilinear weight is computed once per
+    // column and row of sub-samples, not once per sub-sample.
+    let taps = |min: f64| -> Vec<(isize, f32)> {
+        (0..size * k)
+            .map(|n| {
+                let (pixel, sub) = (n / k, n % k);
+                let x = min + (pixel as f64 + (sub as f64 + 0.5) / k as f64) * scale;
+                let x0 = x.floor();
+                (x0 as isize, (x - x0) as f32)
+            })
+            .collect()
+    };
+    let (columns, rows) = (taps(crop.x_min), taps(crop.y_min));
     for i in 0..size {
         for j in 0..size {
             let mut sum = [0.0f32; 3];
-            for si in 0..k {
-                for sj in 0..k {
-                    let x = crop.x_min + (j as f64 + (sj as f64 + 0.5) / k as f64) * scale;
-                    let y = crop.y_min + (i as f64 + (si as f64 + 0.5) / k as f64) * scale;
-                    let (x0, y0) = (x.floor(), y.floor());
-                    let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
-                    let (x0, y0) = (x0 as isize, y0 as isize);
+            for &(y0, fy) in &rows[i * k..(i + 1) * k] {
+                for &(x0, fx) in &columns[j * k..(j + 1) * k] {
                     let (a, b, c, d) = (at(x0, y0), at(x0 + 1, y0), at(x0, y0 + 1), at(x0 + 1, y0 + 1));
                     for ch in 0..3 {
                         let top = a[ch] + (b[ch] - a[ch]) * fx;
@@ -112,21 +121,29 @@ pub fn write_crop(
 pub fn write_token_mask(mask: &[bool], width: u32, crop: &CropBox, grid: usize, out: &mut [f32]) {
     out.fill(0.0);
     let w = width as usize;
+    if w == 0 {
+        return;
+    }
     // Patch coordinates of an image coordinate.
     let to_patch = |x: f64, min: f64| (x - min) / crop.side * grid as f64;
-    for (i, _) in mask.iter().enumerate().filter(|(_, inside)| **inside) {
-        let (u, v) = ((i % w) as f64, (i / w) as f64);
-        let (c0, c1) = (to_patch(u - 0.5, crop.x_min), to_patch(u + 0.5, crop.x_min));
-        let (r0, r1) = (to_patch(v - 0.5, crop.y_min), to_patch(v + 0.5, crop.y_min));
-        if c1 <= 0.0 || r1 <= 0.0 || c0 >= grid as f64 || r0 >= grid as f64 {
-            continue;
-        }
-        // Patches the open interval (a, b) overlaps: a pixel ending exactly
-        // on a patch border does not enter the next patch.
-        let span = |a: f64, b: f64| a.floor().max(0.0) as usize..=(b.ceil() - 1.0).min(grid as f64 - 1.0) as usize;
-        for r in span(r0, r1) {
-            for c in span(c0, c1) {
-                out[r * grid + c] = 1.0;
+    // The patches a pixel's square overlaps along one axis, or none: the
+    // open interval (a, b), so a pixel ending exactly on a patch border does
+    // not enter the next patch.
+    let span = |at: usize, min: f64| {
+        let (a, b) = (to_patch(at as f64 - 0.5, min), to_patch(at as f64 + 0.5, min));
+        (b > 0.0 && a < grid as f64)
+            .then(|| a.floor().max(0.0) as usize..=(b.ceil() - 1.0).min(grid as f64 - 1.0) as usize)
+    };
+    // Each column's span once; each row's once, for the rows that hold
+    // mask pixels.
+    let columns: Vec<_> = (0..w).map(|u| span(u, crop.x_min)).collect();
+    for (v, row) in mask.chunks(w).enumerate() {
+        let Some(rows) = row.contains(&true).then(|| span(v, crop.y_min)).flatten() else { continue };
+        for (_, columns) in row.iter().zip(&columns).filter(|(inside, _)| **inside) {
+            for c in columns.iter().flat_map(|span| span.clone()) {
+                for r in rows.clone() {
+                    out[r * grid + c] = 1.0;
+                }
             }
         }
     }

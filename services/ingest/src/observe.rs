@@ -49,13 +49,21 @@ pub struct Prepared {
 
 /// The inclusive pixel box `(u0, v0, u1, v1)` of a mask and its pixel count.
 pub(crate) fn mask_box(mask: &Raster<bool>) -> (Option<(u32, u32, u32, u32)>, usize) {
-    let w = mask.width as usize;
+    let w = (mask.width as usize).max(1);
     let mut bounds: Option<(u32, u32, u32, u32)> = None;
     let mut count = 0;
-    for (i, _) in mask.pixels.iter().enumerate().filter(|(_, inside)| **inside) {
-        count += 1;
-        let (u, v) = ((i % w) as u32, (i / w) as u32);
-        bounds = Some(bounds.map_or((u, v, u, v), |(u0, v0, u1, v1)| (u0.min(u), v0.min(v), u1.max(u), v1.max(v))));
+    // Row by row: counting a row's pixels vectorises, and only rows that
+    // hold some are searched for their ends.
+    for (v, row) in mask.pixels.chunks(w).enumerate() {
+        let in_row = row.iter().filter(|&&inside| inside).count();
+        if in_row == 0 {
+            continue;
+        }
+        count += in_row;
+        let first = row.iter().position(|&inside| inside).unwrap_or(0) as u32;
+        let last = row.iter().rposition(|&inside| inside).unwrap_or(0) as u32;
+        let v = v as u32;
+        bounds = Some(bounds.map_or((first, v, last, v), |(u0, v0, u1, _)| (u0.min(first), v0, u1.max(last), v)));
     }
     (bounds, count)
 }
@@ -135,7 +143,7 @@ pub fn prepare<R: Rng + ?Sized>(
         (u0, v0, u1, v1),
         params.max_depth,
     );
-    let observed = back_project(&frame.depth.pixels, &mask, camera, params.max_depth);
+    let observed = back_project(&frame.depth.pixels, &mask, camera, (v0, v1), params.max_depth);
     if observed.len() < params.min_points {
         return Err(reject(format!(
             "{} of {pixels} mask pixels have a valid depth (0 < z ≤ {} m), expected at least {}",
@@ -222,6 +230,32 @@ impl Prepared {
         }
         for (out, point) in points.chunks_exact_mut(3).zip(&self.points) {
             out.copy_from_slice(point.coords.as_slice());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// The row-by-row scan finds the box and count of the definition:
+        /// the extremes of the mask's pixels and how many there are.
+        #[test]
+        fn the_mask_box_holds_exactly_the_mask_pixels(
+            (width, pixels) in (1u32..40).prop_flat_map(|w| (Just(w), proptest::collection::vec(proptest::bool::weighted(0.1), (w as usize)..(w as usize * 30)))),
+        ) {
+            let height = pixels.len() as u32 / width;
+            let pixels = pixels[..(width * height) as usize].to_vec();
+            let inside: Vec<(u32, u32)> =
+                (0..width * height).filter(|&i| pixels[i as usize]).map(|i| (i % width, i / width)).collect();
+            let expected = inside.first().map(|_| {
+                let (us, vs): (Vec<u32>, Vec<u32>) = inside.iter().copied().unzip();
+                (*us.iter().min().unwrap(), *vs.iter().min().unwrap(), *us.iter().max().unwrap(), *vs.iter().max().unwrap())
+            });
+            let mask = Raster { width, height, pixels };
+            prop_assert_eq!(mask_box(&mask), (expected, inside.len()));
         }
     }
 }

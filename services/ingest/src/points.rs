@@ -37,15 +37,27 @@ impl Default for OutlierFilter {
 }
 
 /// Camera-frame points of the `mask` pixels that have a depth in
-/// `(0, max_depth]` (row-major rasters of the camera's size).
-pub fn back_project(depth: &[f32], mask: &[bool], camera: &Camera, max_depth: f32) -> Vec<Point3<f32>> {
-    let width = camera.width as usize;
+/// `(0, max_depth]` (row-major rasters of the camera's size), in raster
+/// order; only image rows `rows.0..=rows.1` are read (the mask's rows).
+pub fn back_project(
+    depth: &[f32],
+    mask: &[bool],
+    camera: &Camera,
+    rows: (u32, u32),
+    max_depth: f32,
+) -> Vec<Point3<f32>> {
+    let width = (camera.width as usize).max(1);
     let (fx, fy, cx, cy) = (camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32);
-    mask.iter()
-        .zip(depth)
+    let span = rows.0 as usize * width..((rows.1 as usize + 1) * width).min(mask.len()).min(depth.len());
+    let first = span.start;
+    mask.get(span.clone())
+        .unwrap_or_default()
+        .iter()
+        .zip(depth.get(span).unwrap_or_default())
         .enumerate()
         .filter(|&(_, (&inside, &z))| inside && z > 0.0 && z <= max_depth)
         .map(|(i, (_, &z))| {
+            let i = first + i;
             let (u, v) = ((i % width) as f32, (i / width) as f32);
             Point3::new((u - cx) * z / fx, (v - cy) * z / fy, z)
         })
@@ -328,8 +340,11 @@ mod tests {
         depth[3 * 8 + 3] = 1.0;
         depth[5 * 8 + 7] = 9.0;
         mask[5 * 8 + 7] = true;
-        let points = back_project(&depth, &mask, &cam, 5.0);
+        let points = back_project(&depth, &mask, &cam, (0, 5), 5.0);
         assert_eq!(points.len(), 1);
+        // Rows outside the given ones are not read.
+        assert!(back_project(&depth, &mask, &cam, (2, 5), 5.0).is_empty());
+        assert_eq!(back_project(&depth, &mask, &cam, (1, 1), 5.0), points);
         let p = points[0];
         assert!((p - Point3::new(2.0 * 0.8 / 500.0, -2.0 * 0.8 / 400.0, 0.8)).norm() < 1e-7, "{p}");
         let (u, v) = cam.project(&p.cast::<f64>()).unwrap();
