@@ -29,7 +29,14 @@ def quantise(source, target):
     with tempfile.TemporaryDirectory() as scratch:
         prepared = Path(scratch) / "prepared.onnx"
         quant_pre_process(str(source), str(prepared), skip_symbolic_shape=True)
-        quantize_dynamic(str(prepared), str(target), weight_type=QuantType.QInt8, op_types_to_quantize=["MatMul", "Gemm"])
+        # Weights in 7 bits (reduce_range): x86 CPUs without VNNI multiply u8
+        # activations by s8 weights in a 16-bit pairwise sum that saturates
+        # for full-range weights (the encoder's outputs moved by 0.68 on an
+        # AVX2-only CPU, 0.05 with 7 bits; docs/network.md). ONNX Runtime's
+        # own remedy, a session option that rewrites the weights as u8, fails
+        # to load these graphs in 1.32.
+        quantize_dynamic(str(prepared), str(target), weight_type=QuantType.QInt8, reduce_range=True,
+                         op_types_to_quantize=["MatMul", "Gemm"])
     # The metadata (contract, sizes, object ids) as the FP32 file has it.
     original, quantised = onnx.load(str(source)), onnx.load(str(target))
     del quantised.metadata_props[:]

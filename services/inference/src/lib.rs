@@ -7,6 +7,7 @@
 mod error;
 mod grasp_model;
 mod model;
+pub mod parity;
 pub mod stage;
 
 pub use error::InferenceError;
@@ -32,7 +33,12 @@ pub fn registrations() -> Vec<poseflow_runtime::Registration> {
             params.cache = in_flight;
         }
         let stage = stage::InferenceStage::new(&params)?;
-        tracing::info!(model = %stage.model_dir().display(), threads = params.threads, "model loaded");
+        tracing::info!(
+            model = %stage.model_dir().display(),
+            precision = stage.precision().name(),
+            threads = params.threads,
+            "model loaded"
+        );
         Ok::<_, poseflow_runtime::BuildError>(stage)
     })]
 }

@@ -107,7 +107,7 @@ pub struct Condition {
 /// Which files of a model directory are served: the exported FP32 networks
 /// (`encoder.onnx`, `velocity.onnx`) or their dynamic INT8 quantisation
 /// (`encoder.int8.onnx`, `velocity.int8.onnx`, `poseflow_train.quantize`):
-/// the same contract, weights in 8 bits and matrix products in integers.
+/// the same contract, weights in 7 bits and matrix products in integers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Precision {
@@ -169,6 +169,8 @@ pub struct Velocities {
 pub struct PoseFlowModel {
     pub dir: PathBuf,
     pub info: ModelInfo,
+    /// The files loaded.
+    pub precision: Precision,
     encoder: Session,
     velocity: Session,
     /// A batch's inputs, gathered (reused between runs).
@@ -373,7 +375,15 @@ impl PoseFlowModel {
             cached_blocks,
             categories,
         };
-        Ok(Self { dir: dir.to_path_buf(), info, encoder, velocity, gathered: Gathered::default(), encodings: 0 })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            info,
+            precision,
+            encoder,
+            velocity,
+            gathered: Gathered::default(),
+            encodings: 0,
+        })
     }
 
     /// Index of a BOP object id for `object_index`.

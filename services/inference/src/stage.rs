@@ -12,7 +12,7 @@
 //! | key | meaning | default |
 //! |---|---|---|
 //! | `model` | directory with `encoder.onnx` and `velocity.onnx` | `models/poseflow-lmo10` |
-//! | `precision` | `fp32` (`encoder.onnx`, `velocity.onnx`) or `int8` (`encoder.int8.onnx`, `velocity.int8.onnx`) | `fp32` |
+//! | `precision` | `fp32` (`encoder.onnx`, `velocity.onnx`) or `int8` (`encoder.int8.onnx`, `velocity.int8.onnx`; FP32 is served instead, with a warning, when their outputs on `parity.bin` drift on this CPU) | `fp32` |
 //! | `threads` | ONNX Runtime intra-op threads per network | 2 |
 //! | `cache` | conditions kept (oldest dropped first); the process raises it to what a reader can hold (its queue, a batch, one in hand) | 8 |
 //! | `batch` | most observations of one frame encoded in one run of the encoder | 1 |
@@ -32,6 +32,7 @@ use poseflow_contracts::{
 use poseflow_runtime::{Emitter, Flush, FrameBatches, Input, Server, Transform};
 use serde::Deserialize;
 
+use crate::parity::{OutputDrift, ParityVectors, output_drift};
 use crate::{CategoryHead, Condition, EncoderInput, InferenceError, PoseFlowModel, Precision};
 
 /// The stage's parameters.
@@ -173,6 +174,43 @@ fn active_tokens(token_mask: &[f32]) -> u32 {
     token_mask.iter().filter(|&&m| m > 0.5).count() as u32
 }
 
+/// The networks of `params.precision`. INT8 networks whose outputs on the
+/// model's stored parity inputs drift from the stored FP32 ones beyond
+/// [`OutputDrift::INT8_LIMITS`] on this CPU (products that overflow, or a
+/// stale file) are replaced by the FP32 ones, with a warning: a fast wrong
+/// pose is worth less than a slower right one.
+fn load_checked(params: &InferenceParams) -> Result<PoseFlowModel, InferenceError> {
+    let mut model = PoseFlowModel::load_as(&params.model, params.threads, params.precision)?;
+    if params.precision != Precision::Int8 {
+        return Ok(model);
+    }
+    let Some(parity) = ParityVectors::read(&params.model)? else {
+        tracing::info!(model = %params.model.display(), "no parity.json: INT8 outputs not checked against FP32");
+        return Ok(model);
+    };
+    let drift = output_drift(&mut model, &parity)?;
+    let limits = OutputDrift::INT8_LIMITS;
+    if drift.within(&limits) {
+        tracing::info!(
+            tokens = drift.tokens,
+            v_rot = drift.v_rot,
+            v_pos = drift.v_pos,
+            "INT8 outputs within quantisation noise of FP32"
+        );
+        return Ok(model);
+    }
+    tracing::warn!(
+        model = %params.model.display(),
+        tokens = drift.tokens,
+        v_rot = drift.v_rot,
+        v_pos = drift.v_pos,
+        limits = ?limits,
+        "INT8 networks drift from their FP32 outputs on this CPU beyond quantisation noise: serving the FP32 \
+         networks instead (re-quantise with python -m poseflow_train.quantize, which keeps weights in 7 bits)"
+    );
+    PoseFlowModel::load_as(&params.model, params.threads, Precision::Fp32)
+}
+
 fn run_nonce() -> u64 {
     let mixed = poseflow_contracts::monotonic_ns() ^ (u64::from(std::process::id()) << 20);
     // splitmix64 finaliser: spreads nearby clock values over all bits.
@@ -184,7 +222,7 @@ fn run_nonce() -> u64 {
 
 impl InferenceStage {
     pub fn new(params: &InferenceParams) -> Result<Self, InferenceError> {
-        let model = PoseFlowModel::load_as(&params.model, params.threads, params.precision)?;
+        let model = load_checked(params)?;
         let classes = match (&params.classes, &model.info.categories) {
             (None, _) => None,
             (Some(path), Some(head)) => Some(read_classes(path, head)?),
@@ -222,6 +260,12 @@ impl InferenceStage {
 
     pub fn model_dir(&self) -> &Path {
         &self.model.dir
+    }
+
+    /// The networks served: `params.precision`, or FP32 where the INT8 ones
+    /// drift on this CPU.
+    pub fn precision(&self) -> Precision {
+        self.model.precision
     }
 
     /// Encodes one observation and caches its condition; returns the handle.

@@ -7,6 +7,7 @@ mod common;
 use std::path::PathBuf;
 
 use common::{max_difference, model_dir, parity, parity_of};
+use poseflow_inference::parity::{OutputDrift, ParityVectors, output_drift};
 use poseflow_inference::{Condition, EncoderInput, GraspFlowModel, PoseFlowModel, Precision};
 
 #[test]
@@ -118,16 +119,12 @@ fn check_pose_flow(dir: &std::path::Path) {
         assert!(max_difference(&out.translation, &batch.translation[3 * samples.start..3 * samples.end]) < 1e-5);
     }
     if dir.join(Precision::Int8.files()[0]).is_file() {
-        // Dynamic quantisation moves outputs by a few hundredths (measured
-        // at export, `poseflow_train.quantize`); a stale or broken file by far more.
+        // Dynamic quantisation with 7-bit weights moves outputs by at most
+        // a tenth on every x86 CPU; full 8-bit weights overflowed ONNX
+        // Runtime's u8 × s8 sums on CPUs without VNNI, by far more.
         let mut int8 = PoseFlowModel::load_as(dir, 1, Precision::Int8).unwrap();
-        // Each network on the FP32 inputs, as the quantisation script compares them.
-        let conditions = int8.encode_batch(&inputs).unwrap();
-        let tokens: Vec<f32> = conditions.iter().flat_map(|c| c.tokens.iter().copied()).collect();
-        assert!(max_difference(&tokens, &v["condition"]) < 0.2, "{}", dir.display());
-        let out = int8.velocity_batch(&all, &v["rotation"], &v["translation"], &v["t"]).unwrap();
-        assert!(max_difference(&out.rotation, &v["v_rot"]) < 0.1, "{}", dir.display());
-        assert!(max_difference(&out.translation, &v["v_pos"]) < 0.01, "{}", dir.display());
+        let drift = output_drift(&mut int8, &ParityVectors::read(dir).unwrap().unwrap()).unwrap();
+        assert!(drift.within(&OutputDrift::INT8_LIMITS), "{}: {drift:?}", dir.display());
     }
 }
 

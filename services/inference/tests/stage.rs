@@ -8,8 +8,8 @@ use std::collections::BTreeMap;
 
 use common::{max_difference, model_dir, parity, parity_of};
 use poseflow_contracts::{Header, MessageHeader, ObservationHeader, VelocityRequest, VelocitySegment, status};
-use poseflow_inference::PoseFlowModel;
 use poseflow_inference::stage::{InferenceParams, InferenceStage};
+use poseflow_inference::{PoseFlowModel, Precision};
 
 fn stage(cache: usize) -> InferenceStage {
     InferenceStage::with_model(PoseFlowModel::load(&model_dir(), 1).unwrap(), cache)
@@ -180,6 +180,33 @@ fn observations_the_model_cannot_take_are_rejected_with_the_reason() {
     let payload = vec![0.0; header.payload_len().unwrap()];
     let err = stage.encode(&header, &payload).unwrap_err().to_string();
     assert!(err.contains("image_size 224") && err.contains("expects 112"), "{err}");
+}
+
+/// INT8 files whose outputs drift from the stored FP32 ones (here the
+/// YCB-V model's INT8 networks beside the default model's FP32 ones and
+/// parity vectors: the same contract, other weights) are not served; the
+/// stage serves the FP32 networks. The default model's own INT8 files are
+/// served.
+#[test]
+fn int8_networks_that_drift_from_fp32_are_replaced_by_fp32() {
+    let models = model_dir().parent().unwrap().to_path_buf();
+    let params = |dir: &std::path::Path| {
+        InferenceParams::from_json(&serde_json::json!({ "model": dir, "precision": "int8", "threads": 1 })).unwrap()
+    };
+    let stage = InferenceStage::new(&params(&models.join("poseflow-lmo10"))).unwrap();
+    assert_eq!(stage.precision(), Precision::Int8);
+
+    let mixed = std::env::temp_dir().join(format!("poseflow-int8-drift-{}", std::process::id()));
+    std::fs::create_dir_all(&mixed).unwrap();
+    for file in ["encoder.onnx", "velocity.onnx", "parity.json", "parity.bin"] {
+        std::fs::copy(models.join("poseflow-lmo10").join(file), mixed.join(file)).unwrap();
+    }
+    for file in Precision::Int8.files() {
+        std::fs::copy(models.join("poseflow-ycbv").join(file), mixed.join(file)).unwrap();
+    }
+    let stage = InferenceStage::new(&params(&mixed));
+    std::fs::remove_dir_all(&mixed).unwrap();
+    assert_eq!(stage.unwrap().precision(), Precision::Fp32);
 }
 
 #[test]
