@@ -190,9 +190,13 @@ def gather(values, index):
 
 
 def knn(queries, points, k):
-    """Indices [B, M, k] of the k nearest `points` to each query."""
-    d2 = (queries[:, :, None, :] - points[:, None, :, :]).pow(2).sum(-1)
-    return d2.topk(k, dim=-1, largest=False).indices
+    """Indices [B, M, k] of the k nearest `points` to each query, ranked by
+    |p|^2 - 2 q.p: the squared distance less the query's own |q|^2, which
+    does not change a query's ranking. One matrix product instead of a
+    [B, M, N, 3] difference tensor, which dominated the point stream's
+    cost in ONNX Runtime."""
+    rank = points.pow(2).sum(-1)[:, None, :] - 2.0 * (queries @ points.transpose(1, 2))
+    return rank.topk(k, dim=-1, largest=False).indices
 
 
 class SetAbstraction(nn.Module):
