@@ -71,22 +71,28 @@ fn a_short_soak_of_the_tracking_graph_survives_a_kill_of_every_stage() {
 /// in one process on a short rendered sequence of two objects per frame
 /// (the batched path: one encoder run and one velocity request per step for
 /// both); every figure the issue asks for is there and every counted frame
-/// was estimated, each object, by both.
+/// was estimated, each object, by both. Two paced rounds each: the latency
+/// figures pool both rounds' frames.
 #[test]
 fn the_pipeline_benchmark_measures_both_graphs_through_processes_and_in_process() {
     let _serial = serial();
     let before = shared_memory_files();
-    let report = bench_report(&["pipeline", "--frames", "8", "--warmup", "2", "--objects", "2"]);
+    let report = bench_report(&["pipeline", "--frames", "8", "--warmup", "2", "--objects", "2", "--paced-rounds", "2"]);
     assert_eq!((&report["objects"], &report["sequence"]["objects"]), (&2.into(), &serde_json::json!([1, 5])));
-    for key in ["estimation", "tracking", "estimation_in_process", "tracking_in_process"] {
+    assert_eq!(report["paced_rounds"], 2);
+    // The graph's frames count its saturated run; in-process, both paced rounds.
+    for (key, counted) in
+        [("estimation", 6), ("tracking", 6), ("estimation_in_process", 12), ("tracking_in_process", 12)]
+    {
         let figures = &report[key];
         let (fps, p50, p99) = (&figures["fps"], &figures["p50_ms"], &figures["p99_ms"]);
         assert!(fps.as_f64().is_some_and(|f| f > 0.0), "{key}: {figures}");
         assert!(p50.as_f64().is_some_and(|p| p > 0.0 && p <= p99.as_f64().unwrap()), "{key}: {figures}");
-        assert_eq!((&figures["frames"], &figures["expected_frames"]), (&6.into(), &6.into()), "{key}: {figures}");
+        let frames = (&figures["frames"], &figures["expected_frames"]);
+        assert_eq!(frames, (&counted.into(), &counted.into()), "{key}: {figures}");
     }
-    for key in ["estimation", "estimation_in_process"] {
-        assert_eq!(report[key]["estimates"], 12, "{key}: both objects of every counted frame");
+    for (key, estimates) in [("estimation", 12), ("estimation_in_process", 24)] {
+        assert_eq!(report[key]["estimates"], estimates, "{key}: both objects of every counted frame");
     }
     for mode in ["estimation", "tracking"] {
         assert_eq!((&report[format!("{mode}_restarts")], &report[format!("{mode}_errors")]), (&0.into(), &0.into()));
@@ -105,6 +111,9 @@ fn the_pipeline_benchmark_measures_both_graphs_through_processes_and_in_process(
     let output = poseflow().args(["bench", "pipeline", "--frames", "3", "--warmup", "5"]).output_within(RUN_DEADLINE);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success() && stderr.contains("--frames 3") && stderr.contains("--warmup"), "{stderr}");
+    let output = poseflow().args(["bench", "pipeline", "--paced-rounds", "0"]).output_within(RUN_DEADLINE);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success() && stderr.contains("--paced-rounds") && stderr.contains("1..=20"), "{stderr}");
     let repository = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
     let output =
         poseflow().current_dir(repository).args(["bench", "pipeline", "--objects", "9"]).output_within(RUN_DEADLINE);

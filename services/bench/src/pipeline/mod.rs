@@ -20,7 +20,9 @@
 //!    and the network's thread pool go cold).
 //!
 //! Reported: `fps` of the graph from 2, of in-process from 1; `p50_ms`,
-//! `p99_ms` of both from the paced runs (3, 4).
+//! `p99_ms` of both from the paced runs (3, 4). With `--paced-rounds R`,
+//! 4 and 3 run R times in turn and their frames are pooled, so that a host
+//! whose speed drifts over minutes slows both sides alike.
 
 mod graph;
 mod in_process;
@@ -97,6 +99,13 @@ pub struct PipelineArgs {
     #[arg(long, default_value_t = 0.5)]
     pub latency_load: f64,
 
+    /// Paced in-process and graph runs, in turn, whose frames are pooled
+    /// for the latency comparison: more than 1 evens out a host whose speed
+    /// drifts between the two (one run each moved the tracking graph's
+    /// overhead between −8 and +14 % on a 2-core VM).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=20))]
+    pub paced_rounds: u32,
+
     /// The edge of Estimates that is recorded.
     #[arg(long, default_value = "estimates")]
     pub estimates_edge: String,
@@ -127,6 +136,11 @@ pub(super) struct FrameLatencies {
 }
 
 impl FrameLatencies {
+    /// Adds another run's frames.
+    fn extend(&mut self, other: FrameLatencies) {
+        self.frames.extend(other.frames);
+    }
+
     fn record(&mut self, frame_id: u64, estimates: usize, latency: Duration) {
         self.frames.push((frame_id, estimates, latency));
     }
@@ -185,6 +199,8 @@ struct ModeFigures {
     graph: Figures,
     saturated: Figures,
     paced_hz: f64,
+    /// Paced runs of each kind whose frames are pooled.
+    paced_rounds: u32,
     stages: std::collections::BTreeMap<String, StageLatency>,
     /// The paced run's path intervals, milliseconds.
     path: serde_json::Value,
@@ -315,9 +331,6 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
     let in_process_fps = local.frames.frames.len() as f64 / local.wall.as_secs_f64().max(1e-9);
     let paced_hz = args.latency_load * in_process_fps;
     let period = Duration::from_secs_f64(1.0 / paced_hz);
-    let local_paced = in_process::measure(&mut local_graph, &frames, warmup, Some(period), &owners)?;
-    let in_process_errors: u64 = local_graph.finish()?.values().map(|beat| beat.errors).sum();
-    drop(frames);
     tracing::info!(mode = mode.name(), fps = in_process_fps, "in-process measured");
 
     let run = |label: &str, extra: Option<String>| -> anyhow::Result<GraphRunFigures> {
@@ -338,23 +351,54 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
     };
     let saturated = run("saturated", None)?;
     let saturated_fps = saturated.frames.estimated().saturating_sub(1) as f64 / saturated.span.as_secs_f64().max(1e-9);
-    let paced = run("paced", Some(format!("{source}.rate_hz={paced_hz}")))?;
 
-    let mut graph_figures = Figures::new(saturated_fps, &paced.frames, expected);
+    // The paced runs in turn, in-process first (as with one round), pooled.
+    let (mut local_paced, mut paced) = (FrameLatencies::default(), FrameLatencies::default());
+    let (mut local_path, mut paced_path) = (Default::default(), Default::default());
+    let (mut stages, mut restarts, mut errors) = (Default::default(), saturated.restarts, saturated.errors);
+    for round in 0..args.paced_rounds {
+        let local = in_process::measure(&mut local_graph, &frames, warmup, Some(period), &owners)?;
+        local_paced.extend(local.frames);
+        merge_paths(&mut local_path, local.path);
+        let label = if args.paced_rounds == 1 { "paced".to_string() } else { format!("paced-{}", round + 1) };
+        let graph_paced = run(&label, Some(format!("{source}.rate_hz={paced_hz}")))?;
+        paced.extend(graph_paced.frames);
+        merge_paths(&mut paced_path, graph_paced.path);
+        // Process times are percentiles per run: the last round's.
+        stages = graph_paced.stages;
+        (restarts, errors) = (restarts + graph_paced.restarts, errors + graph_paced.errors);
+    }
+    errors += local_graph.finish()?.values().map(|beat| beat.errors).sum::<u64>();
+    drop(frames);
+
+    let paced_expected = expected * args.paced_rounds as usize;
+    let mut graph_figures = Figures::new(saturated_fps, &paced, paced_expected);
     graph_figures.frames = saturated.frames.estimated();
     graph_figures.estimates = saturated.frames.estimates();
+    graph_figures.expected_frames = expected;
     Ok(ModeFigures {
-        in_process: Figures::new(in_process_fps, &local_paced.frames, expected),
+        in_process: Figures::new(in_process_fps, &local_paced, paced_expected),
         back_to_back: Figures::new(in_process_fps, &local.frames, expected),
-        in_process_stages: path_breakdown(&local_paced.path),
+        in_process_stages: path_breakdown(&local_path),
         graph: graph_figures,
         saturated: Figures::new(saturated_fps, &saturated.frames, expected),
         paced_hz,
-        path: path_breakdown(&paced.path),
-        stages: paced.stages,
-        restarts: saturated.restarts + paced.restarts,
-        errors: saturated.errors + paced.errors + in_process_errors,
+        paced_rounds: args.paced_rounds,
+        path: path_breakdown(&paced_path),
+        stages,
+        restarts,
+        errors,
     })
+}
+
+/// Adds one run's path intervals to the pooled ones.
+fn merge_paths(
+    pooled: &mut std::collections::BTreeMap<String, Vec<Duration>>,
+    run: std::collections::BTreeMap<String, Vec<Duration>>,
+) {
+    for (interval, durations) in run {
+        pooled.entry(interval).or_default().extend(durations);
+    }
 }
 
 /// The sequence's frames, rendered here for the in-process run.
@@ -396,6 +440,7 @@ fn report(args: &PipelineArgs, measured: &[(Mode, ModeFigures)]) -> serde_json::
             "seed": args.seed,
         },
         "latency_load": args.latency_load,
+        "paced_rounds": args.paced_rounds,
     });
     for (mode, figures) in measured {
         let name = mode.name();
@@ -458,8 +503,9 @@ fn table(measured: &[(Mode, ModeFigures)]) -> String {
             ));
         }
         out.push_str(&format!(
-            "  graph latency paced at {:.1} Hz; graph over in-process: p50 {:+.1} %, mean {:+.1} %; restarts {}, errors {}\n",
+            "  graph latency paced at {:.1} Hz{}; graph over in-process: p50 {:+.1} %, mean {:+.1} %; restarts {}, errors {}\n",
             f.paced_hz,
+            if f.paced_rounds > 1 { format!(" ({} rounds in turn, pooled)", f.paced_rounds) } else { String::new() },
             100.0 * (f.graph.p50_ms / f.in_process.p50_ms - 1.0),
             100.0 * (f.graph.mean_ms / f.in_process.mean_ms - 1.0),
             f.restarts,
