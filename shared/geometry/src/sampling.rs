@@ -109,7 +109,7 @@ impl Block {
 /// returns the index of the largest (the first, on ties) and its value.
 /// Branch-free per lane so the loop vectorises; one pass over the arrays.
 /// Not inlined: inlined into the block loop it compiled to scalar code
-/// (2.2× slower, `cargo bench -p poseflow-ingest`).
+/// (1.7× slower, `cargo bench -p poseflow-ingest`).
 #[inline(never)]
 fn update_and_find_farthest(
     distance: &mut [f32],
@@ -162,7 +162,8 @@ fn morton_order(points: &[Point3<f32>]) -> Vec<u32> {
         // `as` saturates and maps NaN to 0: any coordinate has a cell.
         (unit * 1023.0) as u32
     };
-    // The 10 bits of a cell index with two zero bits after each.
+    // The 10 bits of a cell index, two zero bits between each (room for
+    // the other two axes' bits).
     let spread = |v: u32| {
         let mut x = u64::from(v & 0x3ff);
         x = (x | (x << 16)) & 0x0300_00ff;

@@ -371,11 +371,11 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
     errors += local_graph.finish()?.values().map(|beat| beat.errors).sum::<u64>();
     drop(frames);
 
-    let paced_expected = expected * args.paced_rounds as usize;
-    let mut graph_figures = Figures::new(saturated_fps, &paced, paced_expected);
+    // Frame counts from the saturated run, latency from the pooled paced runs.
+    let mut graph_figures = Figures::new(saturated_fps, &paced, expected);
     graph_figures.frames = saturated.frames.estimated();
     graph_figures.estimates = saturated.frames.estimates();
-    graph_figures.expected_frames = expected;
+    let paced_expected = expected * args.paced_rounds as usize;
     Ok(ModeFigures {
         in_process: Figures::new(in_process_fps, &local_paced, paced_expected),
         back_to_back: Figures::new(in_process_fps, &local.frames, expected),
