@@ -150,12 +150,17 @@ fn update_and_find_farthest(
     farthest
 }
 
+/// The axis-aligned box `(min, max)` of points given as `[x, y, z]`.
+fn bounding_box(points: impl IntoIterator<Item = [f32; 3]>) -> ([f32; 3], [f32; 3]) {
+    points.into_iter().fold(([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]), |(min, max), p| {
+        ([0, 1, 2].map(|k| min[k].min(p[k])), [0, 1, 2].map(|k| max[k].max(p[k])))
+    })
+}
+
 /// Input indices in Morton (Z-curve) order of the points' cells on a
 /// 1024-per-axis grid over their box.
 fn morton_order(points: &[Point3<f32>]) -> Vec<u32> {
-    let (min, max) = points.iter().fold(([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]), |(min, max), p| {
-        ([0, 1, 2].map(|k| min[k].min(p[k])), [0, 1, 2].map(|k| max[k].max(p[k])))
-    });
+    let (min, max) = bounding_box(points.iter().map(|p| [p.x, p.y, p.z]));
     let cell = |p: &Point3<f32>, k: usize| {
         let extent = max[k] - min[k];
         let unit = if extent > 0.0 { (p[k] - min[k]) / extent } else { 0.0 };
@@ -197,12 +202,7 @@ pub fn farthest_point_indices(points: &[Point3<f32>], count: usize) -> Vec<usize
         .step_by(BLOCK)
         .map(|first| {
             let range = first..(first + BLOCK).min(points.len());
-            let (mut min, mut max) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-            for i in range.clone() {
-                for (k, v) in [xs[i], ys[i], zs[i]].into_iter().enumerate() {
-                    (min[k], max[k]) = (min[k].min(v), max[k].max(v));
-                }
-            }
+            let (min, max) = bounding_box(range.clone().map(|i| [xs[i], ys[i], zs[i]]));
             Block { range, min, max, farthest: f32::INFINITY }
         })
         .collect();
