@@ -514,15 +514,32 @@ class Counters:
     def __init__(self):
         self.frames_in = self.frames_out = self.dropped = self.errors = 0
         self.last_frame = None
+        # Process time per frame, as the Rust runtime reports it: the time
+        # spent on a frame's messages, one sample per frame.
         self.latencies_us = []
+        self.open_frame = None
+        self.open_us = 0
 
     def received(self, frame_id):
         self.frames_in += 1
+        if frame_id != self.open_frame:
+            self.close_frame()
+            self.open_frame = frame_id
         if self.last_frame is not None and frame_id > self.last_frame + 1:
             self.dropped += frame_id - self.last_frame - 1
         self.last_frame = frame_id
 
+    def worked(self, us):
+        self.open_us += us
+
+    def close_frame(self):
+        if self.open_frame is not None:
+            self.latencies_us.append(max(1, self.open_us))
+        self.open_frame, self.open_us = None, 0
+
     def heartbeat(self, state):
+        if state == STATE_FINISHED:
+            self.close_frame()
         beat = Heartbeat()
         beat.header.frame_id = self.last_frame or 0
         beat.header.stamps.ns[0] = monotonic_ns()
@@ -589,7 +606,7 @@ class _Stage:
                         self.counters.received(header.header.frame_id)
                         started = time.perf_counter()
                         handle(header, floats)
-                        self.counters.latencies_us.append(int((time.perf_counter() - started) * 1e6) + 1)
+                        self.counters.worked(int((time.perf_counter() - started) * 1e6) + 1)
         self.source = source
         return ended
 

@@ -102,9 +102,22 @@ fn the_pipeline_benchmark_measures_both_graphs_through_processes_and_in_process(
         let in_process = &report[format!("{mode}_in_process_stages")];
         assert!(in_process["ingest→inference"]["p50_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{in_process}");
     }
+    // Every estimate has a verdict; the estimation graph has no track check.
+    let verdicts = &report["estimation_verdicts"];
+    assert_eq!(verdicts["unflagged"], report["estimation"]["estimates"], "{verdicts}");
+    let verdicts = &report["tracking_verdicts"];
+    let counted: u64 =
+        ["unflagged", "unsure", "lost", "reinitialised"].iter().map(|k| verdicts[k].as_u64().unwrap()).sum();
+    assert_eq!(counted, report["tracking"]["estimates"].as_u64().unwrap(), "{verdicts}");
     for stage in ["frames", "ingest", "inference", "sampler", "selector"] {
         let latency = &report["stages"][stage];
         assert!(latency["p50_us"].as_u64().is_some_and(|us| us > 0), "{stage}: {latency}");
+    }
+    // Process time is per frame: the batching stages' medians are their
+    // work on a frame's objects, not the microsecond of holding one.
+    for stage in ["ingest", "inference"] {
+        let latency = &report["stages"][stage];
+        assert!(latency["p50_us"].as_u64().is_some_and(|us| us >= 1000), "{stage}: {latency}");
     }
     assert_nothing_leaked(&before);
 

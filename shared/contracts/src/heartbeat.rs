@@ -35,8 +35,8 @@ impl StageState {
 /// | 96     | 8    | frames_out     | u64  | messages published |
 /// | 104    | 8    | dropped        | u64  | frames missing upstream (gaps in `frame_id`) |
 /// | 112    | 8    | errors         | u64  | messages rejected or failed in `process` |
-/// | 120    | 4    | latency_p50_us | u32  | median `process` time, µs |
-/// | 124    | 4    | latency_p99_us | u32  | 99th percentile `process` time, µs |
+/// | 120    | 4    | latency_p50_us | u32  | median process time per frame, µs: the stage's busy time from one input frame's first message to the next frame's (inputs, flushes, requests answered), or per step of a source |
+/// | 124    | 4    | latency_p99_us | u32  | 99th percentile of the same, µs |
 /// | 128    | 4    | busy_us        | u32  | time in the current `process` call, sends excluded (0 when idle); a stage stuck in its own code shows it growing |
 /// | 132    | 4    | blocked_us     | u32  | time the current send has waited for a full downstream queue (back-pressure, not a hang) |
 #[repr(C)]

@@ -10,7 +10,7 @@ use anyhow::{Context, bail};
 use poseflow_contracts::{EstimateHeader, StampSlot};
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 
-use super::FrameLatencies;
+use super::{FrameLatencies, VerdictCounts};
 use crate::graph_run::GraphRun;
 
 /// Process time per message of one stage, from its last heartbeat.
@@ -33,6 +33,8 @@ pub(super) struct GraphRunFigures {
     /// path named by their stages (`frames→ingest`, …, `selector→received`): process time plus
     /// queueing and transport, where the time goes in the graph.
     pub path: BTreeMap<String, Vec<Duration>>,
+    /// The counted estimates by the track check's verdict.
+    pub verdicts: VerdictCounts,
 }
 
 /// Runs the graph to its end and reads what it recorded.
@@ -60,7 +62,7 @@ pub(super) fn measure(
         p99_us: stage["p99_us"].as_u64().unwrap_or(0),
     };
     let total = |key: &str| stages.values().filter_map(|s| s[key].as_u64()).sum::<u64>();
-    let (frames, span, path) = frame_latencies(run.record.0, run.record.1, warmup, owners)?;
+    let Recorded { frames, span, path, verdicts } = read_recording(run.record.0, run.record.1, warmup, owners)?;
     Ok(GraphRunFigures {
         frames,
         span,
@@ -68,6 +70,7 @@ pub(super) fn measure(
         restarts: total("restarts"),
         errors: stages.values().filter_map(|s| s["total"]["errors"].as_u64()).sum(),
         path,
+        verdicts,
     })
 }
 
@@ -97,19 +100,25 @@ pub(super) fn path_intervals(
         .collect()
 }
 
-/// Per frame id (from `warmup` on): estimates, latency from the source's
-/// stamp to the last one received; the time from the first counted
-/// frame's completion to the last's; the path's intervals per estimate.
-fn frame_latencies(
-    recording: &Path,
-    edge: &str,
-    warmup: u64,
-    owners: &StampOwners,
-) -> anyhow::Result<(FrameLatencies, Duration, BTreeMap<String, Vec<Duration>>)> {
+/// What a run's recording of its Estimates says, frames before `warmup`
+/// left out.
+struct Recorded {
+    /// Per frame id: estimates, latency from the source's stamp to the
+    /// last one received.
+    frames: FrameLatencies,
+    /// From the first counted frame's completion to the last's.
+    span: Duration,
+    /// The path's intervals per estimate.
+    path: BTreeMap<String, Vec<Duration>>,
+    verdicts: VerdictCounts,
+}
+
+fn read_recording(recording: &Path, edge: &str, warmup: u64, owners: &StampOwners) -> anyhow::Result<Recorded> {
     let mut reader = RecordingReader::open(recording).with_context(|| format!("{}", recording.display()))?;
     // frame id → (source stamp, last received, estimates)
     let mut frames: BTreeMap<u64, (u64, u64, usize)> = BTreeMap::new();
     let mut path: BTreeMap<String, Vec<Duration>> = BTreeMap::new();
+    let mut verdicts = VerdictCounts::default();
     while let Some(message) = reader.next_message()? {
         if message.edge != edge {
             continue;
@@ -124,6 +133,7 @@ fn frame_latencies(
         entry.1 = entry.1.max(message.received_ns);
         entry.2 += 1;
         if frame >= warmup {
+            verdicts.count(header.header.flags);
             for (interval, duration) in path_intervals(&header, message.received_ns, owners) {
                 path.entry(interval).or_default().push(duration);
             }
@@ -136,5 +146,5 @@ fn frame_latencies(
     }
     let done = |entry: Option<&(&u64, &(u64, u64, usize))>| entry.map_or(0, |(_, e)| e.1);
     let span = Duration::from_nanos(done(counted.last()).saturating_sub(done(counted.first())));
-    Ok((latencies, span, path))
+    Ok(Recorded { frames: latencies, span, path, verdicts })
 }

@@ -159,6 +159,35 @@ impl FrameLatencies {
     }
 }
 
+/// The counted Estimates by the track check's verdict in their header
+/// ([`poseflow_contracts::flags`]): what each object's next frame costs
+/// the tracking sampler (one Euler step for a tracked object, the prior's
+/// K steps for all of a lost one's samples and part of an unsure one's).
+/// A graph without the check reports every estimate under `unflagged`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub(super) struct VerdictCounts {
+    pub unflagged: usize,
+    pub unsure: usize,
+    pub lost: usize,
+    pub reinitialised: usize,
+}
+
+impl VerdictCounts {
+    pub(super) fn count(&mut self, flags: u32) {
+        use poseflow_contracts::flags::{LOST, REINITIALISED, UNSURE};
+        let counter = if flags & LOST != 0 {
+            &mut self.lost
+        } else if flags & UNSURE != 0 {
+            &mut self.unsure
+        } else if flags & REINITIALISED != 0 {
+            &mut self.reinitialised
+        } else {
+            &mut self.unflagged
+        };
+        *counter += 1;
+    }
+}
+
 /// One configuration's figures, as `--json` reports them.
 #[derive(Debug, Clone, Serialize)]
 struct Figures {
@@ -201,6 +230,8 @@ struct ModeFigures {
     paced_hz: f64,
     /// Paced runs of each kind whose frames are pooled.
     paced_rounds: u32,
+    /// The saturated run's estimates by verdict.
+    verdicts: VerdictCounts,
     stages: std::collections::BTreeMap<String, StageLatency>,
     /// The paced run's path intervals, milliseconds.
     path: serde_json::Value,
@@ -384,6 +415,7 @@ fn measure_mode(args: &PipelineArgs, mode: Mode, scratch: &Scratch) -> anyhow::R
         saturated: Figures::new(saturated_fps, &saturated.frames, expected),
         paced_hz,
         paced_rounds: args.paced_rounds,
+        verdicts: saturated.verdicts,
         path: path_breakdown(&paced_path),
         stages,
         restarts,
@@ -457,6 +489,7 @@ fn report(args: &PipelineArgs, measured: &[(Mode, ModeFigures)]) -> serde_json::
         report[format!("{name}_path")] = figures.path.clone();
         report[format!("{name}_restarts")] = json!(figures.restarts);
         report[format!("{name}_errors")] = json!(figures.errors);
+        report[format!("{name}_verdicts")] = json!(figures.verdicts);
         // `stages` is the estimation graph's (the first mode run when both
         // are); each mode's own is under `<mode>_stages`.
         report[format!("{name}_stages")] = json!(figures.stages);
@@ -511,7 +544,12 @@ fn table(measured: &[(Mode, ModeFigures)]) -> String {
             f.restarts,
             f.errors
         ));
-        out.push_str("  stage process time (graph, paced): ");
+        let v = f.verdicts;
+        out.push_str(&format!(
+            "  estimates (graph, saturated): {} unflagged, {} unsure, {} lost, {} reinitialised\n",
+            v.unflagged, v.unsure, v.lost, v.reinitialised
+        ));
+        out.push_str("  stage process time per frame (graph, paced, p50/p99): ");
         let stages: Vec<String> = f
             .stages
             .iter()
