@@ -477,6 +477,29 @@ impl InferenceStage {
     }
 }
 
+impl InferenceStage {
+    /// Holds an observation until its batch is complete, or runs the batch
+    /// it completes.
+    fn hold_or_encode(
+        &mut self,
+        input: Input<'_, ObservationHeader>,
+        output: &mut dyn Emitter<ConditionHandle>,
+    ) -> Result<(), InferenceError> {
+        if !self.batches.run_after(&input.header.header, self.held.len() + 1) {
+            return self.hold(input.header, input.payload);
+        }
+        if !self.held.is_empty() {
+            self.hold(input.header, input.payload)?;
+            return self.run_batch(output);
+        }
+        // A batch of one (one object a frame, or `batch = 1`): encoded in
+        // place, no copy.
+        let handle = self.encode(input.header, input.payload)?;
+        output.emit(handle, 0, &mut |_| {})?;
+        Ok(())
+    }
+}
+
 impl Transform for InferenceStage {
     type In = ObservationHeader;
     type Out = ConditionHandle;
@@ -489,21 +512,17 @@ impl Transform for InferenceStage {
         output: &mut dyn Emitter<ConditionHandle>,
     ) -> Result<(), InferenceError> {
         let header = &input.header.header;
-        if self.batches.run_before(header, self.held.len()) {
-            self.run_batch(output)?;
+        let before = match self.batches.run_before(header, self.held.len()) {
+            true => self.run_batch(output),
+            false => Ok(()),
+        };
+        // This observation is handled even when the held batch failed; a
+        // second failure is counted here, the first by the runtime.
+        let this = self.hold_or_encode(input, output);
+        if before.is_err() && this.is_err() {
+            self.rejected += 1;
         }
-        if !self.batches.run_after(header, self.held.len() + 1) {
-            return self.hold(input.header, input.payload);
-        }
-        if !self.held.is_empty() {
-            self.hold(input.header, input.payload)?;
-            return self.run_batch(output);
-        }
-        // A batch of one (one object a frame, or `batch = 1`): encoded in
-        // place, no copy.
-        let handle = self.encode(input.header, input.payload)?;
-        output.emit(handle, 0, &mut |_| {})?;
-        Ok(())
+        before.and(this)
     }
 
     fn flush(&mut self, output: &mut dyn Emitter<ConditionHandle>, reason: Flush) -> Result<(), InferenceError> {

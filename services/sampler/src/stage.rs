@@ -229,15 +229,22 @@ impl<F: VelocityField> Transform for SamplerStage<F> {
         }
         // A batch holds one handle per object: a later frame of an object
         // starts from the estimate of the earlier one when tracking.
+        // This handle is held even when the held batch fails; a second
+        // failure is counted here, the first by the runtime.
         let repeated = self.held.iter().any(|h| h.header.object_id == handle.header.object_id);
-        if repeated || self.batches.run_before(&handle.header, self.held.len()) {
-            self.sample_held(output)?;
-        }
+        let before = match repeated || self.batches.run_before(&handle.header, self.held.len()) {
+            true => self.sample_held(output),
+            false => Ok(()),
+        };
         self.held.push(*handle);
-        if self.batches.run_after(&handle.header, self.held.len()) {
-            self.sample_held(output)?;
+        let after = match self.batches.run_after(&handle.header, self.held.len()) {
+            true => self.sample_held(output),
+            false => Ok(()),
+        };
+        if before.is_err() && after.is_err() {
+            self.rejected += 1;
         }
-        Ok(())
+        before.and(after)
     }
 
     fn flush(&mut self, output: &mut dyn Emitter<HypothesesHeader>, reason: Flush) -> Result<(), SamplerError> {

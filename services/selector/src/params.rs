@@ -58,6 +58,8 @@ impl Method {
 /// | `refine_iterations` | iterations per hypothesis | 10 |
 /// | `distribution` | with `refine`: the kept hypotheses reported are the `samples` or the `refined` ones | `samples` |
 /// | `observations` | Observations kept while their Hypotheses are awaited | 64 |
+/// | `batch` | most Hypotheses of one frame selected from together | 8 |
+/// | `threads` | threads a batch's objects are selected on (the estimates are the same for any number) | 2 |
 /// | `free_space_weight` | refined candidates lose this times an outlier point's log-likelihood per share of lines of sight on which the camera saw past the posed object (the Observation's depth grid; none: no term); 0: off | 1 |
 /// | `free_space_margin` | such a line of sight passes through the posed object at least this far in front of the observed depth, metres | 0.01 |
 /// | `tracking` | the track check of a tracking graph ([`crate::track::TrackCheckParams`]) | off |
@@ -102,6 +104,15 @@ pub struct SelectorParams {
     pub distribution: Distribution,
     #[serde(default = "default_observations")]
     pub observations: usize,
+    /// Hypotheses of one frame held and selected from together
+    /// ([`poseflow_runtime::FrameBatches`]); 1 selects from each at once.
+    #[serde(default = "default_batch")]
+    pub batch: usize,
+    /// Threads a batch's objects are spread over: where a frame holds
+    /// several objects and a core is free (the networks wait on the
+    /// sampler), the frame's estimates come sooner.
+    #[serde(default = "default_threads")]
+    pub threads: usize,
     /// How much a refined candidate loses for putting the object where the
     /// camera saw past it (1: each such line of sight costs like an outlier
     /// point); 0 switches the free-space term off.
@@ -155,6 +166,12 @@ fn default_refine_iterations() -> usize {
 fn default_observations() -> usize {
     64
 }
+fn default_batch() -> usize {
+    8
+}
+fn default_threads() -> usize {
+    2
+}
 fn default_free_space_weight() -> f64 {
     1.0
 }
@@ -184,7 +201,7 @@ impl SelectorParams {
 
     pub fn validate(&self) -> Result<(), SelectorError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
-        let checks: [(&'static str, bool, String); 12] = [
+        let checks: [(&'static str, bool, String); 14] = [
             (
                 "epsilon_rotation_deg",
                 positive(self.epsilon_rotation_deg) && self.epsilon_rotation_deg <= 180.0,
@@ -223,6 +240,8 @@ impl SelectorParams {
                 format!("{}: expected 1 to 100", self.refine_iterations),
             ),
             ("observations", self.observations >= 1, format!("{}: expected at least 1", self.observations)),
+            ("batch", (1..=64).contains(&self.batch), format!("{}: expected 1 to 64", self.batch)),
+            ("threads", (1..=64).contains(&self.threads), format!("{}: expected 1 to 64", self.threads)),
             (
                 "free_space_weight",
                 self.free_space_weight.is_finite() && self.free_space_weight >= 0.0,

@@ -9,7 +9,7 @@ use poseflow_contracts::{
     WEIGHTED_POSE_LEN, flags,
 };
 use poseflow_geometry::Pose;
-use poseflow_runtime::{Emitter, Input, Joined, Transform};
+use poseflow_runtime::{Emitter, Flush, FrameBatches, Input, Joined, Transform};
 use poseflow_scene::category::{Category, template};
 use poseflow_scene::{ObjectGeometry, ObjectLibrary};
 
@@ -54,6 +54,11 @@ pub struct SelectorStage {
     observations: VecDeque<Kept>,
     /// With `tracking.check`.
     monitor: Option<TrackMonitor>,
+    /// The messages of the frame being gathered, selected from together.
+    held: Vec<Held>,
+    batches: FrameBatches,
+    /// Messages of a batch that failed after its first failure.
+    rejected: u64,
 }
 
 impl SelectorStage {
@@ -70,7 +75,8 @@ impl SelectorStage {
             library.build_grids();
         }
         let monitor = params.tracking.check.then(|| TrackMonitor::new(params.tracking.clone()));
-        Ok(Self { params, library, observations: VecDeque::new(), monitor })
+        let batches = FrameBatches::new(params.batch);
+        Ok(Self { params, library, observations: VecDeque::new(), monitor, held: Vec::new(), batches, rejected: 0 })
     }
 
     pub fn params(&self) -> &SelectorParams {
@@ -132,62 +138,16 @@ impl SelectorStage {
         header: &HypothesesHeader,
         payload: &[f32],
     ) -> Result<(Selection, u32), SelectorError> {
-        let (mut selection, observed) = self.select_for(header, payload)?;
-        let Some(monitor) = &mut self.monitor else { return Ok((selection, 0)) };
-        if header.header.has_flag(flags::UPSTREAM_RESTARTED) {
-            monitor.reset();
-        }
-        let (frame, object) = (header.header.frame_id, header.header.object_id);
-        if header.header.has_flag(flags::SEQUENCE_START) {
-            monitor.forget(object);
-        }
-        let seen = observed.as_ref().map_or(Observed::points(&[]), |o| o.observed(self.params.score_points));
-        let points = seen.points;
-        let model = self.library.as_ref().and_then(|library| library.get(object));
-        if let Some(model) = model.filter(|_| monitor.params().half_turns && !monitor.is_tracking(object))
-            && selection.search_half_turns(model, seen, &self.params, HALF_TURN_CANDIDATES)
-        {
-            tracing::debug!(frame, object, "a candidate turned half a turn fits better: selected");
-        }
-        if let Some(model) = model
-            && let Some(predicted) = monitor.motion_candidate(object, frame)
-            && selection.consider(&[predicted], model, seen, &self.params)
-        {
-            tracing::debug!(frame, object, "the pose the motion predicts fits better: selected");
-        }
-        let settings = FitSettings {
-            inlier_distance: monitor.params().inlier_distance,
-            hidden_depth: INSIDE_DEPTH,
-            reach: model.map_or(0.0, ObjectGeometry::extent),
-        };
-        let evidence = Evidence {
-            frame_id: frame,
-            continued: header.header.has_flag(flags::TRACKING),
-            observed_points: observed.as_ref().map_or(0, |o| o.valid_points),
-            fit: model.and_then(|model| point_fit(&selection.best, points, &settings, |y| model.grid().value(y))),
-            silhouette: match (model, &observed) {
-                (Some(model), Some(o)) if monitor.params().min_covered > 0.0 => {
-                    silhouette(&selection.best, model.surface(), &o.points, &o.camera, SILHOUETTE_CELLS)
-                }
-                _ => None,
-            },
-            free_space: model
-                .and_then(|model| scorer(&self.params, model, seen))
-                .and_then(|s| s.free_space(&selection.best)),
-            spread_deg: selection.statistics.rotation_covariance().trace().max(0.0).sqrt().to_degrees(),
-            pose: selection.best,
-        };
-        let verdict = monitor.check(object, &evidence);
-        log_verdict(frame, object, &evidence, &verdict);
-        Ok((selection, verdict.flags()))
+        let job = self.prepare(header, payload)?;
+        let selected =
+            job.select(self.library.as_ref(), &self.params, self.monitor.as_ref().map(TrackMonitor::params))?;
+        Ok(self.conclude(&job, selected))
     }
 
-    /// Selects from one Hypotheses message; the Observation it used.
-    fn select_for(
-        &mut self,
-        header: &HypothesesHeader,
-        payload: &[f32],
-    ) -> Result<(Selection, Option<Kept>), SelectorError> {
+    /// What selecting from a Hypotheses message needs, taken in message
+    /// order: its poses and Observation, and what its object's track says
+    /// now (the track check's reset and forget applied first).
+    fn prepare(&mut self, header: &HypothesesHeader, payload: &[f32]) -> Result<Job, SelectorError> {
         let (frame, object) = (header.header.frame_id, header.header.object_id);
         let in_frame = |detail: String| SelectorError::Frame { frame, object, detail };
         let hypotheses = payload
@@ -207,22 +167,189 @@ impl SelectorStage {
             true => Some(template_geometry(header, self.params.sdf_resolution).map_err(in_frame)?),
             false => None,
         };
-        let model = match (&self.library, &template) {
-            (_, Some(template)) => Some(template),
-            (Some(library), None) => Some(library.get(object).ok_or_else(|| {
-                in_frame(format!(
-                    "no model of object {object} in {} (objects there: {:?})",
-                    library.dir.display(),
-                    library.ids()
-                ))
-            })?),
-            (None, None) => None,
-        };
-        let selection =
-            select(&hypotheses, observed.as_ref().map(|o| o.observed(self.params.score_points)), model, &self.params)
-                .map_err(|e| in_frame(e.to_string()))?;
-        Ok((selection, observed))
+        if let (None, Some(library)) = (&template, &self.library)
+            && library.get(object).is_none()
+        {
+            return Err(in_frame(format!(
+                "no model of object {object} in {} (objects there: {:?})",
+                library.dir.display(),
+                library.ids()
+            )));
+        }
+        let mut track = TrackNow::default();
+        if let Some(monitor) = &mut self.monitor {
+            if header.header.has_flag(flags::UPSTREAM_RESTARTED) {
+                monitor.reset();
+            }
+            if header.header.has_flag(flags::SEQUENCE_START) {
+                monitor.forget(object);
+            }
+            track = TrackNow {
+                half_turns: monitor.params().half_turns && !monitor.is_tracking(object),
+                motion_candidate: monitor.motion_candidate(object, frame),
+            };
+        }
+        Ok(Job { header: *header, hypotheses, observed, template, track })
     }
+
+    /// Judges a selection by the track check, in message order; its
+    /// verdict's header bits (0 without the check).
+    fn conclude(&mut self, job: &Job, (selection, evidence): (Selection, Option<Evidence>)) -> (Selection, u32) {
+        let (Some(monitor), Some(evidence)) = (&mut self.monitor, evidence) else { return (selection, 0) };
+        let (frame, object) = (job.header.header.frame_id, job.header.header.object_id);
+        let verdict = monitor.check(object, &evidence);
+        log_verdict(frame, object, &evidence, &verdict);
+        (selection, verdict.flags())
+    }
+
+    /// Selects from every held message, the heavy part on up to `threads`
+    /// threads, and emits their Estimates in message order; a message that
+    /// cannot be selected from is counted and the others go on.
+    fn select_held(&mut self, output: &mut dyn Emitter<EstimateHeader>) -> Result<(), SelectorError> {
+        let held = std::mem::take(&mut self.held);
+        let mut jobs = Vec::with_capacity(held.len());
+        let mut first_error = None;
+        for message in &held {
+            match self.prepare(&message.header, &message.payload) {
+                Ok(job) => jobs.push((job, message.forwarded)),
+                Err(err) => self.reject(err, &mut first_error),
+            }
+        }
+        let (library, params) = (self.library.as_ref(), &self.params);
+        let check = self.monitor.as_ref().map(TrackMonitor::params);
+        let selected = in_parallel(&jobs, self.params.threads, |(job, _)| job.select(library, params, check));
+        for ((job, forwarded), selected) in jobs.iter().zip(selected) {
+            let selected = match selected {
+                Ok(selected) => selected,
+                Err(err) => {
+                    self.reject(err, &mut first_error);
+                    continue;
+                }
+            };
+            let (selection, track_flags) = self.conclude(job, selected);
+            let mut forwarded = *forwarded;
+            forwarded.flags |= track_flags;
+            let estimate = EstimateHeader { category: job.header.category, ..estimate_header(&selection, forwarded) };
+            output
+                .emit(estimate, estimate_payload_len(&selection), &mut |out| write_estimate_payload(&selection, out))?;
+        }
+        first_error.map_or(Ok(()), Err)
+    }
+
+    /// The first failure of a batch is its result (counted by the runtime);
+    /// later ones are counted and logged here.
+    fn reject(&mut self, err: SelectorError, first_error: &mut Option<SelectorError>) {
+        if first_error.is_none() {
+            *first_error = Some(err);
+        } else {
+            self.rejected += 1;
+            tracing::warn!(err = %poseflow_runtime::error_chain(&err), "no estimate");
+        }
+    }
+}
+
+/// What the track check says about a message's object before its
+/// selection ([`TrackMonitor`]).
+#[derive(Debug, Default, Clone, Copy)]
+struct TrackNow {
+    /// Try the best candidates turned over (the object is not tracking).
+    half_turns: bool,
+    /// The pose the track's motion predicts, tried beside the samples.
+    motion_candidate: Option<Pose>,
+}
+
+/// One Hypotheses message, ready to select from.
+#[derive(Debug)]
+struct Job {
+    header: HypothesesHeader,
+    hypotheses: Vec<Pose>,
+    observed: Option<Kept>,
+    /// The category template it is scored against (`category_templates`).
+    template: Option<ObjectGeometry>,
+    track: TrackNow,
+}
+
+impl Job {
+    /// The selection and, with the track check (`check`), the evidence it
+    /// is judged on: a function of the message and the models alone, so
+    /// that the messages of a frame can be selected from at once.
+    fn select(
+        &self,
+        library: Option<&ObjectLibrary>,
+        params: &SelectorParams,
+        check: Option<&crate::track::TrackCheckParams>,
+    ) -> Result<(Selection, Option<Evidence>), SelectorError> {
+        let (frame, object) = (self.header.header.frame_id, self.header.header.object_id);
+        let _span = tracing::debug_span!("select", frame, object).entered();
+        let library_model = library.and_then(|library| library.get(object));
+        let model = self.template.as_ref().or(library_model);
+        let observed = self.observed.as_ref();
+        let mut selection = select(&self.hypotheses, observed.map(|o| o.observed(params.score_points)), model, params)
+            .map_err(|e| SelectorError::Frame { frame, object, detail: e.to_string() })?;
+        let Some(check) = check else { return Ok((selection, None)) };
+        let seen = observed.map_or(Observed::points(&[]), |o| o.observed(params.score_points));
+        // The track check judges against the object's own mesh, never a template.
+        let model = library_model;
+        if let Some(model) = model.filter(|_| self.track.half_turns)
+            && selection.search_half_turns(model, seen, params, HALF_TURN_CANDIDATES)
+        {
+            tracing::debug!(frame, object, "a candidate turned half a turn fits better: selected");
+        }
+        if let Some(model) = model
+            && let Some(predicted) = self.track.motion_candidate
+            && selection.consider(&[predicted], model, seen, params)
+        {
+            tracing::debug!(frame, object, "the pose the motion predicts fits better: selected");
+        }
+        let settings = FitSettings {
+            inlier_distance: check.inlier_distance,
+            hidden_depth: INSIDE_DEPTH,
+            reach: model.map_or(0.0, ObjectGeometry::extent),
+        };
+        let evidence = Evidence {
+            frame_id: frame,
+            continued: self.header.header.has_flag(flags::TRACKING),
+            observed_points: observed.map_or(0, |o| o.valid_points),
+            fit: model.and_then(|model| point_fit(&selection.best, seen.points, &settings, |y| model.grid().value(y))),
+            silhouette: match (model, observed) {
+                (Some(model), Some(o)) if check.min_covered > 0.0 => {
+                    silhouette(&selection.best, model.surface(), &o.points, &o.camera, SILHOUETTE_CELLS)
+                }
+                _ => None,
+            },
+            free_space: model.and_then(|model| scorer(params, model, seen)).and_then(|s| s.free_space(&selection.best)),
+            spread_deg: selection.statistics.rotation_covariance().trace().max(0.0).sqrt().to_degrees(),
+            pose: selection.best,
+        };
+        Ok((selection, Some(evidence)))
+    }
+}
+
+/// `work` of every item, on up to `threads` scoped threads (this one among
+/// them), in the items' order: each thread takes every `threads`-th item.
+fn in_parallel<T: Sync, R: Send>(items: &[T], threads: usize, work: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let threads = threads.clamp(1, items.len().max(1));
+    if threads == 1 {
+        return items.iter().map(&work).collect();
+    }
+    let work = &work;
+    let mut strided: Vec<Vec<R>> = std::thread::scope(|scope| {
+        let others: Vec<_> = (1..threads)
+            .map(|first| scope.spawn(move || items.iter().skip(first).step_by(threads).map(work).collect::<Vec<R>>()))
+            .collect();
+        let mine = items.iter().step_by(threads).map(work).collect();
+        std::iter::once(mine)
+            .chain(
+                others.into_iter().map(|handle| handle.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))),
+            )
+            .collect()
+    });
+    let mut out = Vec::with_capacity(items.len());
+    let mut iters: Vec<_> = strided.iter_mut().map(|v| std::mem::take(v).into_iter()).collect();
+    for i in 0..items.len() {
+        out.extend(iters[i % threads].next());
+    }
+    out
 }
 
 /// The template a category-level message is scored against: its
@@ -354,21 +481,50 @@ impl Transform for SelectorStage {
     type Error = SelectorError;
     const SLOT: Option<StampSlot> = Some(StampSlot::Selector);
 
+    /// Holds the message until its frame's batch is complete
+    /// ([`FrameBatches`]); a batch holds one message per object, and an
+    /// upstream restart starts a new one (the track check forgets every
+    /// track first).
     fn process(
         &mut self,
         input: Input<'_, HypothesesHeader>,
         output: &mut dyn Emitter<EstimateHeader>,
     ) -> Result<(), SelectorError> {
-        let header = input.header;
-        let _span =
-            tracing::debug_span!("select", frame = header.header.frame_id, object = header.header.object_id).entered();
-        let (selection, track_flags) = self.select_and_check(header, input.payload)?;
-        let mut forwarded = input.forward_header();
-        forwarded.flags |= track_flags;
-        let estimate = EstimateHeader { category: header.category, ..estimate_header(&selection, forwarded) };
-        output.emit(estimate, estimate_payload_len(&selection), &mut |out| write_estimate_payload(&selection, out))?;
-        Ok(())
+        let header = *input.header;
+        let object = header.header.object_id;
+        let repeated = self.held.iter().any(|h| h.header.header.object_id == object);
+        let restarted = header.header.has_flag(flags::UPSTREAM_RESTARTED) && !self.held.is_empty();
+        let before = match repeated || restarted || self.batches.run_before(&header.header, self.held.len()) {
+            true => self.select_held(output),
+            false => Ok(()),
+        };
+        self.held.push(Held { header, forwarded: input.forward_header(), payload: input.payload.to_vec() });
+        let after = match self.batches.run_after(&header.header, self.held.len()) {
+            true => self.select_held(output),
+            false => Ok(()),
+        };
+        if before.is_err() && after.is_err() {
+            self.rejected += 1;
+        }
+        before.and(after)
     }
+
+    fn flush(&mut self, output: &mut dyn Emitter<EstimateHeader>, reason: Flush) -> Result<(), SelectorError> {
+        if self.batches.run_at(reason) { self.select_held(output) } else { Ok(()) }
+    }
+
+    fn take_rejected(&mut self) -> u64 {
+        std::mem::take(&mut self.rejected)
+    }
+}
+
+/// A Hypotheses message held until its frame's batch runs.
+#[derive(Debug)]
+struct Held {
+    header: HypothesesHeader,
+    /// The header its Estimate is published under.
+    forwarded: Header,
+    payload: Vec<f32>,
 }
 
 impl Joined for SelectorStage {
@@ -474,6 +630,139 @@ mod tests {
         stage.keep_observation(&observation, &payload).unwrap();
         let error = stage.select_and_check(&camera, &hypotheses).unwrap_err().to_string();
         assert!(error.contains("category code 3"), "{error}");
+    }
+
+    struct Collect(Vec<(EstimateHeader, Vec<f32>)>);
+
+    impl Emitter<EstimateHeader> for Collect {
+        fn emit(
+            &mut self,
+            header: EstimateHeader,
+            len: usize,
+            fill: &mut dyn FnMut(&mut [f32]),
+        ) -> Result<(), poseflow_runtime::EmitError> {
+            let mut payload = vec![0.0; len];
+            fill(&mut payload);
+            self.0.push((header, payload));
+            Ok(())
+        }
+    }
+
+    /// A tracking selector over three LM-O objects (ids 1, 5, 6) with the
+    /// track check, selecting `batch` messages of a frame together on
+    /// `threads` threads.
+    fn tracking_selector(batch: usize, threads: usize) -> SelectorStage {
+        let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/lmo8");
+        let params = SelectorParams::from_json(&serde_json::json!({
+            "method": "sdf", "refine": true, "refine_iterations": 3, "sdf_resolution": 24,
+            "models": models, "batch": batch, "threads": threads, "tracking": { "check": true }
+        }))
+        .unwrap();
+        SelectorStage::new(params).unwrap()
+    }
+
+    /// One object's Observation and Hypotheses of a frame, with their payloads.
+    type ObjectMessages = (ObservationHeader, Vec<f32>, HypothesesHeader, Vec<f32>);
+
+    /// Frames 0..4 of objects 1, 5 and 6 moving a little each frame: each
+    /// object's Observation (its visible surface points) and Hypotheses
+    /// (the true pose perturbed, some far off), flagged as the ingest stage
+    /// and the sampler flag them, and an object `missing` has no model.
+    fn tracking_sequence(stage: &SelectorStage, missing: Option<u32>) -> Vec<Vec<ObjectMessages>> {
+        let library = stage.library.as_ref().unwrap();
+        let objects = [1u32, 5, 6];
+        (0..4u64)
+            .map(|frame| {
+                objects
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &object)| {
+                        let truth = Pose::new(
+                            nalgebra::Rotation3::from_euler_angles(0.3 + 0.05 * frame as f64, -0.2 * i as f64, 0.1),
+                            Vector3::new(-0.1 + 0.1 * i as f64, 0.02 * frame as f64, 0.8),
+                        );
+                        let points: Vec<Point3<f64>> = library
+                            .get(object)
+                            .unwrap()
+                            .surface()
+                            .iter()
+                            .map(|p| truth.transform_point(p))
+                            .filter(|p| p.z < truth.translation.z)
+                            .take(200)
+                            .collect();
+                        let (mut observation, payload) = observation_of(&points);
+                        let mut header = Header::new(frame, object);
+                        if i + 1 < objects.len() {
+                            header.flags |= flags::MORE_IN_FRAME;
+                        }
+                        if frame > 0 {
+                            header.flags |= flags::TRACKING;
+                        }
+                        if missing == Some(object) {
+                            header.object_id = 99;
+                        }
+                        observation.header = header;
+                        let hypotheses: Vec<f32> = (0..12)
+                            .flat_map(|k| {
+                                let angle = if k % 4 == 3 { 2.5 } else { 0.03 * k as f64 };
+                                let turn = nalgebra::Rotation3::from_axis_angle(&Vector3::y_axis(), angle);
+                                let shift = Vector3::new(0.002 * k as f64, -0.001 * k as f64, 0.0);
+                                Pose::new(truth.rotation * turn, truth.translation + shift).to_f32_row_major()
+                            })
+                            .collect();
+                        let message =
+                            HypothesesHeader { header, sample_count: 12, step_count: 1, ..Default::default() };
+                        (observation, payload, message, hypotheses)
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// Runs the sequence through the stage as the runtime would: a frame's
+    /// Observations first (the side input), then its Hypotheses, then an
+    /// idle flush; the stream's end last. Returns the Estimates and the
+    /// failures counted.
+    fn run_sequence(stage: &mut SelectorStage, missing: Option<u32>) -> (Vec<(EstimateHeader, Vec<f32>)>, u64) {
+        let mut out = Collect(Vec::new());
+        let mut failures = 0;
+        for frame in tracking_sequence(stage, missing) {
+            for (observation, payload, _, _) in &frame {
+                stage.keep_observation(observation, payload).unwrap();
+            }
+            for (_, _, header, payload) in &frame {
+                failures += u64::from(stage.process(Input { header, payload }, &mut out).is_err());
+            }
+            failures += u64::from(stage.flush(&mut out, Flush::Idle).is_err());
+        }
+        failures += u64::from(stage.flush(&mut out, Flush::End).is_err());
+        (out.0, failures + stage.take_rejected())
+    }
+
+    #[test]
+    fn a_frame_selected_together_gives_the_estimates_of_one_by_one() {
+        let (one_by_one, failures) = run_sequence(&mut tracking_selector(1, 1), None);
+        assert_eq!((one_by_one.len(), failures), (12, 0));
+        assert!(one_by_one.iter().any(|(h, _)| h.header.flags & flags::UNSURE == 0), "some estimates pass the check");
+        for threads in [1, 2, 3] {
+            let (together, failures) = run_sequence(&mut tracking_selector(8, threads), None);
+            assert_eq!(failures, 0);
+            assert_eq!(together.len(), one_by_one.len(), "{threads} threads");
+            for ((a, a_payload), (b, b_payload)) in one_by_one.iter().zip(&together) {
+                assert_eq!(a, b, "{threads} threads: the same header, verdict flags included");
+                assert_eq!(a_payload, b_payload, "{threads} threads");
+            }
+        }
+    }
+
+    #[test]
+    fn a_message_that_fails_costs_its_frame_nothing_else() {
+        for (batch, threads) in [(1, 1), (8, 2)] {
+            let (estimates, failures) = run_sequence(&mut tracking_selector(batch, threads), Some(5));
+            assert_eq!(failures, 4, "batch {batch}: the object without a model, once a frame");
+            let objects: Vec<u32> = estimates.iter().map(|(h, _)| h.header.object_id).collect();
+            assert_eq!(objects, [1, 6].repeat(4), "batch {batch}");
+        }
     }
 
     #[test]
