@@ -516,13 +516,8 @@ impl Transform for InferenceStage {
             true => self.run_batch(output),
             false => Ok(()),
         };
-        // This observation is handled even when the held batch failed; a
-        // second failure is counted here, the first by the runtime.
         let this = self.hold_or_encode(input, output);
-        if before.is_err() && this.is_err() {
-            self.rejected += 1;
-        }
-        before.and(this)
+        FrameBatches::first_failure(before, this, &mut self.rejected)
     }
 
     fn flush(&mut self, output: &mut dyn Emitter<ConditionHandle>, reason: Flush) -> Result<(), InferenceError> {

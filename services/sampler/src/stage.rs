@@ -229,8 +229,6 @@ impl<F: VelocityField> Transform for SamplerStage<F> {
         }
         // A batch holds one handle per object: a later frame of an object
         // starts from the estimate of the earlier one when tracking.
-        // This handle is held even when the held batch fails; a second
-        // failure is counted here, the first by the runtime.
         let repeated = self.held.iter().any(|h| h.header.object_id == handle.header.object_id);
         let before = match repeated || self.batches.run_before(&handle.header, self.held.len()) {
             true => self.sample_held(output),
@@ -241,10 +239,7 @@ impl<F: VelocityField> Transform for SamplerStage<F> {
             true => self.sample_held(output),
             false => Ok(()),
         };
-        if before.is_err() && after.is_err() {
-            self.rejected += 1;
-        }
-        before.and(after)
+        FrameBatches::first_failure(before, after, &mut self.rejected)
     }
 
     fn flush(&mut self, output: &mut dyn Emitter<HypothesesHeader>, reason: Flush) -> Result<(), SamplerError> {

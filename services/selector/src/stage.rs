@@ -503,10 +503,7 @@ impl Transform for SelectorStage {
             true => self.select_held(output),
             false => Ok(()),
         };
-        if before.is_err() && after.is_err() {
-            self.rejected += 1;
-        }
-        before.and(after)
+        FrameBatches::first_failure(before, after, &mut self.rejected)
     }
 
     fn flush(&mut self, output: &mut dyn Emitter<EstimateHeader>, reason: Flush) -> Result<(), SelectorError> {

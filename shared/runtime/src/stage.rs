@@ -103,6 +103,18 @@ impl FrameBatches {
     pub fn run_at(&self, reason: Flush) -> bool {
         reason == Flush::End
     }
+
+    /// What handling one message returns: `before` is the held batch's
+    /// result when the message ran it first, `this` the message's own (it
+    /// is handled whatever `before` gave, never dropped with it). The first
+    /// failure goes to the runtime, which counts it; a second is added to
+    /// `rejected` ([`Transform::take_rejected`]).
+    pub fn first_failure<E>(before: Result<(), E>, this: Result<(), E>, rejected: &mut u64) -> Result<(), E> {
+        if before.is_err() && this.is_err() {
+            *rejected += 1;
+        }
+        before.and(this)
+    }
 }
 
 /// A stage with one input and one output edge.
@@ -243,5 +255,17 @@ mod tests {
         assert!(!small.run_after(&header(1, MORE_IN_FRAME), 1));
         assert!(small.run_after(&header(1, MORE_IN_FRAME), 2), "full");
         assert_eq!(FrameBatches::new(0).capacity(), 1);
+    }
+
+    /// The first failure is returned; only a second is counted as rejected.
+    #[test]
+    fn a_batch_and_its_message_report_each_failure_once() {
+        let mut rejected = 0;
+        assert_eq!(FrameBatches::first_failure::<u8>(Ok(()), Ok(()), &mut rejected), Ok(()));
+        assert_eq!(FrameBatches::first_failure(Err(1), Ok(()), &mut rejected), Err(1));
+        assert_eq!(FrameBatches::first_failure(Ok(()), Err(2), &mut rejected), Err(2));
+        assert_eq!(rejected, 0);
+        assert_eq!(FrameBatches::first_failure(Err(1), Err(2), &mut rejected), Err(1));
+        assert_eq!(rejected, 1);
     }
 }
