@@ -475,9 +475,7 @@ impl InferenceStage {
         reply.emit(response, 0, &mut |_| {})?;
         Ok(())
     }
-}
 
-impl InferenceStage {
     /// Holds an observation until its batch is complete, or runs the batch
     /// it completes.
     fn hold_or_encode(

@@ -326,30 +326,21 @@ impl Job {
 }
 
 /// `work` of every item, on up to `threads` scoped threads (this one among
-/// them), in the items' order: each thread takes every `threads`-th item.
+/// them, each taking a contiguous share), in the items' order.
 fn in_parallel<T: Sync, R: Send>(items: &[T], threads: usize, work: impl Fn(&T) -> R + Sync) -> Vec<R> {
-    let threads = threads.clamp(1, items.len().max(1));
-    if threads == 1 {
-        return items.iter().map(&work).collect();
-    }
+    let share = items.len().div_ceil(threads.max(1)).max(1);
     let work = &work;
-    let mut strided: Vec<Vec<R>> = std::thread::scope(|scope| {
-        let others: Vec<_> = (1..threads)
-            .map(|first| scope.spawn(move || items.iter().skip(first).step_by(threads).map(work).collect::<Vec<R>>()))
-            .collect();
-        let mine = items.iter().step_by(threads).map(work).collect();
-        std::iter::once(mine)
-            .chain(
-                others.into_iter().map(|handle| handle.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))),
-            )
-            .collect()
-    });
-    let mut out = Vec::with_capacity(items.len());
-    let mut iters: Vec<_> = strided.iter_mut().map(|v| std::mem::take(v).into_iter()).collect();
-    for i in 0..items.len() {
-        out.extend(iters[i % threads].next());
-    }
-    out
+    std::thread::scope(|scope| {
+        let mut shares = items.chunks(share);
+        let mine = shares.next().unwrap_or_default();
+        let others: Vec<_> =
+            shares.map(|part| scope.spawn(move || part.iter().map(work).collect::<Vec<R>>())).collect();
+        let mut out: Vec<R> = mine.iter().map(work).collect();
+        for other in others {
+            out.extend(other.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)));
+        }
+        out
+    })
 }
 
 /// The template a category-level message is scored against: its

@@ -180,19 +180,20 @@ impl Liveness {
     fn open(&self, frame_id: u64) {
         let mut open = self.open_frame.lock().unwrap_or_else(|e| e.into_inner());
         if open.frame_id != Some(frame_id) {
-            let busy = std::mem::take(&mut open.busy);
-            if open.frame_id.is_some() {
-                self.record(busy);
-            }
+            self.close(&mut open);
             open.frame_id = Some(frame_id);
         }
     }
 
     /// No more input: the last frame's work is a sample.
     fn close_frame(&self) {
-        let mut open = self.open_frame.lock().unwrap_or_else(|e| e.into_inner());
+        self.close(&mut self.open_frame.lock().unwrap_or_else(|e| e.into_inner()));
+    }
+
+    fn close(&self, open: &mut OpenFrame) {
+        let busy = std::mem::take(&mut open.busy);
         if open.frame_id.take().is_some() {
-            self.record(std::mem::take(&mut open.busy));
+            self.record(busy);
         }
     }
 
