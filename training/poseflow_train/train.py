@@ -408,12 +408,15 @@ def learning_rate(config, state):
     """`lr`, or with `lr_decay` {"over_s", "final"} a cosine from `lr` to
     `final` over the run's first `over_s` seconds of training (counted from
     `init_from`'s time for a grown model), then `final`: a time budget, not
-    a step count, is what a CPU run has."""
+    a step count, is what a CPU run has. `lr_decay.from_s` starts the
+    cosine at that much training time instead (a warm restart of a run
+    that trained at `lr` until then)."""
     lr = config.get("lr", 3e-4)
     decay = config.get("lr_decay")
     if not decay:
         return lr
-    done = (state["train_s"] - state.get("initialised_at_s", 0.0)) / decay["over_s"]
+    start = decay.get("from_s", state.get("initialised_at_s", 0.0))
+    done = (state["train_s"] - start) / decay["over_s"]
     return decay["final"] + (lr - decay["final"]) * 0.5 * (1.0 + math.cos(math.pi * min(max(done, 0.0), 1.0)))
 
 

@@ -91,6 +91,17 @@ def test_the_learning_rate_decays_by_cosine_over_the_runs_own_time():
     assert math.isclose(learning_rate(config, {"train_s": 250.0}), 1e-5 + 1.9e-4 * 0.5 * (1 + math.cos(math.pi / 4)))
 
 
+def test_a_warm_restart_holds_lr_until_its_own_start_then_decays():
+    from poseflow_train.train import learning_rate
+
+    config = {"lr": 1e-4, "lr_decay": {"from_s": 8000.0, "over_s": 2000.0, "final": 1e-5}}
+    grown = {"initialised_at_s": 5000.0}
+    assert math.isclose(learning_rate(config, dict(grown, train_s=6000.0)), 1e-4)
+    assert math.isclose(learning_rate(config, dict(grown, train_s=8000.0)), 1e-4)
+    assert math.isclose(learning_rate(config, dict(grown, train_s=9000.0)), (1e-4 + 1e-5) / 2)
+    assert math.isclose(learning_rate(config, dict(grown, train_s=11000.0)), 1e-5)
+
+
 class Blind(torch.nn.Module):
     def __init__(self, width):
         super().__init__()

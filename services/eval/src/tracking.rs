@@ -57,6 +57,9 @@ pub struct TrackedObject {
     pub lost: u32,
     pub unsure: u32,
     pub reinitialised: u32,
+    /// Estimates placed without the networks: a held track between its
+    /// network passes (the sampler's `tracking.network_every`).
+    pub network_skipped: u32,
     /// Percent of the annotated images whose estimate is within 5°/5 cm
     /// (resp. 10°/5 cm) of the truth; an image without an estimate counts
     /// as a miss.
@@ -151,6 +154,7 @@ pub fn summarise_video(
             lost: count(flags::LOST),
             unsure: count(flags::UNSURE),
             reinitialised: count(flags::REINITIALISED),
+            network_skipped: count(flags::NETWORK_SKIPPED),
             acc_5deg_5cm: percent(tight, annotated_frames as usize),
             acc_10deg_5cm: percent(loose, annotated_frames as usize),
             visible_frames: visible_frames as u32,
@@ -233,6 +237,7 @@ pub fn flag_names(bits: u32) -> String {
         (flags::LOST, "lost"),
         (flags::UNSURE, "unsure"),
         (flags::REINITIALISED, "reinitialised"),
+        (flags::NETWORK_SKIPPED, "network_skipped"),
     ]
     .into_iter()
     .filter(|(bit, _)| bits & bit != 0)
@@ -265,15 +270,16 @@ pub fn write_per_image(path: &Path, videos: &[(u32, &[TrackedImage])]) -> anyhow
 /// Prints the per-object table and the events.
 pub fn print_video(video: &VideoSummary) {
     println!(
-        "object  estimated  tracked  lost  unsure  reinit  5°5cm %  10°5cm %  visible  10°5cm % of visible  median rot °  max rot °  median trans cm  latency p50/p99 ms"
+        "object  estimated  tracked  no net  lost  unsure  reinit  5°5cm %  10°5cm %  visible  10°5cm % of visible  median rot °  max rot °  median trans cm  latency p50/p99 ms"
     );
     for o in &video.objects {
         println!(
-            "{:>6}  {:>4}/{:<4}  {:>7}  {:>4}  {:>6}  {:>6}  {:>7.1}  {:>8.1}  {:>7}  {:>19.1}  {:>12.2}  {:>9.1}  {:>15.2}  {:>8.1}/{:.1}",
+            "{:>6}  {:>4}/{:<4}  {:>7}  {:>6}  {:>4}  {:>6}  {:>6}  {:>7.1}  {:>8.1}  {:>7}  {:>19.1}  {:>12.2}  {:>9.1}  {:>15.2}  {:>8.1}/{:.1}",
             o.obj_id,
             o.estimated,
             o.frames,
             o.tracked,
+            o.network_skipped,
             o.lost,
             o.unsure,
             o.reinitialised,
@@ -341,6 +347,7 @@ mod tests {
         assert_eq!(flag_names(0), "-");
         assert_eq!(flag_names(flags::TRACKING | flags::UNSURE), "tracking|unsure");
         assert_eq!(flag_names(flags::LOST | flags::POINTS_RESAMPLED), "lost");
+        assert_eq!(flag_names(flags::TRACKING | flags::NETWORK_SKIPPED), "tracking|network_skipped");
     }
 
     #[test]
@@ -348,7 +355,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("poseflow-tracking-summary-{}", std::process::id()));
         let scene = SceneDir::new(&dir, 0);
         std::fs::create_dir_all(&scene.path).unwrap();
-        // Object 1 annotated in images 0–3; estimated in 0–2.
+        // Object 1 annotated in images 0–3, estimated in each.
         let entry = |_| serde_json::json!([{"obj_id": 1, "cam_R_m2c": [1,0,0,0,1,0,0,0,1], "cam_t_m2c": [0,0,500]}]);
         let gt: BTreeMap<String, serde_json::Value> = (0..4).map(|i| (i.to_string(), entry(i))).collect();
         std::fs::write(scene.scene_gt(), serde_json::to_string(&gt).unwrap()).unwrap();
@@ -356,13 +363,15 @@ mod tests {
             image(0, 1.0, flags::UNSURE),
             image(1, 20.0, flags::TRACKING | flags::LOST),
             image(2, 7.0, flags::TRACKING | flags::REINITIALISED),
+            image(3, 2.0, flags::TRACKING | flags::NETWORK_SKIPPED),
         ];
         let video = summarise_video(&dir, 0, 4, &images).unwrap();
         let o = &video.objects[0];
-        assert_eq!((o.frames, o.estimated, o.tracked, o.lost, o.unsure, o.reinitialised), (4, 3, 2, 1, 1, 1));
-        assert_eq!((o.acc_5deg_5cm, o.acc_10deg_5cm), (25.0, 50.0));
+        assert_eq!((o.frames, o.estimated, o.tracked, o.lost, o.unsure, o.reinitialised), (4, 4, 3, 1, 1, 1));
+        assert_eq!(o.network_skipped, 1);
+        assert_eq!((o.acc_5deg_5cm, o.acc_10deg_5cm), (50.0, 75.0));
         // Without visible fractions every annotated image counts as visible.
-        assert_eq!((o.visible_frames, o.acc_10deg_5cm_visible), (4, 50.0));
+        assert_eq!((o.visible_frames, o.acc_10deg_5cm_visible), (4, 75.0));
         assert!(video.events.is_empty());
         assert!(video.objects_never_visible.is_empty());
         std::fs::remove_dir_all(&dir).unwrap();

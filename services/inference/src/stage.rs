@@ -16,10 +16,12 @@
 //! | `threads` | ONNX Runtime intra-op threads per network | 2 |
 //! | `cache` | conditions kept (oldest dropped first); the process raises it to what a reader can hold (its queue, a batch, one in hand) | 8 |
 //! | `batch` | most observations of one frame encoded in one run of the encoder | 1 |
+//! | `encode` | `on-arrival`: each Observation is encoded when it comes; `on-request`: when the first velocity request names its handle, so one the sampler asks nothing for (a held track between network passes) costs no encoder run | `on-arrival` |
 //!
 //! Batching: the Observations of one frame (the ingest stage marks all but
 //! the last `MORE_IN_FRAME`) are encoded in one run of the encoder, at most
-//! `batch` at a time ([`FrameBatches`]).
+//! `batch` at a time ([`FrameBatches`]). On request, the observations a
+//! velocity request names that are not yet encoded are encoded in one run.
 
 use std::collections::{BTreeMap, VecDeque};
 use std::path::{Path, PathBuf};
@@ -55,6 +57,22 @@ pub struct InferenceParams {
     /// object id as a category code.
     #[serde(default)]
     pub classes: Option<PathBuf>,
+    #[serde(default)]
+    pub encode: EncodeWhen,
+}
+
+/// When an observation is encoded ([`InferenceParams::encode`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EncodeWhen {
+    /// As it arrives (in its frame's batch), before its handle is sent.
+    #[default]
+    OnArrival,
+    /// At the first velocity request that names it: the handle goes out at
+    /// once, and an observation nobody asks velocities for is never
+    /// encoded. A category-level model cannot: its handle carries the
+    /// encoder's predicted size.
+    OnRequest,
 }
 
 fn default_model() -> PathBuf {
@@ -109,12 +127,20 @@ struct Held {
     active_image_tokens: u32,
 }
 
-/// One encoded observation, kept for its velocity requests.
+/// One observation, kept for its velocity requests.
 #[derive(Debug)]
 struct Cached {
     id: u64,
-    condition: Condition,
+    condition: Encoding,
     point_scale: f32,
+}
+
+/// An observation's condition tokens, or the observation until they are
+/// needed ([`EncodeWhen::OnRequest`]).
+#[derive(Debug)]
+enum Encoding {
+    Done(Condition),
+    Pending(Box<Held>),
 }
 
 /// The inference stage: the model, the condition cache and the buffers a
@@ -142,6 +168,9 @@ pub struct InferenceStage {
     rejected: u64,
     /// Object id → category code (`InferenceParams::classes`).
     classes: Option<BTreeMap<u32, u32>>,
+    encode_when: EncodeWhen,
+    /// Observations encoded (each once, whenever that is).
+    encoder_inputs: u64,
 }
 
 /// Reads a `classes` file into object id → the model's category code.
@@ -236,7 +265,21 @@ impl InferenceStage {
                 });
             }
         };
-        Ok(Self { batches: FrameBatches::new(params.batch), classes, ..Self::with_model(model, params.cache) })
+        if params.encode == EncodeWhen::OnRequest && model.info.categories.is_some() {
+            return Err(InferenceError::Params {
+                key: "encode".into(),
+                detail: format!(
+                    "\"on-request\": the model in {} is category-level, and a Condition handle carries the size its encoder predicts (use \"on-arrival\")",
+                    params.model.display()
+                ),
+            });
+        }
+        Ok(Self {
+            batches: FrameBatches::new(params.batch),
+            classes,
+            encode_when: params.encode,
+            ..Self::with_model(model, params.cache)
+        })
     }
 
     pub fn with_model(model: PoseFlowModel, capacity: usize) -> Self {
@@ -255,7 +298,15 @@ impl InferenceStage {
             response: Vec::new(),
             rejected: 0,
             classes: None,
+            encode_when: EncodeWhen::OnArrival,
+            encoder_inputs: 0,
         }
+    }
+
+    /// Observations encoded so far: fewer than arrived when some handles
+    /// were never asked for (`encode = "on-request"`).
+    pub fn encoder_inputs(&self) -> u64 {
+        self.encoder_inputs
     }
 
     pub fn model_dir(&self) -> &Path {
@@ -277,14 +328,30 @@ impl InferenceStage {
         self.points.extend(view.points.iter().map(|&x| x * header.point_scale));
         let input = EncoderInput { image: view.image, token_mask: view.token_mask, points: &self.points, object_index };
         let condition = self.model.encode_batch(&[input])?.pop().expect("one condition per input");
-        Ok(self.store(header, active_tokens(view.token_mask), code, condition))
+        self.encoder_inputs += 1;
+        Ok(self.store(header, active_tokens(view.token_mask), code, Encoding::Done(condition)))
     }
 
     /// Checks an observation against the model and keeps a copy of it for
     /// the next [`Self::encode_held`].
     pub fn hold(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<(), InferenceError> {
+        let held = self.checked_copy(header, payload)?;
+        self.held.push(held);
+        Ok(())
+    }
+
+    /// Checks an observation against the model and caches a copy of it,
+    /// encoded at the first velocity request that names it; its handle.
+    pub fn defer(&mut self, header: &ObservationHeader, payload: &[f32]) -> Result<ConditionHandle, InferenceError> {
+        let held = self.checked_copy(header, payload)?;
+        let (active, code) = (held.active_image_tokens, held.code);
+        Ok(self.store(header, active, code, Encoding::Pending(Box::new(held))))
+    }
+
+    /// A checked copy of an observation, points in metres.
+    fn checked_copy(&self, header: &ObservationHeader, payload: &[f32]) -> Result<Held, InferenceError> {
         let (object_index, code, view) = self.check(header, payload)?;
-        self.held.push(Held {
+        Ok(Held {
             header: *header,
             image: view.image.to_vec(),
             token_mask: view.token_mask.to_vec(),
@@ -293,8 +360,7 @@ impl InferenceStage {
             object_index,
             code,
             active_image_tokens: active_tokens(view.token_mask),
-        });
-        Ok(())
+        })
     }
 
     /// The observation's object index, category code (0 for an
@@ -362,11 +428,47 @@ impl InferenceStage {
             })
             .collect();
         let conditions = self.model.encode_batch(&inputs)?;
+        self.encoder_inputs += held.len() as u64;
         Ok(held
             .iter()
             .zip(conditions)
-            .map(|(h, condition)| self.store(&h.header, h.active_image_tokens, h.code, condition))
+            .map(|(h, condition)| self.store(&h.header, h.active_image_tokens, h.code, Encoding::Done(condition)))
             .collect())
+    }
+
+    /// Encodes, in one run of the encoder, the cached observations of
+    /// `ids` that wait for it ([`EncodeWhen::OnRequest`]). Err carries the
+    /// velocity status code.
+    fn encode_pending(&mut self, ids: &[u64]) -> Result<(), u32> {
+        let positions: Vec<usize> = ids
+            .iter()
+            .filter_map(|id| self.cache.iter().position(|c| c.id == *id))
+            .filter(|&at| matches!(self.cache[at].condition, Encoding::Pending(_)))
+            .collect();
+        if positions.is_empty() {
+            return Ok(());
+        }
+        let inputs: Vec<EncoderInput> = positions
+            .iter()
+            .map(|&at| match &self.cache[at].condition {
+                Encoding::Pending(h) => EncoderInput {
+                    image: &h.image,
+                    token_mask: &h.token_mask,
+                    points: &h.points,
+                    object_index: h.object_index,
+                },
+                Encoding::Done(_) => unreachable!("only pending observations are picked"),
+            })
+            .collect();
+        let conditions = self.model.encode_batch(&inputs).map_err(|err| {
+            tracing::warn!(%err, "encoder failed on a velocity request's observations");
+            velocity_status::INFERENCE_FAILED
+        })?;
+        self.encoder_inputs += positions.len() as u64;
+        for (at, condition) in positions.into_iter().zip(conditions) {
+            self.cache[at].condition = Encoding::Done(condition);
+        }
+        Ok(())
     }
 
     /// Caches an encoded observation under a new id; its handle.
@@ -375,12 +477,14 @@ impl InferenceStage {
         header: &ObservationHeader,
         active_image_tokens: u32,
         code: u32,
-        condition: Condition,
+        condition: Encoding,
     ) -> ConditionHandle {
         let info = &self.model.info;
-        let category = match &info.categories {
-            Some(head) => ObjectCategory { code, size: head.size(&condition, info.tokens, info.width) },
-            None => ObjectCategory::default(),
+        let category = match (&info.categories, &condition) {
+            (Some(head), Encoding::Done(condition)) => {
+                ObjectCategory { code, size: head.size(condition, info.tokens, info.width) }
+            }
+            _ => ObjectCategory::default(),
         };
         self.encoded += 1;
         let id = self.run_nonce | (self.encoded & 0xFFFF_FFFF);
@@ -410,26 +514,31 @@ impl InferenceStage {
         if poses.len() != n * POSE_LEN || out.len() != n * VELOCITY_LEN || poses.iter().any(|x| !x.is_finite()) {
             return Err(velocity_status::INVALID_REQUEST);
         }
-        let mut segments = Vec::with_capacity(request.segments().len());
+        let ids: Vec<u64> = request.segments().iter().map(|s| s.condition_id).collect();
+        self.encode_pending(&ids)?;
+        let mut segments = Vec::with_capacity(ids.len());
         for segment in request.segments() {
             let Some(cached) = self.cache.iter().find(|c| c.id == segment.condition_id) else {
                 return Err(velocity_status::UNKNOWN_CONDITION);
             };
-            segments.push((cached, segment.sample_count as usize, segment.t));
+            let Encoding::Done(condition) = &cached.condition else {
+                unreachable!("encode_pending encoded every cached condition of the request")
+            };
+            segments.push((cached.point_scale, condition, segment.sample_count as usize, segment.t));
         }
         self.rotations.clear();
         self.translations.clear();
         self.times.clear();
         let mut samples = poses.chunks_exact(POSE_LEN);
-        for &(cached, count, t) in &segments {
+        for &(point_scale, _, count, t) in &segments {
             for pose in samples.by_ref().take(count) {
                 self.rotations.extend_from_slice(&pose[..9]);
-                self.translations.extend(pose[9..].iter().map(|&x| x * cached.point_scale));
+                self.translations.extend(pose[9..].iter().map(|&x| x * point_scale));
             }
             self.times.extend(std::iter::repeat_n(t, count));
         }
         let runs: Vec<(&Condition, usize)> =
-            segments.iter().map(|&(cached, count, _)| (&cached.condition, count)).collect();
+            segments.iter().map(|&(_, condition, count, _)| (condition, count)).collect();
         let velocities =
             self.model.velocity_segments(&runs, &self.rotations, &self.translations, &self.times).map_err(|err| {
                 tracing::warn!(%err, "velocity network failed");
@@ -439,8 +548,7 @@ impl InferenceStage {
             .chunks_exact_mut(VELOCITY_LEN)
             .zip(velocities.translation.chunks_exact(3))
             .zip(velocities.rotation.chunks_exact(3));
-        for &(cached, count, _) in &segments {
-            let scale = cached.point_scale;
+        for &(scale, _, count, _) in &segments {
             for ((o, v), w) in rows.by_ref().take(count) {
                 o[0] = v[0] / scale;
                 o[1] = v[1] / scale;
@@ -483,6 +591,11 @@ impl InferenceStage {
         input: Input<'_, ObservationHeader>,
         output: &mut dyn Emitter<ConditionHandle>,
     ) -> Result<(), InferenceError> {
+        if self.encode_when == EncodeWhen::OnRequest {
+            let handle = self.defer(input.header, input.payload)?;
+            output.emit(handle, 0, &mut |_| {})?;
+            return Ok(());
+        }
         if !self.batches.run_after(&input.header.header, self.held.len() + 1) {
             return self.hold(input.header, input.payload);
         }

@@ -10,6 +10,7 @@ use common::{max_difference, model_dir, parity, parity_of};
 use poseflow_contracts::{Header, MessageHeader, ObservationHeader, VelocityRequest, VelocitySegment, status};
 use poseflow_inference::stage::{InferenceParams, InferenceStage};
 use poseflow_inference::{PoseFlowModel, Precision};
+use poseflow_runtime::{EmitError, Emitter, Input, Transform};
 
 fn stage(cache: usize) -> InferenceStage {
     InferenceStage::with_model(PoseFlowModel::load(&model_dir(), 1).unwrap(), cache)
@@ -111,6 +112,79 @@ fn held_observations_and_segmented_requests_match_one_by_one() {
         joint.segments[1].condition_id ^= 1 << 40;
         assert_eq!(together.velocities(&joint, &payload, &mut out), Err(status::UNKNOWN_CONDITION));
     }
+}
+
+/// The handles the stage emits.
+#[derive(Default)]
+struct Handles(Vec<poseflow_contracts::ConditionHandle>);
+
+impl Emitter<poseflow_contracts::ConditionHandle> for Handles {
+    fn emit(
+        &mut self,
+        header: poseflow_contracts::ConditionHandle,
+        _: usize,
+        _: &mut dyn FnMut(&mut [f32]),
+    ) -> Result<(), EmitError> {
+        self.0.push(header);
+        Ok(())
+    }
+}
+
+/// `encode = "on-request"`: the handles go out as the Observations come,
+/// with nothing encoded; a request encodes the observations it names (in
+/// one run) and answers what encoding on arrival answers; one never asked
+/// for is never encoded. A category model cannot defer (its handle carries
+/// the encoder's size).
+#[test]
+fn observations_encoded_on_request_give_the_velocities_of_encoding_on_arrival() {
+    let dir = model_dir().parent().unwrap().join("poseflow-lmo10");
+    let first = first_observation(&parity_of(&dir));
+    let params = |encode: &str| {
+        let json = serde_json::json!({"model": dir, "precision": "fp32", "threads": 1, "encode": encode});
+        InferenceParams::from_json(&json).unwrap()
+    };
+    let mut lazy = InferenceStage::new(&params("on-request")).unwrap();
+    let mut eager = InferenceStage::new(&params("on-arrival")).unwrap();
+    let (mut lazy_handles, mut eager_handles) = (Handles::default(), Handles::default());
+    let scales = [1.0, 0.5, 0.8];
+    for (k, &scale) in scales.iter().enumerate() {
+        let (mut header, payload) = observation(&first, 5, scale);
+        if k + 1 < scales.len() {
+            header.header.flags |= poseflow_contracts::flags::MORE_IN_FRAME;
+        }
+        lazy.process(Input { header: &header, payload: &payload }, &mut lazy_handles).unwrap();
+        assert_eq!(lazy_handles.0.len(), k + 1, "a handle per observation at once");
+        eager.process(Input { header: &header, payload: &payload }, &mut eager_handles).unwrap();
+    }
+    assert_eq!((lazy.encoder_inputs(), eager.encoder_inputs()), (0, 3));
+    let strip = |h: &poseflow_contracts::ConditionHandle| poseflow_contracts::ConditionHandle { condition_id: 0, ..*h };
+    let lazy_fields: Vec<_> = lazy_handles.0.iter().map(strip).collect();
+    assert_eq!(lazy_fields, eager_handles.0.iter().map(strip).collect::<Vec<_>>());
+
+    // One request naming the first and third observations.
+    let answer = |stage: &mut InferenceStage, handles: &Handles| {
+        let mut joint = VelocityRequest { header: Header::new(7, 5), ..Default::default() };
+        let mut payload = Vec::new();
+        for k in [0, 2] {
+            joint.push(VelocitySegment { condition_id: handles.0[k].condition_id, sample_count: 4, t: 0.3 });
+            payload.extend_from_slice(&poses(&first, scales[k])[..4 * 12]);
+        }
+        let mut out = vec![0.0; 8 * 6];
+        stage.velocities(&joint, &payload, &mut out).unwrap();
+        out
+    };
+    let (from_lazy, from_eager) = (answer(&mut lazy, &lazy_handles), answer(&mut eager, &eager_handles));
+    assert!(max_difference(&from_lazy, &from_eager) < 1e-5);
+    assert_eq!(lazy.encoder_inputs(), 2, "the second observation was never asked for");
+    // Asked again: already encoded.
+    answer(&mut lazy, &lazy_handles);
+    assert_eq!(lazy.encoder_inputs(), 2);
+
+    let category = serde_json::json!({"model": model_dir().parent().unwrap().join("test-tiny-cat"), "precision": "fp32", "threads": 1, "encode": "on-request"});
+    let error = InferenceStage::new(&InferenceParams::from_json(&category).unwrap()).unwrap_err().to_string();
+    assert!(error.contains("`encode`") && error.contains("category-level"), "{error}");
+    let error = InferenceParams::from_json(&serde_json::json!({"encode": "later"})).unwrap_err().to_string();
+    assert!(error.contains("later") && error.contains("on-request"), "{error}");
 }
 
 #[test]

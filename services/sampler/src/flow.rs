@@ -48,6 +48,10 @@ pub enum Start {
     /// prior, the rest tracked from the previous estimate, so the selector
     /// can pick whichever explains the observation.
     Mixed(Pose),
+    /// A held track between network passes: the previous estimate
+    /// perturbed as for `Track`, not integrated (no velocity request), for
+    /// the selector's fit to place.
+    Hold(Pose),
 }
 
 /// The sampler with its buffers (reused across frames).
@@ -246,7 +250,7 @@ impl FlowSampler {
         let n = params.samples;
         let (from_prior, previous) = match start {
             Start::Prior => (n, None),
-            Start::Track(previous) => (0, Some(previous)),
+            Start::Track(previous) | Start::Hold(previous) => (0, Some(previous)),
             // At least one sample of each kind when there are two.
             Start::Mixed(previous) => {
                 let share = (params.tracking.prior_share * n as f64).round() as usize;
@@ -278,7 +282,7 @@ impl FlowSampler {
             } else {
                 n
             };
-            if from_prior < integrated_end {
+            if from_prior < integrated_end && !matches!(start, Start::Hold(_)) {
                 groups.push(Group {
                     job: 0,
                     within_job: from_prior,

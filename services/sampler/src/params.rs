@@ -50,6 +50,7 @@ fn default_batch() -> usize {
 /// | `max_age_frames` | an estimate older than this many frames is not used | 5 |
 /// | `prior_share` | after an estimate flagged `UNSURE`: share of the samples drawn from the prior (K = `steps` from t = 0) beside the tracked ones | 0.5 |
 /// | `keep_previous` | one tracked sample is the previous estimate itself, neither perturbed nor integrated | true |
+/// | `network_every` | a held track (its previous estimate unflagged) runs the networks on every this-many-th frame only, staggered by object id; in between its samples are the previous estimate perturbed, without an Euler step, and the selector's fit places it (`NETWORK_SKIPPED`); 1 = every frame | 1 |
 ///
 /// After an estimate flagged `LOST` (the selector's track check) the object's
 /// next frame starts from the prior, every sample.
@@ -77,6 +78,12 @@ pub struct TrackingParams {
     /// the observation.
     #[serde(default = "default_keep_previous")]
     pub keep_previous: bool,
+    /// The encoder and velocity network are most of a tracked frame's
+    /// cost, and a track that holds needs little of them: the selector's
+    /// fit follows small motions, and the track check hands the object
+    /// back to the networks the frame it doubts the fit.
+    #[serde(default = "default_network_every")]
+    pub network_every: u64,
 }
 
 impl Default for TrackingParams {
@@ -90,6 +97,7 @@ impl Default for TrackingParams {
             max_age_frames: default_max_age(),
             prior_share: default_prior_share(),
             keep_previous: default_keep_previous(),
+            network_every: default_network_every(),
         }
     }
 }
@@ -127,6 +135,9 @@ fn default_prior_share() -> f64 {
 fn default_keep_previous() -> bool {
     true
 }
+fn default_network_every() -> u64 {
+    1
+}
 
 impl Default for SamplerParams {
     fn default() -> Self {
@@ -145,7 +156,7 @@ impl SamplerParams {
 
     fn validate(&self) -> Result<(), SamplerError> {
         let max = poseflow_contracts::limits::MAX_SAMPLES as usize;
-        let checks: [(&'static str, bool, String); 9] = [
+        let checks: [(&'static str, bool, String); 10] = [
             ("samples", (1..=max).contains(&self.samples), format!("{}: expected 1 to {max}", self.samples)),
             ("batch", (1..=64).contains(&self.batch), format!("{}: expected 1 to 64", self.batch)),
             ("steps", (1..=1000).contains(&self.steps), format!("{}: expected 1 to 1000", self.steps)),
@@ -159,6 +170,11 @@ impl SamplerParams {
                 "tracking.steps",
                 (1..=1000).contains(&self.tracking.steps),
                 format!("{}: expected 1 to 1000", self.tracking.steps),
+            ),
+            (
+                "tracking.network_every",
+                (1..=1000).contains(&self.tracking.network_every),
+                format!("{}: expected 1 (every frame) to 1000", self.tracking.network_every),
             ),
             (
                 "tracking.start_time",

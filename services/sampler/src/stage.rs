@@ -89,7 +89,7 @@ pub struct SamplerStage<F> {
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Remembered {
     pose: Pose,
-    /// The Estimate's `LOST` and `UNSURE` bits.
+    /// The Estimate's `LOST`, `UNSURE` and `REINITIALISED` bits.
     track_flags: u32,
 }
 
@@ -122,7 +122,7 @@ impl<F: VelocityField> SamplerStage<F> {
         }
         let estimates = self.previous.entry(object_id).or_default();
         estimates.split_off(&frame_id);
-        let track_flags = estimate_flags & (flags::LOST | flags::UNSURE);
+        let track_flags = estimate_flags & (flags::LOST | flags::UNSURE | flags::REINITIALISED);
         estimates.insert(frame_id, Remembered { pose, track_flags });
         while estimates.len() > KEPT_ESTIMATES {
             estimates.pop_first();
@@ -132,7 +132,10 @@ impl<F: VelocityField> SamplerStage<F> {
     /// Where the handle's frame starts: the object's latest estimate when
     /// tracking and recent enough (an earlier frame's, or one of this frame
     /// that arrived first), else the prior; an estimate flagged `LOST`
-    /// means the prior, one flagged `UNSURE` a mix of both.
+    /// means the prior, one flagged `UNSURE` a mix of both. A held track
+    /// (unflagged, not just re-acquired) skips the networks except on every
+    /// `network_every`-th frame, counted from a stagger of its object id so
+    /// that the objects of a frame take turns.
     pub fn start_for(&self, handle: &ConditionHandle) -> Start {
         let tracking = &self.sampler.params().tracking;
         let frame = handle.header.frame_id;
@@ -145,6 +148,11 @@ impl<F: VelocityField> SamplerStage<F> {
             Some((_, remembered)) if tracking.enabled => match remembered.track_flags {
                 f if f & flags::LOST != 0 => Start::Prior,
                 f if f & flags::UNSURE != 0 => Start::Mixed(remembered.pose),
+                f if f & flags::REINITIALISED == 0
+                    && !(frame + u64::from(handle.header.object_id)).is_multiple_of(tracking.network_every) =>
+                {
+                    Start::Hold(remembered.pose)
+                }
                 _ => Start::Track(remembered.pose),
             },
             _ => Start::Prior,
@@ -193,8 +201,11 @@ impl<F: VelocityField> SamplerStage<F> {
 /// The Hypotheses header of a handle's samples.
 fn hypotheses_header(handle: &ConditionHandle, start: &Start, samples: usize, steps: usize) -> HypothesesHeader {
     let mut header = handle.header;
-    if matches!(start, Start::Track(_) | Start::Mixed(_)) {
+    if matches!(start, Start::Track(_) | Start::Mixed(_) | Start::Hold(_)) {
         header.flags |= flags::TRACKING;
+    }
+    if matches!(start, Start::Hold(_)) {
+        header.flags |= flags::NETWORK_SKIPPED;
     }
     HypothesesHeader { header, sample_count: samples as u32, step_count: steps as u32, category: handle.category }
 }

@@ -254,6 +254,64 @@ fn lost_and_unsure_estimates_start_from_the_prior_wholly_or_in_part() {
     assert_eq!(times, vec![0.0, 0.8, 0.25, 0.5, 0.75]);
 }
 
+/// With `network_every = 3` a held track asks for velocities on one frame
+/// in three (staggered by the object id); in between its samples are the
+/// previous estimate perturbed, unintegrated, flagged `NETWORK_SKIPPED`. A
+/// flagged or just re-acquired track asks the networks every frame.
+#[test]
+fn a_held_track_skips_the_networks_between_its_network_frames() {
+    let params = SamplerParams {
+        samples: 6,
+        tracking: TrackingParams { enabled: true, network_every: 3, ..Default::default() },
+        ..Default::default()
+    };
+    let previous = Pose::new(so3::exp(&Vector3::new(0.1, 2.3, -0.2)), Vector3::new(0.1, -0.02, 0.7));
+    let mut counts = Vec::new();
+    let mut times = Vec::new();
+    let mut skipped = Vec::new();
+    {
+        let mut exact = toward_target(&handle(0), &mut times);
+        let field = |request: &VelocityRequest, poses: &[f32], out: &mut [f32]| {
+            counts.push((request.header.frame_id, request.sample_count));
+            exact(request, poses, out)
+        };
+        let mut stage = SamplerStage::new(params.clone(), field);
+        // Object 5: frames 10 (10 + 5 = 15) and 13 run the networks.
+        for frame in 10..=14 {
+            stage.remember(frame - 1, 5, previous, 0);
+            let next = handle(frame);
+            let start = stage.start_for(&next);
+            let (header, poses) = stage.hypotheses(&next).unwrap();
+            assert!(header.header.has_flag(flags::TRACKING));
+            if header.header.has_flag(flags::NETWORK_SKIPPED) {
+                assert_eq!(start, Start::Hold(previous));
+                assert_eq!(header.step_count, 0);
+                let angles: Vec<f64> =
+                    poses.iter().map(|p| so3::geodesic_angle(&p.rotation, &previous.rotation).to_degrees()).collect();
+                // The last is the previous estimate itself, the rest about it.
+                assert!(angles[5] < 1e-9 && angles[..5].iter().all(|&a| a > 1e-6 && a < 30.0), "{angles:?}");
+                skipped.push(frame);
+            } else {
+                assert_near_target(&poses[..5], 1e-3, 1e-5);
+            }
+        }
+        // Flagged or just re-acquired estimates never skip.
+        for flag in [flags::UNSURE, flags::LOST, flags::REINITIALISED] {
+            stage.remember(13, 5, previous, flag);
+            assert!(!matches!(stage.start_for(&handle(14)), Start::Hold(_)), "{flag}");
+        }
+    }
+    assert_eq!(skipped, vec![11, 12, 14]);
+    assert_eq!(counts, vec![(10, 5), (13, 5)]);
+    // Every frame, the default.
+    let mut every = SamplerStage::new(
+        SamplerParams { tracking: TrackingParams { network_every: 1, ..params.tracking }, ..params },
+        |_: &VelocityRequest, _: &[f32], _: &mut [f32]| Ok(()),
+    );
+    every.remember(10, 5, previous, 0);
+    assert_eq!(every.start_for(&handle(11)), Start::Track(previous));
+}
+
 /// A tracking sampler of 2 samples whose field never moves them.
 fn tracking_stage_without_flow() -> SamplerStage<impl poseflow_sampler::VelocityField> {
     let params = SamplerParams {

@@ -129,6 +129,11 @@ pub mod flags {
     /// graph gives the same results as processes and in-process), and a
     /// producer that never sets it gets every message handled at once.
     pub const MORE_IN_FRAME: u32 = 1 << 7;
+    /// Hypotheses and Estimate: no network looked at this frame of the
+    /// object. The tracking sampler perturbed the previous estimate of a
+    /// held track (between its network passes, `tracking.network_every`)
+    /// and the selector's fit to the observed points placed it.
+    pub const NETWORK_SKIPPED: u32 = 1 << 8;
 }
 
 /// The first 80 bytes of every message header.

@@ -164,17 +164,24 @@ impl FrameLatencies {
 /// the tracking sampler (one Euler step for a tracked object, the prior's
 /// K steps for all of a lost one's samples and part of an unsure one's).
 /// A graph without the check reports every estimate under `unflagged`.
+/// Beside the verdicts, `network_skipped` counts the estimates of any
+/// verdict that no network looked at (a held track between its network
+/// passes, [`poseflow_contracts::flags::NETWORK_SKIPPED`]).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub(super) struct VerdictCounts {
     pub unflagged: usize,
     pub unsure: usize,
     pub lost: usize,
     pub reinitialised: usize,
+    pub network_skipped: usize,
 }
 
 impl VerdictCounts {
     pub(super) fn count(&mut self, flags: u32) {
-        use poseflow_contracts::flags::{LOST, REINITIALISED, UNSURE};
+        use poseflow_contracts::flags::{LOST, NETWORK_SKIPPED, REINITIALISED, UNSURE};
+        if flags & NETWORK_SKIPPED != 0 {
+            self.network_skipped += 1;
+        }
         let counter = if flags & LOST != 0 {
             &mut self.lost
         } else if flags & UNSURE != 0 {
@@ -546,8 +553,8 @@ fn table(measured: &[(Mode, ModeFigures)]) -> String {
         ));
         let v = f.verdicts;
         out.push_str(&format!(
-            "  estimates (graph, saturated): {} unflagged, {} unsure, {} lost, {} reinitialised\n",
-            v.unflagged, v.unsure, v.lost, v.reinitialised
+            "  estimates (graph, saturated): {} unflagged, {} unsure, {} lost, {} reinitialised; {} without the networks\n",
+            v.unflagged, v.unsure, v.lost, v.reinitialised, v.network_skipped
         ));
         out.push_str("  stage process time per frame (graph, paced, p50/p99): ");
         let stages: Vec<String> = f
