@@ -127,6 +127,17 @@ struct Held {
     active_image_tokens: u32,
 }
 
+impl Held {
+    fn input(&self) -> EncoderInput<'_> {
+        EncoderInput {
+            image: &self.image,
+            token_mask: &self.token_mask,
+            points: &self.points,
+            object_index: self.object_index,
+        }
+    }
+}
+
 /// One observation, kept for its velocity requests.
 #[derive(Debug)]
 struct Cached {
@@ -418,15 +429,7 @@ impl InferenceStage {
     /// their conditions and returns their handles, in arrival order.
     pub fn encode_held(&mut self) -> Result<Vec<ConditionHandle>, InferenceError> {
         let held = std::mem::take(&mut self.held);
-        let inputs: Vec<EncoderInput> = held
-            .iter()
-            .map(|h| EncoderInput {
-                image: &h.image,
-                token_mask: &h.token_mask,
-                points: &h.points,
-                object_index: h.object_index,
-            })
-            .collect();
+        let inputs: Vec<EncoderInput> = held.iter().map(Held::input).collect();
         let conditions = self.model.encode_batch(&inputs)?;
         self.encoder_inputs += held.len() as u64;
         Ok(held
@@ -451,12 +454,7 @@ impl InferenceStage {
         let inputs: Vec<EncoderInput> = positions
             .iter()
             .map(|&at| match &self.cache[at].condition {
-                Encoding::Pending(h) => EncoderInput {
-                    image: &h.image,
-                    token_mask: &h.token_mask,
-                    points: &h.points,
-                    object_index: h.object_index,
-                },
+                Encoding::Pending(held) => held.input(),
                 Encoding::Done(_) => unreachable!("only pending observations are picked"),
             })
             .collect();
@@ -471,7 +469,8 @@ impl InferenceStage {
         Ok(())
     }
 
-    /// Caches an encoded observation under a new id; its handle.
+    /// Caches an observation (encoded, or waiting to be) under a new id;
+    /// its handle.
     fn store(
         &mut self,
         header: &ObservationHeader,
