@@ -29,7 +29,7 @@ use std::path::{Path, PathBuf};
 use poseflow_contracts::status as velocity_status;
 use poseflow_contracts::{
     ConditionHandle, Header, ObjectCategory, ObservationHeader, POSE_LEN, StampSlot, VELOCITY_LEN, VelocityRequest,
-    VelocityResponse,
+    VelocityResponse, VelocitySegment,
 };
 use poseflow_runtime::{Emitter, Flush, FrameBatches, Input, Server, Transform};
 use serde::Deserialize;
@@ -439,13 +439,13 @@ impl InferenceStage {
             .collect())
     }
 
-    /// Encodes, in one run of the encoder, the cached observations of
-    /// `ids` that wait for it ([`EncodeWhen::OnRequest`]). Err carries the
-    /// velocity status code.
-    fn encode_pending(&mut self, ids: &[u64]) -> Result<(), u32> {
-        let positions: Vec<usize> = ids
+    /// Encodes, in one run of the encoder, the cached observations that
+    /// `segments` name and that wait for it ([`EncodeWhen::OnRequest`]).
+    /// Err carries the velocity status code.
+    fn encode_pending(&mut self, segments: &[VelocitySegment]) -> Result<(), u32> {
+        let positions: Vec<usize> = segments
             .iter()
-            .filter_map(|id| self.cache.iter().position(|c| c.id == *id))
+            .filter_map(|s| self.cache.iter().position(|c| c.id == s.condition_id))
             .filter(|&at| matches!(self.cache[at].condition, Encoding::Pending(_)))
             .collect();
         if positions.is_empty() {
@@ -513,9 +513,8 @@ impl InferenceStage {
         if poses.len() != n * POSE_LEN || out.len() != n * VELOCITY_LEN || poses.iter().any(|x| !x.is_finite()) {
             return Err(velocity_status::INVALID_REQUEST);
         }
-        let ids: Vec<u64> = request.segments().iter().map(|s| s.condition_id).collect();
-        self.encode_pending(&ids)?;
-        let mut segments = Vec::with_capacity(ids.len());
+        self.encode_pending(request.segments())?;
+        let mut segments = Vec::with_capacity(request.segments().len());
         for segment in request.segments() {
             let Some(cached) = self.cache.iter().find(|c| c.id == segment.condition_id) else {
                 return Err(velocity_status::UNKNOWN_CONDITION);
