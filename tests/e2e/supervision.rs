@@ -412,11 +412,22 @@ fn a_stopped_sampler_of_the_tracking_graph_is_replaced_and_every_object_tracked_
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
     let objects = report["objects"].as_array().unwrap();
     assert_eq!(objects.len(), 3, "{report}");
+    let mut missing = 0;
     for o in objects {
-        // What dies with the frozen sampler is lost (counted as gaps
-        // downstream): the image in its hands and the two its input queue
-        // held. The queues before them block, so later frames wait.
+        // What dies with the frozen sampler is lost: the image in its hands
+        // and the two messages its input queue held. The sends after it
+        // wait for its replacement (a `block` edge), and so do the queues
+        // before them.
         assert!(o["estimated"].as_u64().unwrap() >= frames - 3, "{o}");
         assert!(o["acc_10deg_5cm"].as_f64().unwrap() >= 80.0, "{o}");
+        missing += frames - o["estimated"].as_u64().unwrap();
     }
+    // Each missing estimate is counted: the sampler's edges count what
+    // was sent and not received (a dead process's counts are its last
+    // heartbeat's, so the count may exceed what was really lost).
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    let lost: u64 =
+        ["frames", "conditions", "hypotheses"].iter().map(|e| summary["edges"][e]["lost"].as_u64().unwrap()).sum();
+    assert!(lost >= missing, "{missing} estimates missing, {lost} counted lost: {summary}");
 }

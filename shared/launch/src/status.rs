@@ -159,7 +159,8 @@ pub fn status_lines<'a>(instance: &str, elapsed: Duration, stages: impl Iterator
 }
 
 /// Messages through one edge whose counts are attributable: its writer
-/// has no other output and each reader no other input, so the writer's
+/// has no other output and each reader reads it as its one main input
+/// (side inputs are not counted in `frames_in`), so the writer's
 /// `frames_out` all went into it and each reader's `frames_in` came from
 /// it (totals over restarted processes).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -190,8 +191,7 @@ pub fn edge_flows(graph: &Graph, stages: &BTreeMap<String, StageReport>) -> BTre
                 return None;
             }
             let readers: Vec<_> = graph.stages.values().filter(|s| s.reads(edge)).collect();
-            let attributable =
-                !readers.is_empty() && readers.iter().all(|r| r.inputs.len() == 1 && r.side_inputs.is_empty());
+            let attributable = !readers.is_empty() && readers.iter().all(|r| r.inputs == [edge.as_str()]);
             attributable.then(|| {
                 let received = readers.iter().map(|r| (r.name.clone(), total(&r.name).frames_in)).collect();
                 (edge.clone(), EdgeFlow { writer: writer.name.clone(), sent: total(&writer.name).frames_out, received })
@@ -266,5 +266,28 @@ mod tests {
         assert_eq!(report.total(), Counters { frames_in: 1300, frames_out: 1299, dropped: 2, errors: 0 });
         assert_eq!(report.to_json()["total"]["frames_out"], 1299);
         assert_eq!(report.to_json()["frames_out"], 1000);
+    }
+
+    /// The tracking graph: a reader's side inputs do not count in its
+    /// `frames_in`, so an edge read as the main input of a stage with side
+    /// inputs is attributable; an edge that someone reads as a side input
+    /// is not.
+    #[test]
+    fn edges_read_as_main_inputs_are_attributable_whatever_the_side_inputs() {
+        let file = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../deploy/tracking.toml"));
+        let graph = poseflow_graph::parse_in_process(&std::fs::read_to_string(file).unwrap(), file).unwrap();
+        let mut stages = BTreeMap::new();
+        for (name, frames_in, frames_out) in
+            [("frames", 0, 30), ("ingest", 30, 90), ("inference", 90, 90), ("sampler", 88, 88), ("selector", 88, 88)]
+        {
+            let mut report = StageReport::new(name);
+            report.beat(Heartbeat { pid: 1, frames_in, frames_out, ..Default::default() });
+            stages.insert(name.to_string(), report);
+        }
+        let flows = edge_flows(&graph, &stages);
+        assert_eq!(flows.keys().collect::<Vec<_>>(), ["conditions", "frames", "hypotheses"]);
+        assert_eq!((flows["conditions"].writer.as_str(), flows["conditions"].lost()), ("inference", 2));
+        assert_eq!(flows["hypotheses"].received, BTreeMap::from([("selector".to_string(), 88)]));
+        assert_eq!(flows["hypotheses"].lost(), 0);
     }
 }

@@ -252,8 +252,17 @@ impl<H: MessageHeader> Emitter<H> for IpcEmitter<'_, H> {
         }
         let receivers = sent?;
         tracing::trace!(receivers, "published");
+        count_undelivered(self.publisher, receivers, self.liveness);
         self.liveness.count_sent();
         Ok(())
+    }
+}
+
+/// A sample that missed a reader is lost to it: counted as a drop, not
+/// silent.
+fn count_undelivered<H: MessageHeader>(output: &Publisher<H>, receivers: usize, liveness: &Liveness) {
+    if output.missed_a_reader(receivers) {
+        liveness.count_dropped(1);
     }
 }
 
@@ -381,7 +390,10 @@ impl<H: MessageHeader> HeldOutputs<H> {
             let sent = output.publish_serving(header, payload.len(), |out| out.copy_from_slice(&payload), meanwhile);
             liveness.send_finished();
             match sent {
-                Ok(_) => liveness.count_sent(),
+                Ok(receivers) => {
+                    count_undelivered(output, receivers, liveness);
+                    liveness.count_sent();
+                }
                 Err(err) => {
                     if announced {
                         liveness.restarted();

@@ -161,6 +161,14 @@ pub struct Publisher<H: MessageHeader> {
     /// once (at creation and on seeing this publisher appear), so receivers
     /// count as ready only up to the number of subscribers.
     ready_acks: std::cell::Cell<usize>,
+    overflow: Overflow,
+    /// Readers found ready by the last wait for them. On a `block` edge a
+    /// send waits while fewer are connected: a reader being replaced by the
+    /// supervisor would otherwise miss every sample sent before its
+    /// replacement subscribes.
+    readers: std::cell::Cell<usize>,
+    /// Whether the last send reached fewer readers than `readers`.
+    short: std::cell::Cell<bool>,
 }
 
 /// How long a blocked send waits before it is logged.
@@ -203,6 +211,9 @@ impl<H: MessageHeader> Publisher<H> {
             acks,
             max_payload_len,
             ready_acks: std::cell::Cell::new(0),
+            overflow: options.overflow,
+            readers: std::cell::Cell::new(0),
+            short: std::cell::Cell::new(false),
         })
     }
 
@@ -216,19 +227,24 @@ impl<H: MessageHeader> Publisher<H> {
     ///
     /// The loaned memory is not cleared: until `fill` writes it, it holds an
     /// earlier sample's values, so `fill` must write every element.
-    pub fn publish(&self, header: H, len: usize, fill: impl FnOnce(&mut [f32])) -> Result<usize, TransportError> {
+    ///
+    /// On a `block` edge whose readers were waited for, a send also waits
+    /// while one of them is gone (killed, being replaced): it goes out once
+    /// the replacement has said READY. A send that reached no reader because
+    /// its reader died meanwhile is sent again the same way.
+    pub fn publish(&self, header: H, len: usize, fill: impl FnMut(&mut [f32])) -> Result<usize, TransportError> {
         self.publish_serving(header, len, fill, &mut || {})
     }
 
     /// As [`Self::publish`]; while the send waits on a full queue (`block`
-    /// overflow), calls `meanwhile` between retries. A stage that answers
-    /// requests passes its request handler, so its readers' calls are
-    /// answered while it waits for them to read.
+    /// overflow) or for a replaced reader, calls `meanwhile` between
+    /// retries. A stage that answers requests passes its request handler,
+    /// so its readers' calls are answered while it waits for them to read.
     pub fn publish_serving(
         &self,
         header: H,
         len: usize,
-        fill: impl FnOnce(&mut [f32]),
+        mut fill: impl FnMut(&mut [f32]),
         meanwhile: &mut dyn FnMut(),
     ) -> Result<usize, TransportError> {
         let expected = header.payload_len()?;
@@ -238,6 +254,64 @@ impl<H: MessageHeader> Publisher<H> {
         if len > self.max_payload_len {
             return Err(TransportError::PayloadTooLarge { len, max: self.max_payload_len });
         }
+        loop {
+            self.wait_for_replaced_readers(meanwhile)?;
+            let receivers = self.send_once(header, len, &mut fill, meanwhile)?;
+            if receivers > 0 || !self.waits_for_readers() || termination_requested() {
+                return Ok(receivers);
+            }
+            tracing::warn!(edge = %self.name, "the reader went away during the send; sending again once it is replaced");
+        }
+    }
+
+    /// Readers found ready by the last wait for them (0 before any wait).
+    pub fn readers(&self) -> usize {
+        self.readers.get()
+    }
+
+    /// Whether a send that reached `receivers` missed one of the readers
+    /// (a `drop-oldest` edge while its reader is replaced; a `block` edge
+    /// with several readers when one died during the send). The first miss
+    /// of a run is logged.
+    pub fn missed_a_reader(&self, receivers: usize) -> bool {
+        let readers = self.readers.get();
+        let short = receivers < readers;
+        if short && !self.short.get() {
+            tracing::warn!(edge = %self.name, receivers, readers, "sends miss a reader (gone, being replaced); each is counted as dropped");
+        }
+        self.short.set(short);
+        short
+    }
+
+    fn waits_for_readers(&self) -> bool {
+        self.overflow == Overflow::Block && self.readers.get() > 0
+    }
+
+    /// On a `block` edge, waits while fewer readers are connected than were
+    /// ready before, until the missing ones' replacements say READY (or
+    /// SIGINT/SIGTERM arrived).
+    fn wait_for_replaced_readers(&self, meanwhile: &mut dyn FnMut()) -> Result<(), TransportError> {
+        let readers = self.readers.get();
+        let connected = self.service.dynamic_config().number_of_subscribers();
+        if !self.waits_for_readers() || connected >= readers {
+            return Ok(());
+        }
+        tracing::warn!(edge = %self.name, connected, readers, "a reader is gone; sends wait until it is replaced");
+        // Those still connected are ready; each replacement must say so.
+        self.ready_acks.set(connected);
+        let ready = self.wait_ready(readers, Patience::Forever { warn_every: LONG_BLOCK }, meanwhile)?;
+        tracing::info!(edge = %self.name, ready, "a replaced reader is ready; sends resume");
+        Ok(())
+    }
+
+    /// One loan, fill and send; how many receivers got the sample.
+    fn send_once(
+        &self,
+        header: H,
+        len: usize,
+        fill: &mut dyn FnMut(&mut [f32]),
+        meanwhile: &mut dyn FnMut(),
+    ) -> Result<usize, TransportError> {
         let mut sample = self
             .publisher
             .loan_slice_uninit(len)
@@ -335,6 +409,7 @@ impl<H: MessageHeader> Publisher<H> {
             };
             if ready >= count || out_of_time || termination_requested() {
                 self.connect()?;
+                self.readers.set(ready);
                 return Ok(ready);
             }
             let seen = self.wait_for_acks(events::READY, 1, SERVE_SLICE * 10, meanwhile)?;

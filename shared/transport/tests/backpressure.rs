@@ -165,3 +165,86 @@ fn ready_counts_receivers_not_notifications() {
     let _second = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
     assert_eq!(publisher.wait_for_receivers(2, Duration::from_secs(10)).unwrap(), 2);
 }
+
+/// A reader killed and replaced (by the supervisor) misses nothing sent
+/// while it was gone: on a `block` edge the send waits for the replacement
+/// to say READY. Before, such sends reached no one and nothing counted them
+/// (seen: a tracking graph lost 7 observations' handles while its sampler
+/// was replaced, on top of what the dead sampler's queue held).
+#[test]
+fn a_send_waits_for_a_replaced_reader() {
+    let name = edge_service_name(&format!("test-replaced-{}", std::process::id()), "poses").unwrap();
+    let options = EdgeOptions { queue: 4, overflow: Overflow::Block, max_payload_len: 64 };
+    let node = create_node("replaced-receiver").unwrap();
+    let first = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    let (reader_gone, gone) = std::sync::mpsc::channel::<()>();
+    let sender = std::thread::spawn({
+        let name = name.clone();
+        move || {
+            let node = create_node("replaced-sender").unwrap();
+            let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+            assert_eq!(publisher.wait_for_receivers(1, Duration::from_secs(10)).unwrap(), 1);
+            let mut receivers = Vec::new();
+            for frame in 0..6u64 {
+                if frame == 1 {
+                    gone.recv().unwrap();
+                }
+                let header = HypothesesHeader {
+                    header: Header::new(frame, 1),
+                    sample_count: 1,
+                    step_count: 1,
+                    ..Default::default()
+                };
+                let sent = publisher.publish(header, POSE_LEN, |p| p.fill(frame as f32)).unwrap();
+                receivers.push((sent, publisher.missed_a_reader(sent)));
+            }
+            publisher.end_of_stream(Duration::from_secs(10)).unwrap();
+            receivers
+        }
+    });
+    let started = std::time::Instant::now();
+    let mut before = Vec::new();
+    while before.is_empty() {
+        first.take_events().unwrap();
+        while let Some(message) = first.receive().unwrap() {
+            before.push(message.header().header.frame_id);
+        }
+        assert!(started.elapsed() < Duration::from_secs(20), "frame 0 never arrived");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    drop(first);
+    reader_gone.send(()).unwrap();
+    // The replacement takes a while to start, as a restarted stage does.
+    std::thread::sleep(Duration::from_millis(300));
+    let replacement = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    let mut after = Vec::new();
+    while after.len() < 5 && started.elapsed() < Duration::from_secs(20) {
+        replacement.take_events().unwrap();
+        while let Some(message) = replacement.receive().unwrap() {
+            after.push(message.header().header.frame_id);
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert_eq!(before, vec![0]);
+    assert_eq!(after, (1..6).collect::<Vec<_>>());
+    replacement.acknowledge_end().unwrap();
+    assert_eq!(sender.join().unwrap(), vec![(1, false); 6]);
+}
+
+/// On a `drop-oldest` edge a send does not wait for a missing reader, and
+/// says that it missed one.
+#[test]
+fn a_drop_oldest_send_to_a_missing_reader_says_so() {
+    let name = edge_service_name(&format!("test-missing-{}", std::process::id()), "poses").unwrap();
+    let options = EdgeOptions { queue: 4, overflow: Overflow::DropOldest, max_payload_len: 64 };
+    let node = create_node("missing-reader").unwrap();
+    let publisher = Publisher::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    let reader = EdgeSubscriber::<HypothesesHeader>::create(&node, &name, &options).unwrap();
+    assert_eq!(publisher.wait_for_receivers(1, Duration::from_secs(10)).unwrap(), 1);
+    let header = HypothesesHeader { header: Header::new(0, 1), sample_count: 1, step_count: 1, ..Default::default() };
+    let sent = publisher.publish(header, POSE_LEN, |p| p.fill(0.0)).unwrap();
+    assert_eq!((sent, publisher.missed_a_reader(sent)), (1, false));
+    drop(reader);
+    let sent = publisher.publish(header, POSE_LEN, |p| p.fill(0.0)).unwrap();
+    assert_eq!((sent, publisher.missed_a_reader(sent)), (0, true));
+}
