@@ -25,7 +25,6 @@ import ctypes
 import json
 import os
 import signal
-import sys
 import time
 
 import iceoryx2 as iox2
@@ -392,21 +391,10 @@ def _float_view(payload):
     return (ctypes.c_float * count).from_address(payload.as_ptr())
 
 
-# The exit status of a stage that cannot start from its wiring or params
-# (EX_CONFIG): the launcher fails the graph at once instead of restarting it.
-EXIT_CONFIGURATION = 78
-
-
-def configuration_error(message):
-    """Exits the stage with `message` on stderr and EXIT_CONFIGURATION."""
-    print(message, file=sys.stderr)
-    raise SystemExit(EXIT_CONFIGURATION)
-
-
 def wiring():
     text = os.environ.get("POSEFLOW_STAGE")
     if text is None:
-        configuration_error("POSEFLOW_STAGE is not set: stages are started by `poseflow run --graph FILE`")
+        raise SystemExit("POSEFLOW_STAGE is not set: stages are started by `poseflow run --graph FILE`")
     return json.loads(text)
 
 
@@ -571,7 +559,7 @@ class _Stage:
         self.wire = wiring()
         got = (len(self.wire["inputs"]), len(self.wire["outputs"]))
         if got != (inputs, outputs):
-            configuration_error(
+            raise SystemExit(
                 f"stage `{self.wire['stage']}`: a {kind} has {inputs} input(s) and {outputs} output(s); "
                 f"the graph gives {got[0]} and {got[1]}"
             )

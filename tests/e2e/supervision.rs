@@ -324,31 +324,6 @@ fn a_stage_failing_beyond_its_restart_policy_fails_the_graph() {
     assert_nothing_leaked(&before);
 }
 
-/// A stage that cannot start from its params (here the source's `frames`
-/// as a string) exits with `EXIT_CONFIGURATION`: the launcher fails the
-/// graph at once, says why, and does not restart it in vain (before, it
-/// restarted such a stage to `max_restarts` with backoff while the others
-/// waited).
-#[test]
-fn a_stage_that_cannot_start_from_its_params_fails_the_graph_at_once() {
-    let _serial = serial();
-    let before = shared_memory_files();
-    let scratch = Scratch::new("bad-params");
-    let graph = scratch.graph(1000, 200.0, "drop-oldest");
-    let text = std::fs::read_to_string(&graph).unwrap().replace("frames = 1000", "frames = \"a thousand\"");
-    std::fs::write(&graph, text).unwrap();
-    let output = run_graph(&["--json", "--status-ms", "0"], &graph).output_within(RUN_DEADLINE);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert_eq!(output.status.code(), Some(1), "{stderr}");
-    let summary = summary(&output);
-    let source = &summary["stages"]["source"];
-    assert_eq!(source["outcome"], "failed", "{summary}");
-    assert_eq!(source["restarts"], 0, "{summary}");
-    assert!(source["failure"].as_str().unwrap().contains("cannot start from its configuration"), "{summary}");
-    assert!(stderr.contains("param `frames`: expected a non-negative integer, got \"a thousand\""), "{stderr}");
-    assert_nothing_leaked(&before);
-}
-
 /// Every graph shipped in deploy/ (and deploy/two-hosts/) validates, and
 /// the smoke graph runs clean.
 #[test]

@@ -22,7 +22,7 @@ pub use hosts::{BRIDGE_EXE, BRIDGE_STAGE, BridgePlan, HostEndpoints, ZenohMode, 
 pub use resolve::resolve_executable;
 pub use spec::{EdgePattern, OverflowPolicy, RestartPolicy};
 pub use stamp::Stamp;
-pub use wiring::{EXIT_CONFIGURATION, EdgeWiring, StageWiring, WIRING_ENV, WiringError};
+pub use wiring::{EdgeWiring, StageWiring, WIRING_ENV, WiringError};
 
 /// Message types an edge may carry, as named in graph files (defined with
 /// the contracts).

@@ -11,13 +11,6 @@ use crate::spec::OverflowPolicy;
 /// stages in any language read it to find their services.
 pub const WIRING_ENV: &str = "POSEFLOW_STAGE";
 
-/// The exit status of a stage process that cannot start from what it was
-/// given (its wiring, its `params`, the model they name): `EX_CONFIG` of
-/// sysexits.h. Running it again would fail the same way, so the launcher
-/// fails the graph at once instead of restarting it. Plug-in stages in any
-/// language may use it too.
-pub const EXIT_CONFIGURATION: u8 = 78;
-
 /// One edge as seen by one stage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::{CallbackProgression, WaitSetBuilder};
 use poseflow_contracts::Heartbeat;
-use poseflow_graph::{EXIT_CONFIGURATION, Graph, RestartPolicy, Stage, StageWiring, WIRING_ENV};
+use poseflow_graph::{Graph, RestartPolicy, Stage, StageWiring, WIRING_ENV};
 use poseflow_transport::{EdgeOptions, EdgeSubscriber, Ipc, Overflow, create_node, remove_dead_nodes};
 
 use crate::status::{Outcome, Report, StageReport, edge_flows};
@@ -125,14 +125,6 @@ impl Supervised<'_> {
             RestartPolicy::Always => true,
         };
         tracing::info!(stage = %self.stage.name, %status, "exited");
-        if status.code() == Some(i32::from(EXIT_CONFIGURATION)) {
-            // Its wiring, params or model: a restart would fail the same way.
-            tracing::error!(stage = %self.stage.name, "cannot start from its configuration (its log above says why); not restarted");
-            self.report.outcome = Outcome::Failed(format!(
-                "exited with {status}: cannot start from its configuration (wiring, params or model); not restarted"
-            ));
-            return;
-        }
         if !restart {
             self.report.outcome =
                 if success { Outcome::Finished } else { Outcome::Failed(format!("exited with {status}")) };

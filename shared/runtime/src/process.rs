@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use iceoryx2::prelude::{CallbackProgression, SynchronousMultiplexing, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
 use poseflow_contracts::{MessageHeader, StageState, StampSlot, flags};
-use poseflow_graph::{EXIT_CONFIGURATION, StageWiring};
+use poseflow_graph::StageWiring;
 use poseflow_transport::{EdgeSubscriber, Ipc, Node, Publisher, RequestServer, Responder, TransportError, create_node};
 
 use crate::error::error_chain;
@@ -285,18 +285,11 @@ fn exit(result: Result<(), RuntimeError>) -> ExitCode {
     }
 }
 
-/// Logs why the stage process failed, with the whole cause chain. A stage
-/// that cannot start from its configuration exits with
-/// [`EXIT_CONFIGURATION`], so it is not restarted in vain.
+/// Logs why the stage process failed, with the whole cause chain.
 pub(crate) fn fail(err: RuntimeError) -> ExitCode {
     init_logging();
     tracing::error!(err = %error_chain(&err), "stage failed");
-    match err {
-        RuntimeError::Wiring(_) | RuntimeError::Shape { .. } | RuntimeError::Build { .. } => {
-            ExitCode::from(EXIT_CONFIGURATION)
-        }
-        _ => ExitCode::FAILURE,
-    }
+    ExitCode::FAILURE
 }
 
 fn build<T, E: Into<BuildError>>(

@@ -254,15 +254,13 @@ impl<H: MessageHeader> Publisher<H> {
         if len > self.max_payload_len {
             return Err(TransportError::PayloadTooLarge { len, max: self.max_payload_len });
         }
-        let mut reached_no_one = false;
         loop {
-            self.wait_for_replaced_readers(reached_no_one, meanwhile)?;
+            self.wait_for_replaced_readers(meanwhile)?;
             let receivers = self.send_once(header, len, &mut fill, meanwhile)?;
             if receivers > 0 || !self.waits_for_readers() || termination_requested() {
                 return Ok(receivers);
             }
             tracing::warn!(edge = %self.name, "the reader went away during the send; sending again once it is replaced");
-            reached_no_one = true;
         }
     }
 
@@ -291,25 +289,16 @@ impl<H: MessageHeader> Publisher<H> {
 
     /// On a `block` edge, waits while fewer readers are connected than were
     /// ready before, until the missing ones' replacements say READY (or
-    /// SIGINT/SIGTERM arrived). After a send that reached no one, waits for
-    /// a READY whatever the count of subscribers (a dead one may still be
-    /// listed), so the resend never spins.
-    fn wait_for_replaced_readers(
-        &self,
-        reached_no_one: bool,
-        meanwhile: &mut dyn FnMut(),
-    ) -> Result<(), TransportError> {
-        if !self.waits_for_readers() {
-            return Ok(());
-        }
+    /// SIGINT/SIGTERM arrived).
+    fn wait_for_replaced_readers(&self, meanwhile: &mut dyn FnMut()) -> Result<(), TransportError> {
         let readers = self.readers.get();
         let connected = self.service.dynamic_config().number_of_subscribers();
-        if connected >= readers && !reached_no_one {
+        if !self.waits_for_readers() || connected >= readers {
             return Ok(());
         }
         tracing::warn!(edge = %self.name, connected, readers, "a reader is gone; sends wait until it is replaced");
         // Those still connected are ready; each replacement must say so.
-        self.ready_acks.set(connected.min(readers - 1));
+        self.ready_acks.set(connected);
         let ready = self.wait_ready(readers, Patience::Forever { warn_every: LONG_BLOCK }, meanwhile)?;
         tracing::info!(edge = %self.name, ready, "a replaced reader is ready; sends resume");
         Ok(())
