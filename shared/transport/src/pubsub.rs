@@ -291,9 +291,12 @@ impl<H: MessageHeader> Publisher<H> {
     /// ready before, until the missing ones' replacements say READY (or
     /// SIGINT/SIGTERM arrived).
     fn wait_for_replaced_readers(&self, meanwhile: &mut dyn FnMut()) -> Result<(), TransportError> {
+        if !self.waits_for_readers() {
+            return Ok(());
+        }
         let readers = self.readers.get();
         let connected = self.service.dynamic_config().number_of_subscribers();
-        if !self.waits_for_readers() || connected >= readers {
+        if connected >= readers {
             return Ok(());
         }
         tracing::warn!(edge = %self.name, connected, readers, "a reader is gone; sends wait until it is replaced");
