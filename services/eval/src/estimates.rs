@@ -70,7 +70,7 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
             format!("{}: an estimate of frame {frame}, but the dataset has {} images", path.display(), images.len())
         })?;
         estimates.push((
-            header.header.stamps.get(StampSlot::Selector),
+            (header.header.stamps.get(StampSlot::Selector), frame),
             Estimated {
                 scene_id: image.scene_id,
                 im_id: image.im_id,
@@ -91,13 +91,60 @@ pub fn read_recording(path: &Path, images: &[TruthImage]) -> anyhow::Result<Vec<
             },
         ));
     }
-    estimates.sort_by_key(|(departure, _)| *departure);
-    for i in 1..estimates.len() {
-        if let (Some(previous), Some(departure)) = (estimates[i - 1].0, estimates[i].0) {
-            estimates[i].1.service_time = Some(Duration::from_nanos(departure.saturating_sub(previous)));
-        }
+    estimates.sort_by_key(|((departure, _), _)| *departure);
+    let departures: Vec<(Option<u64>, u64)> = estimates.iter().map(|(departure, _)| *departure).collect();
+    for (i, time) in service_times(&departures).into_iter().enumerate() {
+        estimates[i].1.service_time = time;
     }
     Ok(estimates.into_iter().map(|(_, estimate)| estimate).collect())
+}
+
+/// Each estimate's share of the selector's time: `departures` are
+/// (selector stamp, frame id) in departure order. The selector publishes a
+/// frame's objects together, so the interval from the previous frame's
+/// last estimate to this frame's last is split evenly among the frame's
+/// estimates; the first frame, and a frame next to one without a stamp,
+/// has none.
+fn service_times(departures: &[(Option<u64>, u64)]) -> Vec<Option<Duration>> {
+    let mut times = vec![None; departures.len()];
+    let mut previous_end: Option<u64> = None;
+    let mut start = 0;
+    while start < departures.len() {
+        let frame = departures[start].1;
+        let end = start + departures[start..].iter().take_while(|(_, f)| *f == frame).count();
+        let stamps: Option<Vec<u64>> = departures[start..end].iter().map(|(stamp, _)| *stamp).collect();
+        let last = stamps.as_ref().and_then(|stamps| stamps.iter().max().copied());
+        if let (Some(previous), Some(last)) = (previous_end, last) {
+            let share = Duration::from_nanos(last.saturating_sub(previous)) / (end - start) as u32;
+            times[start..end].fill(Some(share));
+        }
+        previous_end = last;
+        start = end;
+    }
+    times
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_frame_published_together_shares_the_interval_since_the_frame_before() {
+        // Frame 0 at 10 ms; frame 1's three objects at 40 ms (a few µs
+        // apart); frame 2's one object at 55 ms.
+        let ms = |x: f64| Some((x * 1e6) as u64);
+        let departures = [(ms(10.0), 0), (ms(40.0), 1), (ms(40.001), 1), (ms(40.002), 1), (ms(55.0), 2)];
+        let times: Vec<Option<f64>> =
+            service_times(&departures).into_iter().map(|t| t.map(|t| t.as_secs_f64() * 1e3)).collect();
+        assert_eq!(times[0], None);
+        for t in &times[1..4] {
+            assert!((t.unwrap() - 30.002 / 3.0).abs() < 1e-6, "{times:?}");
+        }
+        assert!((times[4].unwrap() - 14.998).abs() < 1e-6, "{times:?}");
+        // A frame without a stamp breaks the chain on both sides.
+        let gap = [(ms(10.0), 0), (None, 1), (ms(30.0), 2)];
+        assert_eq!(service_times(&gap), vec![None, None, None]);
+    }
 }
 
 /// Estimates counted so far in a recording being written (a partly

@@ -18,8 +18,9 @@ pub struct InstanceOutcome {
     pub im_id: u32,
     pub obj_id: u32,
     pub score: Option<InstanceScore>,
-    /// The graph's time on this object (the interval since the previous
-    /// estimate left the selector).
+    /// The graph's time on this object: the interval since the previous
+    /// frame's estimates left the selector, shared among its frame's
+    /// estimates.
     pub service_time: Option<Duration>,
     /// From the frame source reading the image to the selector's estimate.
     pub latency: Option<Duration>,

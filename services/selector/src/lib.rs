@@ -24,7 +24,7 @@ pub mod track;
 pub mod visibility;
 
 pub use error::SelectorError;
-pub use params::{Distribution, Method, SelectorParams};
+pub use params::{Distribution, Method, SelectorParams, Turns};
 pub use select::{Observed, Selection, select};
 
 /// The stage of this crate: `selector` (Hypotheses in, Estimate out; the

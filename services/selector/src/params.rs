@@ -2,6 +2,7 @@
 
 use std::path::PathBuf;
 
+use nalgebra::{Rotation3, Vector3};
 use serde::Deserialize;
 
 use crate::SelectorError;
@@ -34,6 +35,30 @@ pub enum Distribution {
     Refined,
 }
 
+/// Which turned copies of the best refined candidates are refined and
+/// scored as well: the poses a depth fit of a partial view confuses, which
+/// a local refinement does not reach.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Turns {
+    None,
+    /// Half turns about the object's principal axes (3 per candidate).
+    Half,
+    /// Quarter, half and three-quarter turns about them (9 per candidate).
+    Quarter,
+}
+
+impl Turns {
+    /// The turns of `object`, as rigid motions of its model frame.
+    pub fn of(self, object: &poseflow_scene::ObjectGeometry) -> &[(Rotation3<f64>, Vector3<f64>)] {
+        match self {
+            Self::None => &[],
+            Self::Half => object.half_turns(),
+            Self::Quarter => object.quarter_turns(),
+        }
+    }
+}
+
 impl Method {
     pub fn needs_model(self) -> bool {
         matches!(self, Self::Chamfer | Self::Sdf)
@@ -56,6 +81,8 @@ impl Method {
 /// | `sdf_resolution` | grid cells along the object's longest side | 64 |
 /// | `refine` | refine the kept hypotheses (Levenberg-Marquardt on the grid) | false |
 /// | `refine_iterations` | iterations per hypothesis | 10 |
+/// | `turns` | with `refine` and a model-based method: also refine and score the `turned_candidates` best refined candidates turned about the object's principal axes, `none`, `half` (3 turns each) or `quarter` (9); the selected pose joins the kept hypotheses when a turn wins; not for category templates | `quarter` |
+/// | `turned_candidates` | how many of the best refined candidates `turns` turns | 2 |
 /// | `distribution` | with `refine`: the kept hypotheses reported are the `samples` or the `refined` ones | `samples` |
 /// | `observations` | Observations kept while their Hypotheses are awaited | 64 |
 /// | `batch` | most Hypotheses of one frame selected from together | 8 |
@@ -100,6 +127,10 @@ pub struct SelectorParams {
     pub refine: bool,
     #[serde(default = "default_refine_iterations")]
     pub refine_iterations: usize,
+    #[serde(default = "default_turns")]
+    pub turns: Turns,
+    #[serde(default = "default_turned_candidates")]
+    pub turned_candidates: usize,
     #[serde(default = "default_distribution")]
     pub distribution: Distribution,
     #[serde(default = "default_observations")]
@@ -160,6 +191,12 @@ fn default_sdf_resolution() -> usize {
 fn default_distribution() -> Distribution {
     Distribution::Samples
 }
+fn default_turns() -> Turns {
+    Turns::Quarter
+}
+fn default_turned_candidates() -> usize {
+    2
+}
 fn default_refine_iterations() -> usize {
     10
 }
@@ -201,7 +238,7 @@ impl SelectorParams {
 
     pub fn validate(&self) -> Result<(), SelectorError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
-        let checks: [(&'static str, bool, String); 14] = [
+        let checks: [(&'static str, bool, String); 15] = [
             (
                 "epsilon_rotation_deg",
                 positive(self.epsilon_rotation_deg) && self.epsilon_rotation_deg <= 180.0,
@@ -238,6 +275,11 @@ impl SelectorParams {
                 "refine_iterations",
                 (1..=100).contains(&self.refine_iterations),
                 format!("{}: expected 1 to 100", self.refine_iterations),
+            ),
+            (
+                "turned_candidates",
+                (1..=64).contains(&self.turned_candidates),
+                format!("{}: expected 1 to 64", self.turned_candidates),
             ),
             ("observations", self.observations >= 1, format!("{}: expected at least 1", self.observations)),
             ("batch", (1..=64).contains(&self.batch), format!("{}: expected 1 to 64", self.batch)),

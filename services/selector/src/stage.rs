@@ -16,7 +16,7 @@ use poseflow_scene::{ObjectGeometry, ObjectLibrary};
 use crate::select::{Observed, scorer};
 use crate::track::{Evidence, TrackMonitor, Verdict};
 use crate::visibility::{DepthGrid, FitSettings, INSIDE_DEPTH, point_fit, silhouette};
-use crate::{Method, Selection, SelectorError, SelectorParams, select};
+use crate::{Method, Selection, SelectorError, SelectorParams, Turns, select};
 use poseflow_geometry::metrics::Pinhole;
 
 /// One Observation's points (camera frame, metres) and depth grid, kept
@@ -185,7 +185,10 @@ impl SelectorStage {
                 monitor.forget(object);
             }
             track = TrackNow {
-                half_turns: monitor.params().half_turns && !monitor.is_tracking(object),
+                // A selection that tries turns on every frame already does.
+                half_turns: monitor.params().half_turns
+                    && !monitor.is_tracking(object)
+                    && self.params.turns == Turns::None,
                 motion_candidate: monitor.motion_candidate(object, frame),
             };
         }
@@ -284,6 +287,16 @@ impl Job {
         let library_model = library.and_then(|library| library.get(object));
         let model = self.template.as_ref().or(library_model);
         let observed = self.observed.as_ref();
+        // A category template is the category's mean shape: its turned fits
+        // would judge that shape, not the object.
+        let instance_params;
+        let params = match (&self.template, params.turns) {
+            (Some(_), turns) if turns != Turns::None => {
+                instance_params = SelectorParams { turns: Turns::None, ..params.clone() };
+                &instance_params
+            }
+            _ => params,
+        };
         let mut selection = select(&self.hypotheses, observed.map(|o| o.observed(params.score_points)), model, params)
             .map_err(|e| SelectorError::Frame { frame, object, detail: e.to_string() })?;
         let Some(check) = check else { return Ok((selection, None)) };
@@ -291,7 +304,7 @@ impl Job {
         // The track check judges against the object's own mesh, never a template.
         let model = library_model;
         if let Some(model) = model.filter(|_| self.track.half_turns)
-            && selection.search_half_turns(model, seen, params, HALF_TURN_CANDIDATES)
+            && selection.search_turns(model.half_turns(), model, seen, params, HALF_TURN_CANDIDATES)
         {
             tracing::debug!(frame, object, "a candidate turned half a turn fits better: selected");
         }

@@ -12,7 +12,7 @@ use poseflow_selector::cluster::{Neighbourhood, dbscan};
 use poseflow_selector::score::Residuals;
 use poseflow_selector::stage::{estimate_header, estimate_payload_len, write_estimate_payload};
 use poseflow_selector::visibility::DepthGrid;
-use poseflow_selector::{Distribution, Method, Observed, SelectorParams, select};
+use poseflow_selector::{Distribution, Method, Observed, SelectorParams, Turns, select};
 
 /// A 6 × 4 × 2 cm box (distinct side lengths: no symmetry but the box's own
 /// half turns), model frame centred.
@@ -219,12 +219,12 @@ fn a_half_turn_search_finds_the_pose_every_sample_turned_over() {
     let over = turned(&truth(), Vector3::x(), 180.0, Vector3::zeros());
     let hypotheses: Vec<Pose> =
         (0..10).map(|i| turned(&over, Vector3::new(1.0, i as f64, 0.5), 3.0, Vector3::zeros())).collect();
-    let params = SelectorParams { method: Method::Sdf, refine: true, ..Default::default() };
+    let params = SelectorParams { method: Method::Sdf, refine: true, turns: Turns::None, ..Default::default() };
     let mut selection = select(&hypotheses, Some(Observed::points(&points)), Some(&object), &params).unwrap();
     assert!(angle_deg(&selection.best, &truth()) > 90.0, "refinement alone does not turn it back");
     let before = selection.candidates.len();
 
-    assert!(selection.search_half_turns(&object, Observed::points(&points), &params, 2));
+    assert!(selection.search_turns(object.half_turns(), &object, Observed::points(&points), &params, 2));
     let (rot, trans) =
         (angle_deg(&selection.best, &truth()), (selection.best.translation - truth().translation).norm());
     assert!(rot < 1.0 && trans < 0.001, "{rot:.2} deg, {:.2} mm", trans * 1e3);
@@ -234,7 +234,67 @@ fn a_half_turn_search_finds_the_pose_every_sample_turned_over() {
     // Nothing to fit without a model-based score.
     let model_free = SelectorParams::default();
     let mut by_clusters = select(&hypotheses, None, None, &model_free).unwrap();
-    assert!(!by_clusters.search_half_turns(&object, Observed::points(&points), &model_free, 2));
+    assert!(!by_clusters.search_turns(object.half_turns(), &object, Observed::points(&points), &model_free, 2));
+}
+
+#[test]
+fn quarter_turns_are_three_turns_about_each_principal_axis_through_the_centroid() {
+    let boxed = box_object();
+    let quarters = boxed.quarter_turns();
+    for (axis, turns) in boxed.half_turns().iter().zip(quarters.chunks(3)) {
+        // One axis per group of three: 90°, 180° (the half turn) and 270°.
+        let angles: Vec<f64> = turns.iter().map(|(turn, _)| turn.angle().to_degrees()).collect();
+        assert!([90.0, 180.0, 90.0].iter().zip(&angles).all(|(a, b)| (a - b).abs() < 1e-6), "{angles:?}");
+        assert!((turns[1].0.matrix() - axis.0.matrix()).norm() < 1e-12, "the half turn is the same");
+        // The quarter turn's axis (a half turn's is ill-conditioned).
+        let about = turns[0].0.axis().unwrap();
+        assert!((axis.0 * about.into_inner() - about.into_inner()).norm() < 1e-9, "the half turn's axis");
+        for (turn, _) in turns {
+            assert!((turn * about.into_inner() - about.into_inner()).norm() < 1e-9, "all about one axis");
+        }
+        assert!(((turns[0].0 * turns[0].0).angle() - std::f64::consts::PI).abs() < 1e-6, "twice 90° is 180°");
+        assert!((turns[0].0 * turns[2].0).angle().abs() < 1e-6, "270° undoes 90°");
+    }
+    let object = box_with_a_cube();
+    let centroid =
+        object.surface().iter().fold(Vector3::zeros(), |sum, p| sum + p.coords) / object.surface().len() as f64;
+    for (turn, shift) in object.quarter_turns() {
+        assert!((turn * centroid + shift - centroid).norm() < 1e-12);
+    }
+}
+
+/// Every sample near the truth turned a quarter turn about the box's long
+/// face normal: only the quarter turns reach the truth, and the selected
+/// pose joins the kept hypotheses.
+#[test]
+fn the_turns_setting_finds_a_pose_every_sample_missed_and_keeps_it() {
+    let object = box_with_a_cube();
+    let points: Vec<Point3<f64>> = object.surface().iter().step_by(4).map(|p| truth().transform_point(p)).collect();
+    let aside = turned(&truth(), Vector3::z(), 90.0, Vector3::zeros());
+    let hypotheses: Vec<Pose> =
+        (0..20).map(|i| turned(&aside, Vector3::new(1.0, i as f64, 0.5), 3.0, Vector3::zeros())).collect();
+    let seen = Some(Observed::points(&points));
+    let with = |turns| SelectorParams { method: Method::Sdf, refine: true, turns, ..Default::default() };
+
+    let plain = select(&hypotheses, seen, Some(&object), &with(Turns::None)).unwrap();
+    assert!(angle_deg(&plain.best, &truth()) > 45.0, "refinement alone does not turn it");
+    let halves = select(&hypotheses, seen, Some(&object), &with(Turns::Half)).unwrap();
+    assert!(angle_deg(&halves.best, &truth()) > 45.0, "nor does a half turn");
+
+    let selection = select(&hypotheses, seen, Some(&object), &with(Turns::Quarter)).unwrap();
+    let (rot, trans) =
+        (angle_deg(&selection.best, &truth()), (selection.best.translation - truth().translation).norm());
+    assert!(rot < 1.0 && trans < 0.001, "{rot:.2} deg, {:.2} mm", trans * 1e3);
+    assert_eq!(selection.candidates.len(), plain.candidates.len() + 18, "two candidates, nine turns each");
+    // The distribution holds the selected pose, and no more hypotheses than were sampled.
+    assert_eq!(selection.scored[0].0, selection.best);
+    assert_eq!(selection.scored.len(), hypotheses.len());
+    assert_eq!(selection.kept, (plain.kept + 1).min(hypotheses.len()));
+    let spread = |s: &poseflow_selector::Selection| s.statistics.rotation_covariance().trace().sqrt().to_degrees();
+    assert!(spread(&selection) > 10.0 && spread(&plain) < 5.0, "{} {}", spread(&selection), spread(&plain));
+    // Without a model-based score there is nothing to turn.
+    let model_free = SelectorParams { turns: Turns::Quarter, ..Default::default() };
+    assert_eq!(select(&hypotheses, None, None, &model_free).unwrap().candidates.len(), 1);
 }
 
 #[test]
@@ -301,6 +361,7 @@ fn bad_parameters_are_named() {
         (serde_json::json!({"method": "sdf"}), "`models`"),
         (serde_json::json!({"refine": true}), "with refine"),
         (serde_json::json!({"sdf_resolution": 4}), "sdf_resolution"),
+        (serde_json::json!({"turns": "eighth"}), "unknown variant `eighth`, expected one of `none`, `half`, `quarter`"),
     ];
     for (json, expected) in cases {
         let err = SelectorParams::from_json(&json).unwrap_err().to_string();
@@ -347,7 +408,13 @@ fn the_free_space_term_rejects_a_pose_the_camera_saw_past() {
         }
     }
     let hypotheses = vec![lying, end_on];
-    let params = SelectorParams { method: Method::Sdf, refine: true, keep_fraction: 1.0, ..Default::default() };
+    let params = SelectorParams {
+        method: Method::Sdf,
+        refine: true,
+        keep_fraction: 1.0,
+        turns: Turns::None,
+        ..Default::default()
+    };
     let score_of = |selection: &poseflow_selector::Selection, pose: &Pose| {
         selection.candidates.iter().find(|(p, _)| angle_deg(p, pose) < 2.0).map(|c| c.1).unwrap()
     };

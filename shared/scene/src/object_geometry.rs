@@ -29,6 +29,7 @@ pub struct ObjectGeometry {
     grid: OnceLock<SignedDistanceGrid>,
     surface: OnceLock<Vec<Point3<f64>>>,
     half_turns: OnceLock<[(Rotation3<f64>, Vector3<f64>); 3]>,
+    quarter_turns: OnceLock<[(Rotation3<f64>, Vector3<f64>); 9]>,
 }
 
 impl ObjectGeometry {
@@ -48,6 +49,7 @@ impl ObjectGeometry {
             grid: OnceLock::new(),
             surface: OnceLock::new(),
             half_turns: OnceLock::new(),
+            quarter_turns: OnceLock::new(),
         })
     }
 
@@ -62,19 +64,35 @@ impl ObjectGeometry {
         })
     }
 
-    /// The largest side of the model's bounding box, metres.
     /// Half turns about the principal axes of the surface (through its
     /// centroid), as rigid motions of the model frame `y ↦ F y + s`: the
     /// poses a depth fit confuses most, a box or a figure seen from one
     /// side turned over.
     pub fn half_turns(&self) -> &[(Rotation3<f64>, Vector3<f64>); 3] {
-        self.half_turns.get_or_init(|| {
-            let surface = self.surface();
-            let centroid = Point3::from(
-                surface.iter().fold(Vector3::zeros(), |sum, p| sum + p.coords) / surface.len().max(1) as f64,
-            );
-            principal_axes(surface, &centroid).map(|axis| {
-                let turn = Rotation3::from_axis_angle(&axis, std::f64::consts::PI);
+        self.half_turns.get_or_init(|| self.principal_turns([std::f64::consts::PI]).map(|[turn]| turn))
+    }
+
+    /// Quarter, half and three-quarter turns about each principal axis of
+    /// the surface (through its centroid), as [`Self::half_turns`]: also
+    /// the confusions of a box seen on one face, whose neighbouring faces
+    /// fit a partial view as well once turned by a quarter.
+    pub fn quarter_turns(&self) -> &[(Rotation3<f64>, Vector3<f64>); 9] {
+        use std::f64::consts::{FRAC_PI_2, PI};
+        self.quarter_turns.get_or_init(|| {
+            let by_axis = self.principal_turns([FRAC_PI_2, PI, 3.0 * FRAC_PI_2]);
+            std::array::from_fn(|i| by_axis[i / 3][i % 3])
+        })
+    }
+
+    /// The turns by each of `angles` about each principal axis through the
+    /// surface's centroid, axis by axis.
+    fn principal_turns<const N: usize>(&self, angles: [f64; N]) -> [[(Rotation3<f64>, Vector3<f64>); N]; 3] {
+        let surface = self.surface();
+        let centroid =
+            Point3::from(surface.iter().fold(Vector3::zeros(), |sum, p| sum + p.coords) / surface.len().max(1) as f64);
+        principal_axes(surface, &centroid).map(|axis| {
+            angles.map(|angle| {
+                let turn = Rotation3::from_axis_angle(&axis, angle);
                 (turn, centroid.coords - turn * centroid.coords)
             })
         })
@@ -87,6 +105,7 @@ impl ObjectGeometry {
         (aabb.center().cast::<f64>(), f64::from(aabb.half_extents().norm()))
     }
 
+    /// The largest side of the model's bounding box, metres.
     pub fn extent(&self) -> f64 {
         f64::from(self.mesh.local_aabb().extents().max())
     }
