@@ -40,11 +40,11 @@ def row(label, s):
     cells = [fmt(s[key]) for key, _ in ACCURACIES]
     cells += [fmt(s["add_s"]), fmt(s["mssd_recall"]), fmt(s["mspd_recall"]), fmt(s.get("vsd_recall")),
               fmt(s.get("bop_ar")), fmt(s.get("mode_recall"), 0), fmt(s.get("spread_error_spearman"), 2),
-              fmt(s["ms_per_object_p50"], 0)]
+              fmt(s["ms_per_object_mean"], 0)]
     return f"| {label} | " + " | ".join(cells) + " |"
 
 
-HEADER = ("| | 5°2cm | 5°5cm | 10°2cm | 10°5cm | ADD(-S) | MSSD | MSPD | VSD | AR | modes | Spearman | ms/object p50 |\n"
+HEADER = ("| | 5°2cm | 5°5cm | 10°2cm | 10°5cm | ADD(-S) | MSSD | MSPD | VSD | AR | modes | Spearman | ms/object |\n"
           "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
 
 
@@ -446,7 +446,8 @@ def main():
                   "mean, BOP19's average recall (– where a summary predates VSD); "
                   "modes = mode recall of the symmetric objects (twins with a hypothesis within 10°/2 cm); "
                   "Spearman = correlation of the reported rotational spread with the rotation error; ms/object = "
-                  "the graph's time per object, processes on 2 cores, as measured during the evaluation (runs share "
+                  "the graph's time per object (mean: the time between the selector's estimates over their count), "
+                  "processes on 2 cores, as measured during the evaluation (runs share "
                   "the cores with whatever else runs; `docs/performance.md` has the benchmarks).", ""]
 
     estimation, tracking = by_steps(results, "steps"), by_steps(results, "tracking")
