@@ -124,29 +124,6 @@ fn service_times(departures: &[(Option<u64>, u64)]) -> Vec<Option<Duration>> {
     times
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_frame_published_together_shares_the_interval_since_the_frame_before() {
-        // Frame 0 at 10 ms; frame 1's three objects at 40 ms (a few µs
-        // apart); frame 2's one object at 55 ms.
-        let ms = |x: f64| Some((x * 1e6) as u64);
-        let departures = [(ms(10.0), 0), (ms(40.0), 1), (ms(40.001), 1), (ms(40.002), 1), (ms(55.0), 2)];
-        let times: Vec<Option<f64>> =
-            service_times(&departures).into_iter().map(|t| t.map(|t| t.as_secs_f64() * 1e3)).collect();
-        assert_eq!(times[0], None);
-        for t in &times[1..4] {
-            assert!((t.unwrap() - 30.002 / 3.0).abs() < 1e-6, "{times:?}");
-        }
-        assert!((times[4].unwrap() - 14.998).abs() < 1e-6, "{times:?}");
-        // A frame without a stamp breaks the chain on both sides.
-        let gap = [(ms(10.0), 0), (None, 1), (ms(30.0), 2)];
-        assert_eq!(service_times(&gap), vec![None, None, None]);
-    }
-}
-
 /// Estimates counted so far in a recording being written (a partly
 /// written last message ends the count).
 pub fn count_estimates(path: &Path) -> u64 {
@@ -207,4 +184,27 @@ pub fn bop_rows(estimates: &[Estimated]) -> Vec<BopRow> {
             time_s: image_time[&(e.scene_id, e.im_id)].map(|d| d.as_secs_f64()),
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_frame_published_together_shares_the_interval_since_the_frame_before() {
+        // Frame 0 at 10 ms; frame 1's three objects at 40 ms (a few µs
+        // apart); frame 2's one object at 55 ms.
+        let ms = |x: f64| Some((x * 1e6) as u64);
+        let departures = [(ms(10.0), 0), (ms(40.0), 1), (ms(40.001), 1), (ms(40.002), 1), (ms(55.0), 2)];
+        let times: Vec<Option<f64>> =
+            service_times(&departures).into_iter().map(|t| t.map(|t| t.as_secs_f64() * 1e3)).collect();
+        assert_eq!(times[0], None);
+        for t in &times[1..4] {
+            assert!((t.unwrap() - 30.002 / 3.0).abs() < 1e-6, "{times:?}");
+        }
+        assert!((times[4].unwrap() - 14.998).abs() < 1e-6, "{times:?}");
+        // A frame without a stamp breaks the chain on both sides.
+        let gap = [(ms(10.0), 0), (None, 1), (ms(30.0), 2)];
+        assert_eq!(service_times(&gap), vec![None, None, None]);
+    }
 }
