@@ -83,6 +83,7 @@ impl Method {
 /// | `refine_iterations` | iterations per hypothesis | 10 |
 /// | `turns` | with `refine` and a model-based method: also refine and score the `turned_candidates` best refined candidates turned about the object's principal axes, `none`, `half` (3 turns each) or `quarter` (9); the selected pose joins the kept hypotheses when a turn wins; not for category templates | `quarter` |
 /// | `turned_candidates` | how many of the best refined candidates `turns` turns | 2 |
+/// | `turn_skipped_frames` | turn a held track's frames without network passes too (header flag `NETWORK_SKIPPED`: its last estimate perturbed); off, only the frames the networks ran are turned, which is cheaper and re-acquires later | true |
 /// | `distribution` | with `refine`: the kept hypotheses reported are the `samples` or the `refined` ones | `samples` |
 /// | `observations` | Observations kept while their Hypotheses are awaited | 64 |
 /// | `batch` | most Hypotheses of one frame selected from together | 8 |
@@ -131,6 +132,8 @@ pub struct SelectorParams {
     pub turns: Turns,
     #[serde(default = "default_turned_candidates")]
     pub turned_candidates: usize,
+    #[serde(default = "default_true")]
+    pub turn_skipped_frames: bool,
     #[serde(default = "default_distribution")]
     pub distribution: Distribution,
     #[serde(default = "default_observations")]
@@ -190,6 +193,9 @@ fn default_sdf_resolution() -> usize {
 }
 fn default_distribution() -> Distribution {
     Distribution::Samples
+}
+fn default_true() -> bool {
+    true
 }
 fn default_turns() -> Turns {
     Turns::Quarter

@@ -288,14 +288,16 @@ impl Job {
         let model = self.template.as_ref().or(library_model);
         let observed = self.observed.as_ref();
         // A category template is the category's mean shape: its turned fits
-        // would judge that shape, not the object.
-        let instance_params;
-        let params = match (&self.template, params.turns) {
-            (Some(_), turns) if turns != Turns::None => {
-                instance_params = SelectorParams { turns: Turns::None, ..params.clone() };
-                &instance_params
+        // would judge that shape, not the object. A held track's frame
+        // without network passes is turned only with `turn_skipped_frames`.
+        let skipped = self.header.header.has_flag(flags::NETWORK_SKIPPED) && !params.turn_skipped_frames;
+        let unturned;
+        let params = match (self.template.is_some() || skipped) && params.turns != Turns::None {
+            true => {
+                unturned = SelectorParams { turns: Turns::None, ..params.clone() };
+                &unturned
             }
-            _ => params,
+            false => params,
         };
         let mut selection = select(&self.hypotheses, observed.map(|o| o.observed(params.score_points)), model, params)
             .map_err(|e| SelectorError::Frame { frame, object, detail: e.to_string() })?;
@@ -565,6 +567,7 @@ pub fn from_wiring(wiring: &poseflow_graph::StageWiring) -> Result<SelectorStage
 mod tests {
     use super::*;
     use poseflow_contracts::ObjectCategory;
+    use poseflow_geometry::so3;
 
     fn observation(crop: [f32; 4], depth_span: f32) -> ObservationHeader {
         ObservationHeader { header: Header::new(7, 3), crop, depth_grid: 2, depth_span, ..Default::default() }
@@ -660,6 +663,54 @@ mod tests {
         }))
         .unwrap();
         SelectorStage::new(params).unwrap()
+    }
+
+    #[test]
+    fn frames_without_network_passes_are_turned_unless_switched_off() {
+        let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/lmo8");
+        let stage = |turn_skipped_frames: bool| {
+            let params = SelectorParams::from_json(&serde_json::json!({
+                "method": "sdf", "refine": true, "sdf_resolution": 32, "models": models,
+                "turn_skipped_frames": turn_skipped_frames
+            }))
+            .unwrap();
+            SelectorStage::new(params).unwrap()
+        };
+        let mut skipping = stage(false);
+        let ape = skipping.library.as_ref().unwrap().get(1).unwrap();
+        let truth = Pose::new(nalgebra::Rotation3::from_euler_angles(0.4, -0.3, 1.1), Vector3::new(0.03, -0.02, 0.7));
+        let points: Vec<Point3<f64>> =
+            ape.surface().iter().map(|p| truth.transform_point(p)).filter(|p| p.z < truth.translation.z).collect();
+        // Every sample a quarter turn about a principal axis away from the truth.
+        let (turn, shift) = ape.quarter_turns()[0];
+        let aside =
+            Pose::new(truth.rotation * turn.inverse(), truth.translation - truth.rotation * (turn.inverse() * shift));
+        let hypotheses: Vec<f32> = (0..8)
+            .map(|i| {
+                Pose::new(
+                    aside.rotation * nalgebra::Rotation3::from_euler_angles(0.01 * i as f64, 0.0, 0.0),
+                    aside.translation,
+                )
+            })
+            .flat_map(|p| p.to_f32_row_major())
+            .collect();
+        let (mut observation, payload) = observation_of(&points);
+        observation.header.object_id = 1;
+        let error = |stage: &mut SelectorStage, header_flags: u32| {
+            let mut header =
+                HypothesesHeader { header: Header::new(7, 1), sample_count: 8, step_count: 5, ..Default::default() };
+            header.header.flags |= header_flags;
+            stage.keep_observation(&observation, &payload).unwrap();
+            let (selection, _) = stage.select_and_check(&header, &hypotheses).unwrap();
+            so3::geodesic_angle(&selection.best.rotation, &truth.rotation).to_degrees()
+        };
+        let networked = error(&mut skipping, 0);
+        assert!(networked < 2.0, "a frame the networks ran is turned: {networked:.1}°");
+        let skipped = error(&mut skipping, flags::NETWORK_SKIPPED);
+        assert!(skipped > 45.0, "switched off, a held track's frame without them is not: {skipped:.1}°");
+        let turned = error(&mut stage(true), flags::NETWORK_SKIPPED);
+        assert!(turned < 2.0, "with `turn_skipped_frames`, the default, it is: {turned:.1}°");
+        assert!(SelectorParams::default().turn_skipped_frames);
     }
 
     /// One object's Observation and Hypotheses of a frame, with their payloads.
