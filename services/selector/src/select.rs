@@ -13,7 +13,7 @@ use poseflow_scene::sdf_refine::{Likelihood, refine};
 use crate::cluster::{Clusters, Neighbourhood, dbscan};
 use crate::score::{FreeSpaceTerm, Residuals, Scorer};
 use crate::visibility::{DepthGrid, FreeSpaceSettings, INSIDE_DEPTH};
-use crate::{Distribution, Method, SelectorError, SelectorParams};
+use crate::{Distribution, Method, SelectorError, SelectorParams, Turns};
 
 /// What the model-based scores compare poses with, camera frame.
 #[derive(Debug, Clone, Copy)]
@@ -194,6 +194,19 @@ pub fn select(
     object: Option<&ObjectGeometry>,
     params: &SelectorParams,
 ) -> Result<Selection, SelectorError> {
+    select_turning(hypotheses, observed, object, params, params.turns)
+}
+
+/// [`select`] with `turns` in place of `params.turns`: the stage turns
+/// fewer messages than its parameters say (category templates, a held
+/// track's frames without network passes) without a copy of them.
+pub(crate) fn select_turning(
+    hypotheses: &[Pose],
+    observed: Option<Observed<'_>>,
+    object: Option<&ObjectGeometry>,
+    params: &SelectorParams,
+    turns: Turns,
+) -> Result<Selection, SelectorError> {
     let n = hypotheses.len();
     if n == 0 {
         return Err(failed("no hypotheses to select from"));
@@ -306,7 +319,7 @@ pub fn select(
     let mut selection =
         Selection { method: params.method, best, statistics, modes, scored, kept, refined: params.refine, candidates };
     if let (true, Some(object)) = (params.refine, object)
-        && selection.search_turns_with_margin(params.turns.of(object), object, observed, params, TURN_MARGIN)
+        && selection.search_turns_with_margin(turns.of(object), object, observed, params, TURN_MARGIN)
     {
         selection.keep_best(&karcher)?;
     }

@@ -13,10 +13,10 @@ use poseflow_runtime::{Emitter, Flush, FrameBatches, Input, Joined, Transform};
 use poseflow_scene::category::{Category, template};
 use poseflow_scene::{ObjectGeometry, ObjectLibrary};
 
-use crate::select::{Observed, scorer};
+use crate::select::{Observed, scorer, select_turning};
 use crate::track::{Evidence, TrackMonitor, Verdict};
 use crate::visibility::{DepthGrid, FitSettings, INSIDE_DEPTH, point_fit, silhouette};
-use crate::{Method, Selection, SelectorError, SelectorParams, Turns, select};
+use crate::{Method, Selection, SelectorError, SelectorParams, Turns};
 use poseflow_geometry::metrics::Pinhole;
 
 /// One Observation's points (camera frame, metres) and depth grid, kept
@@ -291,16 +291,10 @@ impl Job {
         // would judge that shape, not the object. A held track's frame
         // without network passes is turned only with `turn_skipped_frames`.
         let skipped = self.header.header.has_flag(flags::NETWORK_SKIPPED) && !params.turn_skipped_frames;
-        let unturned;
-        let params = match (self.template.is_some() || skipped) && params.turns != Turns::None {
-            true => {
-                unturned = SelectorParams { turns: Turns::None, ..params.clone() };
-                &unturned
-            }
-            false => params,
-        };
-        let mut selection = select(&self.hypotheses, observed.map(|o| o.observed(params.score_points)), model, params)
-            .map_err(|e| SelectorError::Frame { frame, object, detail: e.to_string() })?;
+        let turns = if self.template.is_some() || skipped { Turns::None } else { params.turns };
+        let mut selection =
+            select_turning(&self.hypotheses, observed.map(|o| o.observed(params.score_points)), model, params, turns)
+                .map_err(|e| SelectorError::Frame { frame, object, detail: e.to_string() })?;
         let Some(check) = check else { return Ok((selection, None)) };
         let seen = observed.map_or(Observed::points(&[]), |o| o.observed(params.score_points));
         // The track check judges against the object's own mesh, never a template.
