@@ -8,7 +8,7 @@ use poseflow_contracts::{
     EstimateHeader, Header, HypothesesHeader, ObservationHeader, POSE_LEN, SelectionMethod, StampSlot,
     WEIGHTED_POSE_LEN, flags,
 };
-use poseflow_geometry::Pose;
+use poseflow_geometry::{KarcherOptions, Pose, PoseStatistics, SymmetrySet};
 use poseflow_runtime::{Emitter, Flush, FrameBatches, Input, Joined, Transform};
 use poseflow_scene::category::{Category, template};
 use poseflow_scene::{ObjectGeometry, ObjectLibrary};
@@ -74,7 +74,14 @@ impl SelectorStage {
         if let (Some(library), true) = (&library, params.method == Method::Sdf || params.refine) {
             library.build_grids();
         }
-        let monitor = params.tracking.check.then(|| TrackMonitor::new(params.tracking.clone()));
+        let monitor = params.tracking.check.then(|| {
+            library
+                .iter()
+                .flat_map(ObjectLibrary::objects)
+                .fold(TrackMonitor::new(params.tracking.clone()), |monitor, object| {
+                    monitor.with_symmetries(object.obj_id, object.symmetries().clone())
+                })
+        });
         let batches = FrameBatches::new(params.batch);
         Ok(Self { params, library, observations: VecDeque::new(), monitor, held: Vec::new(), batches, rejected: 0 })
     }
@@ -327,11 +334,27 @@ impl Job {
                 _ => None,
             },
             free_space: model.and_then(|model| scorer(params, model, seen)).and_then(|s| s.free_space(&selection.best)),
-            spread_deg: selection.statistics.rotation_covariance().trace().max(0.0).sqrt().to_degrees(),
+            spread_deg: spread_deg(
+                &selection,
+                model.map(ObjectGeometry::symmetries).filter(|_| check.modulo_symmetries),
+            ),
             pose: selection.best,
         };
         Ok((selection, Some(evidence)))
     }
+}
+
+/// √trace of the kept hypotheses' rotational covariance, degrees; of an
+/// object with `symmetries`, of their twins nearest the selected pose, so
+/// hypotheses spread over its twins do not read as doubt about the pose.
+fn spread_deg(selection: &Selection, symmetries: Option<&SymmetrySet>) -> f64 {
+    let folded = symmetries.filter(|s| s.is_symmetric()).and_then(|symmetries| {
+        let kept: Vec<Pose> = selection.scored[..selection.kept].iter().map(|(pose, _)| *pose).collect();
+        let twins = symmetries.fold_onto(&kept, &selection.best.rotation);
+        PoseStatistics::compute(&twins, None, &KarcherOptions::default()).ok()
+    });
+    let statistics = folded.as_ref().unwrap_or(&selection.statistics);
+    statistics.rotation_covariance().trace().max(0.0).sqrt().to_degrees()
 }
 
 /// `work` of every item, on up to `threads` scoped threads (this one among
@@ -705,6 +728,62 @@ mod tests {
         let turned = error(&mut stage(true), flags::NETWORK_SKIPPED);
         assert!(turned < 2.0, "with `turn_skipped_frames`, the default, it is: {turned:.1}°");
         assert!(SelectorParams::default().turn_skipped_frames);
+    }
+
+    #[test]
+    fn hypotheses_split_between_an_eggbox_and_its_twin_are_no_doubt_and_no_jump() {
+        let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/lmo8");
+        let stage = |modulo_symmetries: bool| {
+            let params = SelectorParams::from_json(&serde_json::json!({
+                "method": "sdf", "refine": true, "sdf_resolution": 24, "models": models, "turns": "none",
+                "keep_fraction": 1.0, "tracking": { "check": true, "modulo_symmetries": modulo_symmetries }
+            }))
+            .unwrap();
+            SelectorStage::new(params).unwrap()
+        };
+        let mut folding = stage(true);
+        let eggbox = folding.library.as_ref().unwrap().get(10).unwrap();
+        let symmetries = eggbox.symmetries().transforms();
+        assert_eq!(symmetries.len(), 2, "the identity and models_info.json's half turn");
+        let (flip, surface) = (symmetries[1], eggbox.surface().to_vec());
+        // The eggbox turning 2° a frame; half the samples on its twin.
+        let verdicts = |stage: &mut SelectorStage| -> Vec<u32> {
+            (0..8u64)
+                .map(|frame| {
+                    let truth = Pose::new(
+                        nalgebra::Rotation3::from_euler_angles(0.6 + 0.035 * frame as f64, -0.3, 0.2),
+                        Vector3::new(0.0, 0.005 * frame as f64, 0.7),
+                    );
+                    let points: Vec<Point3<f64>> = surface
+                        .iter()
+                        .map(|p| truth.transform_point(p))
+                        .filter(|p| p.z < truth.translation.z)
+                        .collect();
+                    let mut header = Header::new(frame, 10);
+                    if frame > 0 {
+                        header.flags |= flags::TRACKING;
+                    }
+                    let (mut observation, payload) = observation_of(&points);
+                    observation.header = header;
+                    let hypotheses: Vec<f32> = (0..8)
+                        .flat_map(|k| {
+                            let near = if k % 2 == 0 { truth } else { truth * flip };
+                            let wobble = nalgebra::Rotation3::from_euler_angles(0.01 * k as f64, 0.0, 0.0);
+                            Pose::new(near.rotation * wobble, near.translation).to_f32_row_major()
+                        })
+                        .collect();
+                    let message = HypothesesHeader { header, sample_count: 8, step_count: 5, ..Default::default() };
+                    stage.keep_observation(&observation, &payload).unwrap();
+                    stage.select_and_check(&message, &hypotheses).unwrap().1
+                })
+                .collect()
+        };
+        let folded = verdicts(&mut folding);
+        assert!(folded[2..].iter().all(|&f| f == 0), "tracked without flags from the second frame on: {folded:?}");
+        let plain = verdicts(&mut stage(false));
+        // Unsure on every other frame: the spread is held against a track only.
+        let unsure = plain[2..].iter().filter(|&&f| f & flags::UNSURE != 0).count();
+        assert!(unsure >= 3, "without the symmetries a spread over the twins is doubt: {plain:?}");
     }
 
     /// One object's Observation and Hypotheses of a frame, with their payloads.

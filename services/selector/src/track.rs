@@ -75,7 +75,7 @@
 use std::collections::{HashMap, VecDeque};
 
 use poseflow_contracts::flags;
-use poseflow_geometry::{Pose, so3};
+use poseflow_geometry::{Pose, SymmetrySet, so3};
 use serde::Deserialize;
 
 use crate::SelectorError;
@@ -102,6 +102,7 @@ use crate::visibility::{FreeSpace, PointFit, Silhouette};
 /// | `half_turns` | while not tracking: also try the best candidates turned half a turn about the object's principal axes (refined and scored) | true |
 /// | `motion_candidate` | tracking or unsure: also try where the track's motion predicts the object (refined and scored) | true |
 /// | `remember_frames` | lost or being confirmed: also try where the lost track's motion predicts the object, for this many frames after the track's last estimate that passed; 0 forgets at once | 30 |
+/// | `modulo_symmetries` | judge the jump and the spread up to the object's symmetries (the models directory's `models_info_shape.json`, else `models_info.json`): a symmetric object's twin is neither a jump nor doubt | true |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrackCheckParams {
@@ -139,6 +140,8 @@ pub struct TrackCheckParams {
     pub motion_candidate: bool,
     #[serde(default = "default_remember_frames")]
     pub remember_frames: u64,
+    #[serde(default = "default_true")]
+    pub modulo_symmetries: bool,
 }
 
 fn default_min_points() -> usize {
@@ -454,11 +457,25 @@ struct Track {
 pub struct TrackMonitor {
     params: TrackCheckParams,
     tracks: HashMap<u32, Track>,
+    /// The symmetric objects' symmetries, with `modulo_symmetries`.
+    symmetries: HashMap<u32, SymmetrySet>,
 }
 
 impl TrackMonitor {
     pub fn new(params: TrackCheckParams) -> Self {
-        Self { params, tracks: HashMap::new() }
+        Self { params, tracks: HashMap::new(), symmetries: HashMap::new() }
+    }
+
+    /// Judges `object`'s jumps up to `symmetries` (with
+    /// `modulo_symmetries`): an estimate on the symmetric twin of the
+    /// predicted pose continues the track, and the track's motion is kept
+    /// on the twin it started on, so a twin never reads as a half-turn of
+    /// velocity.
+    pub fn with_symmetries(mut self, object: u32, symmetries: SymmetrySet) -> Self {
+        if self.params.modulo_symmetries && symmetries.is_symmetric() {
+            self.symmetries.insert(object, symmetries);
+        }
+        self
     }
 
     pub fn params(&self) -> &TrackCheckParams {
@@ -582,11 +599,16 @@ impl TrackMonitor {
         // prior's samples may be correcting it. It decides whether the
         // estimate continues the track's motion.
         let mut jumped = false;
+        // The estimate on the track's own twin: what its motion goes on with.
+        let mut on_track = evidence.pose;
         if matches!(before, TrackState::Tracking | TrackState::Confirming { .. } | TrackState::Unsure(_))
             && let Some(predicted) = predict(&track.accepted, evidence.frame_id)
         {
-            let degrees = so3::geodesic_angle(&predicted.rotation, &evidence.pose.rotation).to_degrees();
-            let metres = (predicted.translation - evidence.pose.translation).norm();
+            if let Some(symmetries) = self.symmetries.get(&object) {
+                on_track = symmetries.nearest_twin(&evidence.pose, &predicted.rotation);
+            }
+            let degrees = so3::geodesic_angle(&predicted.rotation, &on_track.rotation).to_degrees();
+            let metres = (predicted.translation - on_track.translation).norm();
             jump = Some((degrees, metres));
             jumped = degrees > params.max_jump_deg || metres > params.max_jump_m;
             if jumped && !matches!(before, TrackState::Unsure(_)) {
@@ -639,7 +661,7 @@ impl TrackMonitor {
             if jumped {
                 track.accepted.clear();
             }
-            track.accepted.push_back((evidence.frame_id, evidence.pose));
+            track.accepted.push_back((evidence.frame_id, on_track));
             if track.accepted.len() > MOTION_HISTORY {
                 track.accepted.pop_front();
             }
@@ -859,6 +881,58 @@ mod tests {
     /// The dev seed 6 case: a track unsure for a weak reason, then an
     /// estimate that fits worse and turned 118°, then weak passes at that
     /// pose. The prediction stays on the track's motion.
+    #[test]
+    fn a_symmetric_twin_continues_the_track_on_the_branch_it_started_on() {
+        // Half a turn about the object's x axis through (0, 0.01, 0): a
+        // shape that looks the same after it. The object turns 5° a frame
+        // about z, and every third estimate lands on its twin.
+        let flip = Pose::new(
+            Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+            Vector3::new(0.0, 0.02, 0.0),
+        );
+        let symmetries = SymmetrySet::from_model_info(
+            &poseflow_geometry::models_info::ModelInfo {
+                diameter: 0.1,
+                min: None,
+                size: None,
+                symmetries_discrete: vec![flip],
+                symmetries_continuous: vec![],
+            },
+            0.01,
+        );
+        let estimate = |frame: u64| {
+            let pose = turned(frame as f64 * 5.0);
+            evidence(frame, 0.95, if frame % 3 == 2 { pose * flip } else { pose })
+        };
+        let mut folding = monitor().with_symmetries(1, symmetries.clone());
+        let mut plain = monitor();
+        let mut plain_flags = 0;
+        for frame in 0..12 {
+            let verdict = folding.check(1, &estimate(frame));
+            plain_flags |= plain.check(1, &estimate(frame)).flags();
+            if frame == 0 {
+                continue;
+            }
+            assert_eq!((verdict.after, verdict.flags()), (TrackState::Tracking, 0), "frame {frame}: {verdict:?}");
+            if frame >= 2 {
+                let (degrees, metres) = verdict.jump.unwrap();
+                assert!(degrees < 1e-6 && metres < 1e-9, "frame {frame}: the twin is where the motion puts it");
+            }
+            // The motion stays on the first estimate's branch.
+            let ahead = folding.predicted(1, frame + 1).unwrap();
+            assert!(so3::geodesic_angle(&ahead.rotation, &turned((frame + 1) as f64 * 5.0).rotation) < 1e-6);
+        }
+        assert_ne!(plain_flags & flags::UNSURE, 0, "without the symmetries a twin is a jump");
+
+        // A turn that is no symmetry is still a jump, and switching the
+        // parameter off leaves the object without symmetries.
+        let jumped = folding.check(1, &evidence(12, 0.95, turned(60.0 + 90.0)));
+        assert!(matches!(jumped.failures[..], [Failure::Jump { .. }]), "{jumped:?}");
+        let off = TrackMonitor::new(TrackCheckParams { check: true, modulo_symmetries: false, ..Default::default() })
+            .with_symmetries(1, symmetries);
+        assert!(off.symmetries.is_empty());
+    }
+
     #[test]
     fn the_motion_goes_on_through_weak_passes_and_not_with_a_pose_that_left_it() {
         let mut monitor = monitor();

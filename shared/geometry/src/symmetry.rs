@@ -121,6 +121,19 @@ impl SymmetrySet {
         best.1
     }
 
+    /// Each of `poses` replaced by its twin whose rotation is nearest
+    /// `reference` ([`Self::nearest_twin`]): a set of hypotheses in one
+    /// symmetric branch, whose statistics then measure doubt about the pose
+    /// rather than the symmetry.
+    pub fn fold_onto(&self, poses: &[Pose], reference: &Rotation3<f64>) -> Vec<Pose> {
+        poses.iter().map(|pose| self.nearest_twin(pose, reference)).collect()
+    }
+
+    /// Whether the set holds more than the identity.
+    pub fn is_symmetric(&self) -> bool {
+        self.transforms.len() > 1
+    }
+
     /// The largest rotational standard deviation of `rotations` modulo the
     /// symmetries (radians): each rotation is replaced by its twin nearest
     /// `reference`, and the result is the square root of the largest
@@ -134,12 +147,8 @@ impl SymmetrySet {
         if rotations.len() < 2 {
             return Ok(0.0);
         }
-        let folded: Vec<Pose> = rotations
-            .iter()
-            .map(|r| self.nearest_twin(&Pose::new(*r, Vector3::zeros()), reference))
-            .map(|p| Pose::new(p.rotation, Vector3::zeros()))
-            .collect();
-        let statistics = PoseStatistics::compute(&folded, None, &KarcherOptions::default())?;
+        let poses: Vec<Pose> = rotations.iter().map(|r| Pose::new(*r, Vector3::zeros())).collect();
+        let statistics = PoseStatistics::compute(&self.fold_onto(&poses, reference), None, &KarcherOptions::default())?;
         let largest = statistics.rotation_eigen()?.values.max();
         Ok(largest.max(0.0).sqrt())
     }

@@ -9,9 +9,11 @@ use std::time::Instant;
 
 use nalgebra::{Point3, Rotation3, Vector3};
 use parry3d::shape::{TriMesh, TriMeshBuilderError};
+use poseflow_geometry::SymmetrySet;
 use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_geometry::sampling::seeded_rng;
 
+use crate::import::SHAPE_SYMMETRIES_FILE;
 use crate::sdf::SignedDistanceGrid;
 use crate::symmetry::principal_axes;
 use crate::{SceneError, load_bop_model, model_file_name, oriented_trimesh, surface_points};
@@ -19,6 +21,13 @@ use crate::{SceneError, load_bop_model, model_file_name, oriented_trimesh, surfa
 /// Surface points per object for the silhouette check: a few per cell of
 /// its grid even where the object is thin.
 const SURFACE_POINTS: usize = 2000;
+
+/// The largest step, as a share of the diameter, between the rotations a
+/// continuous symmetry is discretised into for [`ObjectGeometry::symmetries`]
+/// (BOP's `max_sym_disc_step` form): 158 rotations 2.3° apart, so a pose's
+/// nearest twin is found to within 1.2°, far below what the track check
+/// calls a jump, at an eighth of the evaluation's 315.
+const TRACK_SYMMETRY_STEP: f64 = 0.02;
 
 /// One object model, model frame, metres.
 #[derive(Debug)]
@@ -30,6 +39,7 @@ pub struct ObjectGeometry {
     surface: OnceLock<Vec<Point3<f64>>>,
     half_turns: OnceLock<[(Rotation3<f64>, Vector3<f64>); 3]>,
     quarter_turns: OnceLock<[(Rotation3<f64>, Vector3<f64>); 9]>,
+    symmetries: SymmetrySet,
 }
 
 impl ObjectGeometry {
@@ -50,7 +60,21 @@ impl ObjectGeometry {
             surface: OnceLock::new(),
             half_turns: OnceLock::new(),
             quarter_turns: OnceLock::new(),
+            symmetries: SymmetrySet::identity_only(),
         })
+    }
+
+    /// The same model with the transforms `S` (model frame) under which
+    /// its shape looks the same.
+    pub fn with_symmetries(self, symmetries: SymmetrySet) -> Self {
+        Self { symmetries, ..self }
+    }
+
+    /// The transforms under which the shape looks the same, identity first
+    /// (only the identity unless [`Self::with_symmetries`] set them): the
+    /// poses `T` and `T · S` fit any observation equally well.
+    pub fn symmetries(&self) -> &SymmetrySet {
+        &self.symmetries
     }
 
     /// Points spread over the whole surface (model frame), uniform by area
@@ -138,11 +162,17 @@ pub struct ObjectLibrary {
 }
 
 impl ObjectLibrary {
-    /// Loads every object of `dir/models_info.json` that has a model file.
+    /// Loads every object of `dir/models_info.json` that has a model file,
+    /// with the symmetries of its shape: its entry in
+    /// [`SHAPE_SYMMETRIES_FILE`] when the directory has one (what depth can
+    /// show), else those of `models_info.json`.
     pub fn load(dir: &Path, sdf_resolution: usize) -> Result<Self, SceneError> {
-        let info_path = dir.join("models_info.json");
-        let info = ModelsInfo::from_path(&info_path)
-            .map_err(|source| SceneError::ModelsInfo { path: info_path.clone(), source: Box::new(source) })?;
+        let read = |path: PathBuf| {
+            ModelsInfo::from_path(&path).map_err(|source| SceneError::ModelsInfo { path, source: Box::new(source) })
+        };
+        let info = read(dir.join("models_info.json"))?;
+        let shape_path = dir.join(SHAPE_SYMMETRIES_FILE);
+        let shape = if shape_path.is_file() { Some(read(shape_path)?) } else { None };
         let mut objects = BTreeMap::new();
         for (&obj_id, entry) in &info.objects {
             let path = dir.join(model_file_name(obj_id));
@@ -150,8 +180,10 @@ impl ObjectLibrary {
                 continue;
             }
             let mesh = load_bop_model(&path, entry.diameter)?;
+            let symmetric_as = shape.as_ref().and_then(|shape| shape.get(obj_id)).unwrap_or(entry);
             let object = ObjectGeometry::from_mesh(obj_id, mesh.vertices, mesh.triangles, sdf_resolution)
-                .map_err(|source| SceneError::TriMesh { path: path.clone(), source })?;
+                .map_err(|source| SceneError::TriMesh { path: path.clone(), source })?
+                .with_symmetries(SymmetrySet::from_model_info(symmetric_as, TRACK_SYMMETRY_STEP));
             objects.insert(obj_id, object);
         }
         if objects.is_empty() {
@@ -174,7 +206,45 @@ impl ObjectLibrary {
         }
     }
 
+    /// Every object, in ascending id.
+    pub fn objects(&self) -> impl Iterator<Item = &ObjectGeometry> {
+        self.objects.values()
+    }
+
     pub fn ids(&self) -> Vec<u32> {
         self.objects.keys().copied().collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_library_takes_the_shapes_symmetries_over_the_printed_objects() {
+        let lmo = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/lmo");
+        let dir = std::env::temp_dir().join(format!("poseflow-object-library-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for file in ["models_info.json", "obj_000001.ply", "obj_000010.ply"] {
+            std::fs::copy(lmo.join(file), dir.join(file)).unwrap();
+        }
+        let counts = |library: &ObjectLibrary| {
+            library.objects().map(|o| (o.obj_id, o.symmetries().transforms().len())).collect::<Vec<_>>()
+        };
+        // models_info.json: the eggbox's half turn, the ape asymmetric.
+        assert_eq!(counts(&ObjectLibrary::load(&dir, 16).unwrap()), [(1, 1), (10, 2)]);
+
+        // A shape file with a continuous axis for the ape wins over it.
+        let shape = r#"{"1": {"diameter": 102.099, "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]},
+                        "10": {"diameter": 164.628}}"#;
+        std::fs::write(dir.join(SHAPE_SYMMETRIES_FILE), shape).unwrap();
+        let library = ObjectLibrary::load(&dir, 16).unwrap();
+        let steps = (std::f64::consts::PI / TRACK_SYMMETRY_STEP).ceil() as usize;
+        assert_eq!(counts(&library), [(1, steps), (10, 1)]);
+
+        std::fs::write(dir.join(SHAPE_SYMMETRIES_FILE), "{").unwrap();
+        let error = ObjectLibrary::load(&dir, 16).unwrap_err().to_string();
+        assert!(error.contains(SHAPE_SYMMETRIES_FILE), "the broken file is named: {error}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
