@@ -119,13 +119,16 @@ def play(split, domain, common, ROS2Publisher, timeout):
     }
     pubs = {name: ROS2Publisher(topic, "sensor_msgs/msg/CameraInfo" if name == "info" else "sensor_msgs/msg/Image",
                                 **common) for name, topic in topics.items()}
+    started = time.time()
     wait_for_subscriptions(pubs["color"].session_mgr.session, domain, topics.values(), timeout)
+    log(f"the camera's subscriptions are in the ROS graph after {time.time() - started:.1f} s")
     # A subscription's token can be seen before its data route is in place.
     deadline = time.time() + timeout
     while not all(p.pub.matching_status.matching for p in pubs.values()):
         if time.time() > deadline:
             sys.exit("the camera's subscriptions never matched the publishers")
         time.sleep(0.05)
+    log(f"the camera's subscriptions matched after {time.time() - started:.1f} s")
     types = pubs["color"].session_mgr.store.types
     Header, Time = types["std_msgs/msg/Header"], types["builtin_interfaces/msg/Time"]
     Roi = pubs["info"].session_mgr.store.types["sensor_msgs/msg/RegionOfInterest"]
@@ -161,8 +164,14 @@ def play(split, domain, common, ROS2Publisher, timeout):
             pubs["color"].publish(**image(np.ascontiguousarray(rgb), "rgb8", 3 * w))
             stamps.append(stamp.sec * 1_000_000_000)
             count += 1
+            log(f"published image {count} ({scene.name}/{im})")
             time.sleep(0.05)
     return stamps
+
+
+def log(line):
+    """Progress on stderr, which the tests pass through."""
+    print(f"ros2_peer: {line}", file=sys.stderr, flush=True)
 
 
 def wait_for_subscriptions(session, domain, topics, timeout):
