@@ -135,7 +135,7 @@ def ambiguity_section(directory):
 RECOVERY_RUNS = [("orbit1", "orbit 1°/image"), ("orbit3", "orbit 3°/image"),
                  ("events", "orbit 1°/image, 3 occlusions + 3 teleports per video")]
 # The reporting seeds of the current recovery videos (evaluation/run).
-RECOVERY_SEEDS = "92, 93, 94"
+RECOVERY_SEEDS = "98, 99, 100"
 
 
 

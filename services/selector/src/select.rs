@@ -153,6 +153,45 @@ impl Selection {
         std::mem::replace(&mut self.best, best) != best
     }
 
+    /// Selects the best-scored candidate that `near` accepts in place of
+    /// the best one when that scores at most `margin` above it (its score
+    /// recomputed in full: a candidate scored below the best keeps its fit,
+    /// an upper bound, [`Scorer::scores`]). Returns the score difference
+    /// when it did; `None` when `best` is near already, no candidate is, or
+    /// the best one is better by more than `margin`. A tracked object's
+    /// turned-over pose can fit its points nearly as well as the pose its
+    /// motion leads to, and the track must not change branch on the noise.
+    pub fn prefer(
+        &mut self,
+        near: impl Fn(&Pose) -> bool,
+        margin: f64,
+        object: &ObjectGeometry,
+        observed: Observed<'_>,
+        params: &SelectorParams,
+    ) -> Option<f64> {
+        let &(best, best_score) = self.candidates.first()?;
+        if near(&best) {
+            return None;
+        }
+        let scorer = scorer(params, object, observed)?;
+        let i = self.candidates.iter().position(|(pose, _)| near(pose))?;
+        let pose = self.candidates[i].0;
+        let score = scorer.scores(&[pose], &[scorer.fit(&pose)], f64::NEG_INFINITY)[0];
+        let behind = best_score - score;
+        if behind > margin {
+            tracing::debug!(
+                behind,
+                margin,
+                "the best candidate jumped and scored more than the margin above the nearest"
+            );
+            return None;
+        }
+        self.candidates.remove(i);
+        self.candidates.insert(0, (pose, score));
+        self.best = pose;
+        Some(behind)
+    }
+
     /// As [`Self::search_turns`], but a turned candidate is selected only
     /// if it scores more than `margin` above the best before: a symmetric
     /// object's turns that map it onto itself fit the points as well, and

@@ -14,7 +14,7 @@ use poseflow_scene::category::{Category, template};
 use poseflow_scene::{ObjectGeometry, ObjectLibrary};
 
 use crate::select::{Observed, scorer, select_turning};
-use crate::track::{Evidence, TrackMonitor, Verdict};
+use crate::track::{Evidence, TrackMonitor, Verdict, jump_from};
 use crate::visibility::{DepthGrid, FitSettings, INSIDE_DEPTH, point_fit, silhouette};
 use crate::{Method, Selection, SelectorError, SelectorParams, Turns};
 use poseflow_geometry::metrics::Pinhole;
@@ -197,6 +197,7 @@ impl SelectorStage {
                     && !monitor.is_tracking(object)
                     && self.params.turns == Turns::None,
                 motion_candidate: monitor.motion_candidate(object, frame),
+                held: monitor.predicted(object, frame),
             };
         }
         Ok(Job { header: *header, hypotheses, observed, template, track })
@@ -266,6 +267,9 @@ struct TrackNow {
     half_turns: bool,
     /// The pose the track's motion predicts, tried beside the samples.
     motion_candidate: Option<Pose>,
+    /// Where the motion of a tracking or unsure object puts it: a candidate
+    /// that jumps from it must score `jump_margin` above those that do not.
+    held: Option<Pose>,
 }
 
 /// One Hypotheses message, ready to select from.
@@ -316,6 +320,24 @@ impl Job {
             && selection.consider(&[predicted], model, seen, params)
         {
             tracing::debug!(frame, object, "the pose the motion predicts fits better: selected");
+        }
+        if let Some(model) = model
+            && let Some(predicted) = self.track.held
+            && check.jump_margin > 0.0
+        {
+            let symmetries = Some(model.symmetries()).filter(|s| check.modulo_symmetries && s.is_symmetric());
+            let near = |pose: &Pose| {
+                let (degrees, metres, _) = jump_from(&predicted, pose, symmetries);
+                !check.is_jump(degrees, metres)
+            };
+            if let Some(behind) = selection.prefer(near, check.jump_margin, model, seen, params) {
+                tracing::info!(
+                    frame,
+                    object,
+                    behind,
+                    "kept on its track: the best candidate jumped from it and scored at most tracking.jump_margin more"
+                );
+            }
         }
         let settings = FitSettings {
             inlier_distance: check.inlier_distance,

@@ -102,6 +102,7 @@ use crate::visibility::{FreeSpace, PointFit, Silhouette};
 /// | `half_turns` | while not tracking: also try the best candidates turned half a turn about the object's principal axes (refined and scored) | true |
 /// | `motion_candidate` | tracking or unsure: also try where the track's motion predicts the object (refined and scored) | true |
 /// | `remember_frames` | lost or being confirmed: also try where the lost track's motion predicts the object, for this many frames after the track's last estimate that passed; 0 forgets at once | 30 |
+/// | `jump_margin` | tracking or unsure: a candidate that jumps from the predicted pose is selected only if it scores more than this above the best candidate that does not (per-point log-likelihood, the selector's score unit); 0 selects the best-scored | 0.3 |
 /// | `modulo_symmetries` | judge the jump and the spread up to the object's symmetries (the models directory's `models_info_shape.json`, else `models_info.json`): a symmetric object's twin is neither a jump nor doubt | true |
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -140,6 +141,8 @@ pub struct TrackCheckParams {
     pub motion_candidate: bool,
     #[serde(default = "default_remember_frames")]
     pub remember_frames: u64,
+    #[serde(default = "default_jump_margin")]
+    pub jump_margin: f64,
     #[serde(default = "default_true")]
     pub modulo_symmetries: bool,
 }
@@ -189,6 +192,12 @@ fn default_lost_after() -> u32 {
 fn default_remember_frames() -> u64 {
     30
 }
+/// On the development videos a turned-over pose that won by noise led by
+/// at most 0.01, and a correct pose away from a wrong prediction by 0.63
+/// or more.
+fn default_jump_margin() -> f64 {
+    0.3
+}
 
 impl Default for TrackCheckParams {
     fn default() -> Self {
@@ -200,7 +209,7 @@ impl TrackCheckParams {
     pub fn validate(&self) -> Result<(), SelectorError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
         let share = |x: f64| (0.0..=1.0).contains(&x);
-        let checks: [(&'static str, bool, String); 11] = [
+        let checks: [(&'static str, bool, String); 12] = [
             (
                 "tracking.inlier_distance",
                 positive(self.inlier_distance),
@@ -253,6 +262,11 @@ impl TrackCheckParams {
             ),
             ("tracking.max_jump_m", positive(self.max_jump_m), format!("{}: expected metres > 0", self.max_jump_m)),
             ("tracking.lost_after", self.lost_after >= 1, format!("{}: expected at least 1", self.lost_after)),
+            (
+                "tracking.jump_margin",
+                self.jump_margin.is_finite() && self.jump_margin >= 0.0,
+                format!("{}: expected a score difference >= 0", self.jump_margin),
+            ),
         ];
         match checks.into_iter().find(|(_, ok, _)| !ok) {
             Some((key, _, detail)) => Err(SelectorError::Params { key, detail }),
@@ -604,13 +618,10 @@ impl TrackMonitor {
         if matches!(before, TrackState::Tracking | TrackState::Confirming { .. } | TrackState::Unsure(_))
             && let Some(predicted) = predict(&track.accepted, evidence.frame_id)
         {
-            if let Some(symmetries) = self.symmetries.get(&object) {
-                on_track = symmetries.nearest_twin(&evidence.pose, &predicted.rotation);
-            }
-            let degrees = so3::geodesic_angle(&predicted.rotation, &on_track.rotation).to_degrees();
-            let metres = (predicted.translation - on_track.translation).norm();
+            let (degrees, metres, twin) = jump_from(&predicted, &evidence.pose, self.symmetries.get(&object));
+            on_track = twin;
             jump = Some((degrees, metres));
-            jumped = degrees > params.max_jump_deg || metres > params.max_jump_m;
+            jumped = params.is_jump(degrees, metres);
             if jumped && !matches!(before, TrackState::Unsure(_)) {
                 failures.push(Failure::Jump { degrees, metres });
             }
@@ -677,6 +688,22 @@ impl TrackMonitor {
         track.state = after;
         Verdict { before, after, failures, jump }
     }
+}
+
+impl TrackCheckParams {
+    /// Whether a turn (degrees) and shift (metres) from the predicted pose
+    /// is a jump.
+    pub fn is_jump(&self, degrees: f64, metres: f64) -> bool {
+        degrees > self.max_jump_deg || metres > self.max_jump_m
+    }
+}
+
+/// The turn (degrees) and shift (metres) from `predicted` to `pose`, or to
+/// its twin nearest `predicted` under `symmetries`, and that twin.
+pub fn jump_from(predicted: &Pose, pose: &Pose, symmetries: Option<&SymmetrySet>) -> (f64, f64, Pose) {
+    let on_track = symmetries.map_or(*pose, |symmetries| symmetries.nearest_twin(pose, &predicted.rotation));
+    let degrees = so3::geodesic_angle(&predicted.rotation, &on_track.rotation).to_degrees();
+    (degrees, (predicted.translation - on_track.translation).norm(), on_track)
 }
 
 /// The track's usual RMS residual is the median over this many accepted
@@ -1203,6 +1230,8 @@ mod tests {
         assert!(params.validate().unwrap_err().to_string().contains("tracking.min_covered"));
         params = TrackCheckParams { max_seen_past: -0.1, ..Default::default() };
         assert!(params.validate().unwrap_err().to_string().contains("tracking.max_seen_past"));
+        params = TrackCheckParams { jump_margin: f64::NAN, ..Default::default() };
+        assert!(params.validate().unwrap_err().to_string().contains("tracking.jump_margin"));
     }
 
     proptest! {

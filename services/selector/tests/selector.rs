@@ -442,3 +442,44 @@ fn the_free_space_term_rejects_a_pose_the_camera_saw_past() {
     let ignored = select(&hypotheses, Some(observed), Some(&object), &off).unwrap();
     assert!((score_of(&ignored, &lying) - score_of(&ignored, &end_on)).abs() < 0.05);
 }
+
+/// The box seen from one side fits itself turned half a turn about z as
+/// well as unturned. A track on the unturned box keeps it when the turned
+/// pose scores better by at most the margin, and lets it go otherwise.
+#[test]
+fn a_candidate_that_jumps_from_the_track_must_score_the_margin_above_it() {
+    let object = box_object();
+    let points = observed(&visible_surface(300));
+    let params = SelectorParams { method: Method::Sdf, ..Default::default() };
+    let likelihood = Likelihood { noise_std: params.noise_std, outlier_distance: params.outlier_distance };
+    let score = |pose: &Pose| Residuals::Sdf(&object).score(pose, &points, &likelihood);
+    let over = turned(&truth(), Vector3::z(), 180.0, Vector3::zeros());
+    let near = turned(&truth(), Vector3::x(), 1.0, Vector3::new(0.002, 0.0, 0.0));
+    let behind = score(&over) - score(&near);
+    assert!(behind > 0.005, "the turned pose fits better: {} vs {}", score(&over), score(&near));
+    let predicted = turned(&truth(), Vector3::y(), 2.0, Vector3::zeros());
+    fn within(a: Pose) -> impl Fn(&Pose) -> bool {
+        move |b| angle_deg(&a, b) <= 30.0 && (a.translation - b.translation).norm() <= 0.05
+    }
+    let selection = || {
+        let mut selection = select(&[over, near], Some(Observed::points(&points)), Some(&object), &params).unwrap();
+        selection.candidates = vec![(over, score(&over)), (near, 0.0)];
+        selection.best = over;
+        selection
+    };
+
+    let mut kept = selection();
+    let gap = kept.prefer(within(predicted), behind * 1.1, &object, Observed::points(&points), &params);
+    assert!(gap.is_some_and(|gap| (gap - behind).abs() < 1e-9), "{gap:?} vs {behind}");
+    assert_eq!(kept.best, near);
+    assert_eq!(kept.candidates[0].0, near);
+    assert!((kept.candidates[0].1 - score(&near)).abs() < 1e-12, "the near candidate's score recomputed");
+
+    let mut let_go = selection();
+    assert_eq!(let_go.prefer(within(predicted), behind * 0.9, &object, Observed::points(&points), &params), None);
+    assert_eq!(let_go.best, over);
+    // A best candidate on the track stays, whatever the margin.
+    let mut on_track = selection();
+    assert_eq!(on_track.prefer(within(over), 1.0, &object, Observed::points(&points), &params), None);
+    assert_eq!(on_track.best, over);
+}
