@@ -119,6 +119,7 @@ def play(split, domain, common, ROS2Publisher, timeout):
     }
     pubs = {name: ROS2Publisher(topic, "sensor_msgs/msg/CameraInfo" if name == "info" else "sensor_msgs/msg/Image",
                                 **common) for name, topic in topics.items()}
+    block_when_congested(pubs.values())
     started = time.time()
     wait_for_subscriptions(pubs["color"].session_mgr.session, domain, topics.values(), timeout)
     log(f"the camera's subscriptions are in the ROS graph after {time.time() - started:.1f} s")
@@ -167,6 +168,22 @@ def play(split, domain, common, ROS2Publisher, timeout):
             log(f"published image {count} ({scene.name}/{im})")
             time.sleep(0.05)
     return stamps
+
+
+def block_when_congested(publishers):
+    """Declares each publisher's Zenoh publisher again with congestion control
+    Block, as rmw_zenoh does for a reliable topic. The SDK looks its enum up
+    as `zenoh.qos.CongestionControl`, which zenoh-python 1.10 does not have,
+    and so declares Zenoh's default, Drop: while the graph's stages start
+    and fill both cores, a whole image was then dropped on the way to the
+    camera, which waited for it for ever."""
+    import zenoh
+
+    for publisher in publishers:
+        publisher.pub.undeclare()
+        publisher.pub = publisher.session_mgr.session.declare_publisher(
+            publisher.keyexpr, congestion_control=zenoh.CongestionControl.BLOCK
+        )
 
 
 def log(line):
