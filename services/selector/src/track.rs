@@ -206,6 +206,12 @@ impl Default for TrackCheckParams {
 }
 
 impl TrackCheckParams {
+    /// Whether a turn (degrees) and shift (metres) from the predicted pose
+    /// is a jump.
+    pub fn is_jump(&self, degrees: f64, metres: f64) -> bool {
+        degrees > self.max_jump_deg || metres > self.max_jump_m
+    }
+
     pub fn validate(&self) -> Result<(), SelectorError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
         let share = |x: f64| (0.0..=1.0).contains(&x);
@@ -687,14 +693,6 @@ impl TrackMonitor {
         }
         track.state = after;
         Verdict { before, after, failures, jump }
-    }
-}
-
-impl TrackCheckParams {
-    /// Whether a turn (degrees) and shift (metres) from the predicted pose
-    /// is a jump.
-    pub fn is_jump(&self, degrees: f64, metres: f64) -> bool {
-        degrees > self.max_jump_deg || metres > self.max_jump_m
     }
 }
 
