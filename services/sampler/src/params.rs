@@ -51,6 +51,7 @@ fn default_batch() -> usize {
 /// | `prior_share` | after an estimate flagged `UNSURE`: share of the samples drawn from the prior (K = `steps` from t = 0) beside the tracked ones | 0.5 |
 /// | `keep_previous` | one tracked sample is the previous estimate itself, neither perturbed nor integrated | true |
 /// | `network_every` | a held track (its previous estimate unflagged) runs the networks on every this-many-th frame only, staggered by object id; in between its samples are the previous estimate perturbed, without an Euler step, and the selector's fit places it (`NETWORK_SKIPPED`); 1 = every frame | 1 |
+/// | `await_estimate_ms` | before a frame that would start from the prior, wait up to this long for its object's estimate of the frame sampled last when that is on its way (at a graph's start its first frames queue up and arrive together); 0 = never wait | 1000 |
 ///
 /// After an estimate flagged `LOST` (the selector's track check) the object's
 /// next frame starts from the prior, every sample.
@@ -84,6 +85,12 @@ pub struct TrackingParams {
     /// back to the networks the frame it doubts the fit.
     #[serde(default = "default_network_every")]
     pub network_every: u64,
+    /// A frame sampled while its object's previous estimate is still on
+    /// its way starts from an older one or the prior: at a graph's start
+    /// its first frames queue up behind the selector's grids and then
+    /// arrive together.
+    #[serde(default = "default_await_estimate_ms")]
+    pub await_estimate_ms: u64,
 }
 
 impl Default for TrackingParams {
@@ -98,10 +105,14 @@ impl Default for TrackingParams {
             prior_share: default_prior_share(),
             keep_previous: default_keep_previous(),
             network_every: default_network_every(),
+            await_estimate_ms: default_await_estimate_ms(),
         }
     }
 }
 
+fn default_await_estimate_ms() -> u64 {
+    1000
+}
 fn default_samples() -> usize {
     50
 }
@@ -156,7 +167,7 @@ impl SamplerParams {
 
     fn validate(&self) -> Result<(), SamplerError> {
         let max = poseflow_contracts::limits::MAX_SAMPLES as usize;
-        let checks: [(&'static str, bool, String); 10] = [
+        let checks: [(&'static str, bool, String); 11] = [
             ("samples", (1..=max).contains(&self.samples), format!("{}: expected 1 to {max}", self.samples)),
             ("batch", (1..=64).contains(&self.batch), format!("{}: expected 1 to 64", self.batch)),
             ("steps", (1..=1000).contains(&self.steps), format!("{}: expected 1 to 1000", self.steps)),
@@ -175,6 +186,11 @@ impl SamplerParams {
                 "tracking.network_every",
                 (1..=1000).contains(&self.tracking.network_every),
                 format!("{}: expected 1 (every frame) to 1000", self.tracking.network_every),
+            ),
+            (
+                "tracking.await_estimate_ms",
+                self.tracking.await_estimate_ms <= 60_000,
+                format!("{}: expected 0 (never wait) to 60000 ms", self.tracking.await_estimate_ms),
             ),
             (
                 "tracking.start_time",

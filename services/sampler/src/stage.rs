@@ -2,7 +2,7 @@
 //! a [`VelocityField`] (over request-response in a process).
 
 use std::collections::{BTreeMap, HashMap};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use poseflow_contracts::{
     ConditionHandle, EstimateHeader, HypothesesHeader, POSE_LEN, StampSlot, VelocityRequest, VelocityResponse, flags,
@@ -83,7 +83,27 @@ pub struct SamplerStage<F> {
     /// ([`flags::SEQUENCE_START`]): estimates of earlier frames still on
     /// their way belong to another scene.
     sequence_start: HashMap<u32, u64>,
+    /// In tracking mode, the frame whose Hypotheses were sent last while
+    /// its estimates have not all come back: a next frame that would start
+    /// from the prior waits for them (`tracking.await_estimate_ms`,
+    /// [`Joined::awaits_side`]).
+    awaiting: Option<Awaited>,
 }
+
+/// The estimates a tracking sampler waits for.
+#[derive(Debug, Clone)]
+struct Awaited {
+    frame: u64,
+    /// Objects of `frame` whose estimate has not come.
+    objects: Vec<u32>,
+    /// When the first estimate of `frame` came.
+    first_back: Option<Instant>,
+}
+
+/// The selector publishes a frame's estimates one after another: one that
+/// has not come this long after the first was not made (the selector
+/// counts and logs why), and is not waited for further.
+const REST_OF_FRAME: Duration = Duration::from_millis(20);
 
 /// An object's estimate as the sampler keeps it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -103,6 +123,7 @@ impl<F: VelocityField> SamplerStage<F> {
             rejected: 0,
             previous: HashMap::new(),
             sequence_start: HashMap::new(),
+            awaiting: None,
         }
     }
 
@@ -167,6 +188,15 @@ impl<F: VelocityField> SamplerStage<F> {
         Ok((hypotheses_header(handle, &start, sampled.poses.len(), sampled.steps), sampled.poses))
     }
 
+    /// Notes that the estimate of `object` in `frame` is on its way.
+    fn await_estimate(&mut self, frame: u64, object: u32) {
+        match &mut self.awaiting {
+            Some(awaited) if awaited.frame == frame => awaited.objects.push(object),
+            Some(awaited) if awaited.frame > frame => {}
+            _ => self.awaiting = Some(Awaited { frame, objects: vec![object], first_back: None }),
+        }
+    }
+
     /// Samples every held handle together and emits each one's hypotheses;
     /// a handle that cannot be sampled is counted and the others go on.
     fn sample_held(&mut self, output: &mut dyn Emitter<HypothesesHeader>) -> Result<(), SamplerError> {
@@ -180,12 +210,17 @@ impl<F: VelocityField> SamplerStage<F> {
             tracing::warn!(?frames, "a velocity request failed: these (frame, object) pairs are not sampled");
         })?;
         let mut first_error = None;
+        let tracking = &self.sampler.params().tracking;
+        let awaits = tracking.enabled && tracking.await_estimate_ms > 0;
         for ((handle, start), result) in jobs.iter().zip(results) {
             match result {
                 Ok(batched) => {
                     let poses = &self.sampler.poses()[batched.samples];
                     let header = hypotheses_header(handle, start, poses.len(), batched.steps);
                     output.emit(header, poses.len() * POSE_LEN, &mut |buffer| write_poses(poses, buffer))?;
+                    if awaits {
+                        self.await_estimate(handle.header.frame_id, handle.header.object_id);
+                    }
                 }
                 Err(err) if first_error.is_none() => first_error = Some(err),
                 Err(err) => {
@@ -275,7 +310,29 @@ impl<F: VelocityField> Joined for SamplerStage<F> {
             detail: format!("estimate's best pose: {e}"),
         })?;
         self.remember(header.frame_id, header.object_id, best, header.flags);
+        if let Some(awaited) = &mut self.awaiting
+            && header.frame_id >= awaited.frame
+        {
+            awaited.objects.retain(|&object| object != header.object_id);
+            awaited.first_back.get_or_insert_with(Instant::now);
+            // An estimate of a later frame: the awaited frame's are all out.
+            if awaited.objects.is_empty() || header.frame_id > awaited.frame {
+                self.awaiting = None;
+            }
+        }
         Ok(())
+    }
+
+    /// Waits when `next` would start from the prior while its object's
+    /// estimate of an earlier frame is on its way. A frame that can start
+    /// from an older estimate goes on: waiting there would cost a saturated
+    /// graph its overlap of sampler and selector for little.
+    fn awaits_side(&self, next: &ConditionHandle) -> Option<Duration> {
+        let awaited = self.awaiting.as_ref()?;
+        let on_its_way = awaited.frame < next.header.frame_id && awaited.objects.contains(&next.header.object_id);
+        let rest_of_frame_due = awaited.first_back.is_none_or(|first| first.elapsed() < REST_OF_FRAME);
+        (on_its_way && rest_of_frame_due && self.start_for(next) == Start::Prior)
+            .then(|| Duration::from_millis(self.sampler.params().tracking.await_estimate_ms))
     }
 }
 

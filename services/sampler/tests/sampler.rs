@@ -326,6 +326,77 @@ fn tracking_stage_without_flow() -> SamplerStage<impl poseflow_sampler::Velocity
     SamplerStage::new(params, zero)
 }
 
+/// A tracking sampler waits, before a frame that would start from the
+/// prior, for its object's estimate of the frame it sent last; a frame
+/// that can start from an older estimate goes on.
+#[test]
+fn a_frame_that_would_start_from_the_prior_awaits_the_estimate_on_its_way() {
+    use poseflow_contracts::EstimateHeader;
+    use poseflow_runtime::Joined;
+    let estimate = |frame: u64, object: u32, flags: u32| {
+        let mut header = Header::new(frame, object);
+        header.flags |= flags;
+        EstimateHeader { header, best: target().to_f32_row_major(), ..Default::default() }
+    };
+    let of_object = |frame: u64, object: u32| {
+        let mut handle = handle(frame);
+        handle.header.object_id = object;
+        handle
+    };
+    let mut stage = tracking_stage_without_flow();
+    let mut out = Collect(Vec::new());
+    assert_eq!(stage.awaits_side(&handle(7)), None, "nothing sent yet");
+    run(&mut stage, &handle(7), &mut out).unwrap();
+    assert_eq!(stage.awaits_side(&handle(7)), None, "the same frame again");
+    assert_eq!(stage.awaits_side(&of_object(8, 6)), None, "another object");
+    assert_eq!(stage.awaits_side(&handle(8)), Some(std::time::Duration::from_millis(1000)), "the default wait");
+    // An estimate of an earlier frame is not the one awaited.
+    stage.side(Input { header: &estimate(6, 5, flags::LOST), payload: &[] }).unwrap();
+    assert!(stage.awaits_side(&handle(8)).is_some(), "a lost object starts from the prior");
+    stage.side(Input { header: &estimate(7, 5, 0), payload: &[] }).unwrap();
+    assert_eq!(stage.awaits_side(&handle(8)), None);
+    let sent = Pose::from_f32_row_major(&target().to_f32_row_major()).unwrap();
+    assert_eq!(stage.start_for(&handle(8)), Start::Track(sent));
+
+    // A held track goes on from its older estimate while the newer is on its way.
+    run(&mut stage, &handle(8), &mut out).unwrap();
+    assert_eq!(stage.start_for(&handle(9)), Start::Track(sent));
+    assert_eq!(stage.awaits_side(&handle(9)), None);
+
+    // Two objects sent, neither with an estimate: the second's is awaited
+    // too, but not long after the first of its frame came (the selector
+    // made none for it).
+    let mut stage = tracking_stage_without_flow();
+    run(&mut stage, &of_object(9, 5), &mut out).unwrap();
+    run(&mut stage, &of_object(9, 6), &mut out).unwrap();
+    stage.side(Input { header: &estimate(9, 5, 0), payload: &[] }).unwrap();
+    assert!(stage.awaits_side(&of_object(10, 6)).is_some(), "object 6's estimate of frame 9 is on its way");
+    std::thread::sleep(std::time::Duration::from_millis(25));
+    assert_eq!(stage.awaits_side(&of_object(10, 6)), None, "20 ms after the frame's first estimate, no more");
+    // An estimate of a later frame ends the wait at once.
+    run(&mut stage, &of_object(10, 6), &mut out).unwrap();
+    stage.side(Input { header: &estimate(11, 5, 0), payload: &[] }).unwrap();
+    assert_eq!(stage.awaits_side(&of_object(12, 6)), None);
+
+    // Switched off, or not tracking: never waits.
+    for tracking in [
+        TrackingParams { enabled: true, await_estimate_ms: 0, ..Default::default() },
+        TrackingParams { enabled: false, ..Default::default() },
+    ] {
+        let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), FieldError> {
+            out.fill(0.0);
+            Ok(())
+        };
+        let mut stage = SamplerStage::new(SamplerParams { samples: 2, tracking, ..Default::default() }, zero);
+        run(&mut stage, &handle(7), &mut out).unwrap();
+        assert_eq!(stage.awaits_side(&handle(8)), None);
+    }
+    let err = SamplerParams::from_json(&serde_json::json!({ "tracking": { "await_estimate_ms": 60001 } }))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("tracking.await_estimate_ms"), "{err}");
+}
+
 /// A restarted source numbers its frames from 0 again and may show another
 /// scene: its restart notice drops every track, and estimates of the old
 /// numbering never seed the new frames.

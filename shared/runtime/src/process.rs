@@ -582,10 +582,21 @@ pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         // Side messages published while the stage was being built woke no
         // one: a writer blocked on this full side queue would wait forever.
         read_side();
+        let await_side = |next: &J::In| {
+            let gave_up = crate::stage::await_side(&mut **stage.borrow_mut(), next, |stage| {
+                answer_handshake(&side, &side_ended_early);
+                if let Err(err) = drain_side(&side, stage, liveness) {
+                    tracing::warn!(err = %error_chain(&err), "side input not read");
+                }
+            });
+            if gave_up {
+                tracing::debug!(side = side.name(), "the awaited side message did not come in time: going on without");
+            }
+        };
         let end = process.event_loop_also(
             &input,
             |message| {
-                read_side();
+                await_side(message.header);
                 transform_one(&mut **stage.borrow_mut(), message, &mut *held.borrow_mut(), liveness);
                 publish_held();
             },

@@ -1,6 +1,8 @@
 //! What a stage author implements: plain functions from inputs to outputs,
 //! with no transport in sight.
 
+use std::time::Duration;
+
 use poseflow_contracts::{Header, MessageHeader, StampSlot};
 
 /// One received message, already checked against its contract.
@@ -184,6 +186,36 @@ pub trait Joined: Transform {
     type Side: MessageHeader;
 
     fn side(&mut self, input: Input<'_, Self::Side>) -> Result<(), Self::Error>;
+
+    /// Whether the stage waits for a side message before it is handed
+    /// `next`, and for how long at most; `None` (the default) never waits.
+    /// The runtime reads the side input meanwhile and asks again, so the
+    /// wait ends as soon as the message has come. The tracking sampler
+    /// waits for the estimate of the frame before when the next frame of
+    /// its object would otherwise start from the prior.
+    fn awaits_side(&self, next: &Self::In) -> Option<Duration> {
+        let _ = next;
+        None
+    }
+}
+
+/// How often a stage waiting for a side message ([`Joined::awaits_side`])
+/// looks again: a tenth of a millisecond added to an estimate's way back.
+const SIDE_POLL: Duration = Duration::from_micros(100);
+
+/// Reads the side input (`read_side`) until `stage` no longer awaits a side
+/// message before `next` or the longest wait it asked for has passed.
+/// Returns whether it gave up waiting.
+pub(crate) fn await_side<J: Joined>(stage: &mut J, next: &J::In, mut read_side: impl FnMut(&mut J)) -> bool {
+    let started = std::time::Instant::now();
+    loop {
+        read_side(stage);
+        match stage.awaits_side(next) {
+            None => return false,
+            Some(longest) if started.elapsed() >= longest => return true,
+            Some(_) => std::thread::sleep(SIDE_POLL),
+        }
+    }
 }
 
 /// What a source did on one call.

@@ -352,6 +352,7 @@ impl LocalGraph {
                     let seen = doorbell.count();
                     read_side(&mut stage);
                     if let Some((header, payload)) = queue.try_pop() {
+                        crate::stage::await_side(&mut stage, &header, read_side);
                         transform_one(&mut stage, &header, &payload, &mut held, &live);
                         deliver_held(&mut held, &mut stage);
                         unflushed += 1;

@@ -360,3 +360,91 @@ fn a_batching_stage_is_flushed_whenever_its_queue_runs_empty() {
         running.finish().unwrap();
     }
 }
+
+/// Passes each input on after a pause: the slow stage of a loop.
+struct Slow(Duration);
+
+impl Transform for Slow {
+    type In = HypothesesHeader;
+    type Out = HypothesesHeader;
+    type Error = TestError;
+    const SLOT: Option<StampSlot> = None;
+
+    fn process(
+        &mut self,
+        input: Input<'_, HypothesesHeader>,
+        output: &mut dyn Emitter<HypothesesHeader>,
+    ) -> Result<(), TestError> {
+        std::thread::sleep(self.0);
+        Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
+    }
+}
+
+/// Passes its input on and notes, for each, whether the side input had
+/// brought the frame before it back; with `awaits`, waits for that.
+struct Follower {
+    awaits: bool,
+    sent: Option<u64>,
+    back: Option<u64>,
+    had_previous: Arc<Mutex<Vec<bool>>>,
+}
+
+impl Transform for Follower {
+    type In = HypothesesHeader;
+    type Out = HypothesesHeader;
+    type Error = TestError;
+    const SLOT: Option<StampSlot> = None;
+
+    fn process(
+        &mut self,
+        input: Input<'_, HypothesesHeader>,
+        output: &mut dyn Emitter<HypothesesHeader>,
+    ) -> Result<(), TestError> {
+        let frame = input.header.header.frame_id;
+        self.had_previous.lock().unwrap().push(frame == 0 || self.back >= Some(frame - 1));
+        self.sent = Some(frame);
+        Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
+    }
+}
+
+impl Joined for Follower {
+    type Side = HypothesesHeader;
+
+    fn side(&mut self, input: Input<'_, HypothesesHeader>) -> Result<(), TestError> {
+        self.back = self.back.max(Some(input.header.header.frame_id));
+        Ok(())
+    }
+
+    fn awaits_side(&self, _next: &HypothesesHeader) -> Option<Duration> {
+        (self.awaits && self.back < self.sent).then_some(Duration::from_secs(5))
+    }
+}
+
+/// counter → follower → slow (3 ms) → back to the follower's side input,
+/// as the tracking sampler and the selector: awaiting, every frame is
+/// handled after the frame before it came back; not awaiting, frames
+/// overtake the loop.
+#[test]
+fn a_joined_stage_that_awaits_its_side_input_sees_the_loop_close_first() {
+    const FRAMES: u64 = 40;
+    let run = |awaits: bool| {
+        let mut local = LocalGraph::new();
+        for edge in ["raw", "followed", "back"] {
+            local.edge(edge, 2, LocalOverflow::Block);
+        }
+        let had_previous = Arc::new(Mutex::new(Vec::new()));
+        let noted = had_previous.clone();
+        local.add_source("counter", || Ok(Counter(0, FRAMES)), "raw", None).unwrap();
+        let follower = move || Ok(Follower { awaits, sent: None, back: None, had_previous: noted });
+        local.add_joined("follower", follower, "raw", "back", "followed").unwrap();
+        local.add_transform("slow", || Ok(Slow(Duration::from_millis(3))), "followed", "back").unwrap();
+        let report = local.run(Arc::new(AtomicBool::new(false))).unwrap();
+        assert_eq!(report["slow"].frames_out, FRAMES);
+        had_previous.lock().unwrap().clone()
+    };
+    let awaited = run(true);
+    assert_eq!(awaited.len(), FRAMES as usize);
+    assert!(awaited.iter().all(|&had| had), "{awaited:?}");
+    let raced = run(false);
+    assert!(raced.iter().any(|&had| !had), "without waiting, frames overtake the loop: {raced:?}");
+}
