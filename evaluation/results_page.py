@@ -135,7 +135,7 @@ def ambiguity_section(directory):
 RECOVERY_RUNS = [("orbit1", "orbit 1°/image"), ("orbit3", "orbit 3°/image"),
                  ("events", "orbit 1°/image, 3 occlusions + 3 teleports per video")]
 # The reporting seeds of the current recovery videos (evaluation/run).
-RECOVERY_SEEDS = "98, 99, 100"
+RECOVERY_SEEDS = "101, 102, 103"
 
 
 
@@ -171,8 +171,9 @@ def recovery_section(directory):
             "`evaluation/run recovery`: `poseflow eval --graph deploy/tracking.toml --refine --rate-hz 5` over "
             f"videos rendered with reporting seeds never used for a decision ({RECOVERY_SEEDS}; LM-O ape, eggbox, "
             "glue, low occlusion); the graph runs a held track's networks on one frame in five (docs/tracking.md, "
-            "Network passes), tries its best candidate turned by quarter turns on every frame, and judges symmetric "
-            "objects up to their symmetries. Objects: object-videos with ≥ 98 % of their images within 10°5cm, over the images "
+            "Network passes), tries its best candidate turned by quarter turns on every frame, judges symmetric "
+            "objects up to their symmetries, keeps a standing track unless a jump scores clearly better, and "
+            "samples each frame after the estimates of the frame before. Objects: object-videos with ≥ 98 % of their images within 10°5cm, over the images "
             "in which the object is ≥ 10 % visible (BOP's visib_fract, counting the part beyond the image border), "
             "and over all its images (an image in which it is hidden or out of view counts as a miss). Events: back within 10°5cm at most 2 images after the object is ≥ 30 % "
             "visible again (occlusion) or, after a teleport, first ≥ 30 % visible. Per object and per image: the JSON and "
