@@ -133,9 +133,10 @@ def ambiguity_section(directory):
 
 
 RECOVERY_RUNS = [("orbit1", "orbit 1°/image"), ("orbit3", "orbit 3°/image"),
-                 ("events", "orbit 1°/image, 3 occlusions + 3 teleports per video")]
+                 ("events", "orbit 1°/image, 3 occlusions + 3 teleports per video"),
+                 ("clutter", "eight objects occluding each other, orbit 2°/image")]
 # The reporting seeds of the current recovery videos (evaluation/run).
-RECOVERY_SEEDS = "101, 102, 103"
+RECOVERY_SEEDS = "104, 105, 106, 107"
 
 
 
@@ -170,7 +171,7 @@ def recovery_section(directory):
     return ["## Tracking recovery", "",
             "`evaluation/run recovery`: `poseflow eval --graph deploy/tracking.toml --refine --rate-hz 5` over "
             f"videos rendered with reporting seeds never used for a decision ({RECOVERY_SEEDS}; LM-O ape, eggbox, "
-            "glue, low occlusion); the graph runs a held track's networks on one frame in five (docs/tracking.md, "
+            "glue, low occlusion; and the eight objects of objects/lmo8, medium occlusion); the graph runs a held track's networks on one frame in five (docs/tracking.md, "
             "Network passes), tries its best candidate turned by quarter turns on every frame, judges symmetric "
             "objects up to their symmetries, keeps a standing track unless a jump scores clearly better, and "
             "samples each frame after the estimates of the frame before. Objects: object-videos with ≥ 98 % of their images within 10°5cm, over the images "
