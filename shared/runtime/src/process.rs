@@ -572,23 +572,19 @@ pub fn run_joined<J: Joined, E: Into<BuildError>>(make: impl FnOnce(&StageWiring
         // may also be restarted and waiting for this stage's READY: its
         // handshake is answered on the way.
         let held = std::cell::RefCell::new(HeldOutputs { outputs: Vec::new(), slot });
-        let read_side = || {
+        let read_side_into = |stage: &mut J| {
             answer_handshake(&side, &side_ended_early);
-            if let Err(err) = drain_side(&side, &mut **stage.borrow_mut(), liveness) {
+            if let Err(err) = drain_side(&side, stage, liveness) {
                 tracing::warn!(err = %error_chain(&err), "side input not read");
             }
         };
+        let read_side = || read_side_into(&mut stage.borrow_mut());
         let publish_held = || held.borrow_mut().publish(&output, liveness, &mut || read_side());
         // Side messages published while the stage was being built woke no
         // one: a writer blocked on this full side queue would wait forever.
         read_side();
         let await_side = |next: &J::In| {
-            let gave_up = crate::stage::await_side(&mut **stage.borrow_mut(), next, |stage| {
-                answer_handshake(&side, &side_ended_early);
-                if let Err(err) = drain_side(&side, stage, liveness) {
-                    tracing::warn!(err = %error_chain(&err), "side input not read");
-                }
-            });
+            let gave_up = crate::stage::await_side(&mut **stage.borrow_mut(), next, read_side_into);
             if gave_up {
                 tracing::debug!(side = side.name(), "the awaited side message did not come in time: going on without");
             }

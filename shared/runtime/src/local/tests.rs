@@ -44,6 +44,11 @@ impl Source for Counter {
 /// request's first value.
 struct Doubler;
 
+/// Emits the input unchanged: the body of every pass-through test stage.
+fn pass_on(input: Input<'_, HypothesesHeader>, output: &mut dyn Emitter<HypothesesHeader>) -> Result<(), TestError> {
+    Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
+}
+
 impl Transform for Doubler {
     type In = HypothesesHeader;
     type Out = HypothesesHeader;
@@ -55,7 +60,7 @@ impl Transform for Doubler {
         input: Input<'_, HypothesesHeader>,
         output: &mut dyn Emitter<HypothesesHeader>,
     ) -> Result<(), TestError> {
-        Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
+        pass_on(input, output)
     }
 }
 
@@ -376,7 +381,7 @@ impl Transform for Slow {
         output: &mut dyn Emitter<HypothesesHeader>,
     ) -> Result<(), TestError> {
         std::thread::sleep(self.0);
-        Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
+        pass_on(input, output)
     }
 }
 
@@ -403,7 +408,7 @@ impl Transform for Follower {
         let frame = input.header.header.frame_id;
         self.had_previous.lock().unwrap().push(frame == 0 || self.back >= Some(frame - 1));
         self.sent = Some(frame);
-        Ok(output.emit(*input.header, input.payload.len(), &mut |out| out.copy_from_slice(input.payload))?)
+        pass_on(input, output)
     }
 }
 
