@@ -205,12 +205,11 @@ impl SelectorStage {
 
     /// Judges a selection by the track check, in message order; its
     /// verdict's header bits (0 without the check).
-    fn conclude(&mut self, job: &Job, (selection, evidence): (Selection, Option<Evidence>)) -> (Selection, u32) {
+    fn conclude(&mut self, job: &Job, (mut selection, evidence): (Selection, Option<Evidence>)) -> (Selection, u32) {
         let (Some(monitor), Some(evidence)) = (&mut self.monitor, evidence) else { return (selection, 0) };
         let (frame, object) = (job.header.header.frame_id, job.header.header.object_id);
         let verdict = monitor.check(object, &evidence);
         log_verdict(frame, object, &evidence, &verdict);
-        let mut selection = selection;
         if let Some(smoothed) = verdict.smoothed {
             selection.best = smoothed;
         }

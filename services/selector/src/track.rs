@@ -650,9 +650,8 @@ impl TrackMonitor {
         let mut jumped = false;
         // The estimate on the track's own twin: what its motion goes on with.
         let mut on_track = evidence.pose;
-        let predicted = predict(&track.accepted, evidence.frame_id);
         if matches!(before, TrackState::Tracking | TrackState::Confirming { .. } | TrackState::Unsure(_))
-            && let Some(predicted) = predicted
+            && let Some(predicted) = predict(&track.accepted, evidence.frame_id)
         {
             let (degrees, metres, twin) = jump_from(&predicted, &evidence.pose, self.symmetries.get(&object));
             on_track = twin;
@@ -784,7 +783,7 @@ impl SelectionNoise {
 }
 
 /// Below this measured noise (degrees) a track's selected poses count as
-/// exact: the filter then follows them.
+/// exact: they are published as selected, unfiltered.
 const MIN_NOISE_DEG: f64 = 1e-3;
 
 /// The gains of an α-β filter (position and velocity).
@@ -807,9 +806,7 @@ impl AlphaBeta {
             beta: (lambda * lambda + 4.0 * lambda - lambda * root) / 4.0,
         }
     }
-}
 
-impl AlphaBeta {
     /// The gains of a least-squares line through the `k` selections since
     /// the filter started (`k ≥ 2`): `α = 2(2k − 1)/(k(k + 1))`,
     /// `β = 6/(k(k + 1))`. The second takes the pose and the velocity from
@@ -910,24 +907,18 @@ const SHORT_AHEAD: u64 = 2;
 /// sweeping) moves the object's pose exactly so, turning its position with
 /// it, over however many frames.
 fn predict(accepted: &VecDeque<(u64, Pose)>, frame: u64) -> Option<Pose> {
-    let last = accepted.back()?;
-    let first = match frame.saturating_sub(last.0) {
+    let &(last_frame, last) = accepted.back()?;
+    let first = match frame.saturating_sub(last_frame) {
         ahead if ahead <= SHORT_AHEAD => accepted.iter().rev().nth(1),
         _ => accepted.front().filter(|_| accepted.len() > 1),
     };
-    Some(extrapolate(first, last, frame))
-}
-
-/// `last` moved on to `frame` by the motion from `first` to it (module
-/// docs of [`predict`]); `last` itself without `first`.
-fn extrapolate(first: Option<&(u64, Pose)>, &(last_frame, last): &(u64, Pose), frame: u64) -> Pose {
-    let Some(&(first_frame, first)) = first else { return last };
+    let Some(&(first_frame, first)) = first else { return Some(last) };
     let (gap, ahead) = (last_frame.saturating_sub(first_frame), frame.saturating_sub(last_frame));
     if gap == 0 {
-        return last;
+        return Some(last);
     }
     let scale = ahead as f64 / gap as f64;
-    Pose::exp(&((last * first.inverse()).log() * scale)) * last
+    Some(Pose::exp(&((last * first.inverse()).log() * scale)) * last)
 }
 
 #[cfg(test)]
