@@ -34,7 +34,17 @@ pub struct Refined {
     pub initial_cost: f64,
     pub final_cost: f64,
     pub iterations: usize,
+    /// Poses whose cost was evaluated (one pass over the points each).
+    pub evaluations: usize,
 }
+
+/// A proposed step this small (metres, and radians about the body axes)
+/// ends the refinement untaken: the pose is within about a micrometre of
+/// where the steps lead, orders of magnitude below the depth noise, and
+/// each further step would cost a pass over the points until the damping
+/// ladder ran dry (without this stop a converged refinement spent all 10
+/// iterations and about 15 passes where 5 reach a micrometre).
+pub const CONVERGED_STEP: f64 = 1e-6;
 
 fn huber_weight(r: f64, delta: f64) -> f64 {
     if r.abs() <= delta { 1.0 } else { delta / r.abs() }
@@ -93,12 +103,12 @@ pub fn refine(
 ) -> Refined {
     let mut current = *pose;
     let mut system = evaluate(grid, &current, points, likelihood);
+    let mut evaluations = 1;
     let initial_cost = system.cost;
     let mut lambda = 1e-3;
     let mut done = 0;
-    for _ in 0..iterations {
+    'iterations: while done < iterations {
         done += 1;
-        let mut improved = false;
         // Raise the damping until a step lowers the cost (a few tries).
         for _ in 0..5 {
             let mut damped = system.jtj;
@@ -109,21 +119,22 @@ pub fn refine(
                 lambda *= 10.0;
                 continue;
             };
+            if step.fixed_rows::<3>(0).norm() < CONVERGED_STEP && step.fixed_rows::<3>(3).norm() < CONVERGED_STEP {
+                break 'iterations;
+            }
             let candidate = apply(&current, &step);
             let judged = evaluate(grid, &candidate, points, likelihood);
+            evaluations += 1;
             if judged.cost < system.cost {
                 current = candidate;
                 system = judged;
                 lambda = (lambda / 3.0).max(1e-7);
-                improved = true;
-                break;
+                continue 'iterations;
             }
             lambda *= 5.0;
         }
-        if !improved {
-            break;
-        }
+        break;
     }
     let cost = system.cost;
-    Refined { pose: current, initial_cost, final_cost: cost, iterations: done }
+    Refined { pose: current, initial_cost, final_cost: cost, iterations: done, evaluations }
 }
