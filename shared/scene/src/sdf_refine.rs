@@ -40,10 +40,9 @@ pub struct Refined {
 
 /// A proposed step this small (metres, and radians about the body axes)
 /// ends the refinement untaken: the pose is within about a micrometre of
-/// where the steps lead, orders of magnitude below the depth noise, and
-/// each further step would cost a pass over the points until the damping
-/// ladder ran dry (without this stop a converged refinement spent all 10
-/// iterations and about 15 passes where 5 reach a micrometre).
+/// where the steps lead, orders of magnitude below the depth noise, while
+/// each further step costs a pass over the points, and at the optimum the
+/// damping ladder's five tries cost five more.
 pub const CONVERGED_STEP: f64 = 1e-6;
 
 fn huber_weight(r: f64, delta: f64) -> f64 {
