@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from .data import SYMMETRY_FILES, Shard
-from .train import load_config
+from .train import PORTABLE, load_config
 
 # The default model's descriptions; another model's card passes its own
 # (--intro, --data-text).
@@ -82,9 +82,15 @@ def plot(curve, path):
 
 
 def trained_run(config):
-    """The run directory of a config and its checkpoint (on the CPU)."""
+    """The run directory of a config and its checkpoint (on the CPU): the
+    full one, or on a machine without it the portable weights the run
+    resumes from (`train.PORTABLE`), which hold the same state and model
+    config."""
     run = Path(config["out"])
-    return run, torch.load(run / "checkpoint.pt", weights_only=False, map_location="cpu")
+    checkpoint = run / "checkpoint.pt"
+    if not checkpoint.exists() and (run / PORTABLE).exists():
+        checkpoint = run / PORTABLE
+    return run, torch.load(checkpoint, weights_only=False, map_location="cpu")
 
 
 def parameter_count(saved):
@@ -117,7 +123,8 @@ Runtime reproduces within 1e-4 (checked at export and by the Rust tests).
         text += f"""
 `encoder.int8.onnx` and `velocity.int8.onnx` ({sum(int8.values()) / 1e6:.2f} MB): the same networks
 after ONNX Runtime's dynamic quantisation of their matrix products (weights
-INT8, activations quantised per run; `python -m poseflow_train.quantize`),
+INT8 in 7 bits, activations quantised per run; `python -m poseflow_train.quantize`;
+why 7 bits: [docs/network.md](../../docs/network.md#int8-on-every-x86-cpu)),
 served by the inference stage with `precision = "int8"`.
 """
     for e in int8_eval or []:
