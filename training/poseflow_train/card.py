@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from .data import SYMMETRY_FILES, Shard
-from .train import PORTABLE, load_config
+from .train import load_config, resume_point
 
 # The default model's descriptions; another model's card passes its own
 # (--intro, --data-text).
@@ -84,13 +84,10 @@ def plot(curve, path):
 def trained_run(config):
     """The run directory of a config and its checkpoint (on the CPU): the
     full one, or on a machine without it the portable weights the run
-    resumes from (`train.PORTABLE`), which hold the same state and model
-    config."""
+    resumes from (`train.resume_point`), which hold the same state and
+    model config."""
     run = Path(config["out"])
-    checkpoint = run / "checkpoint.pt"
-    if not checkpoint.exists() and (run / PORTABLE).exists():
-        checkpoint = run / PORTABLE
-    return run, torch.load(checkpoint, weights_only=False, map_location="cpu")
+    return run, torch.load(resume_point(run / "checkpoint.pt"), weights_only=False, map_location="cpu")
 
 
 def parameter_count(saved):

@@ -482,6 +482,13 @@ def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
 PORTABLE = "weights.pt"
 
 
+def resume_point(checkpoint):
+    """`checkpoint`, or where it is missing (another machine) the portable
+    weights beside it when they exist: what a run resumes from."""
+    portable = checkpoint.with_name(PORTABLE)
+    return portable if not checkpoint.exists() and portable.exists() else checkpoint
+
+
 def step(config, state, optimiser, params, loss):
     """One optimiser step at the scheduled learning rate."""
     for group in optimiser.param_groups:
@@ -593,19 +600,19 @@ def main():
     checkpoint = out / "checkpoint.pt"
     generator = torch.Generator().manual_seed(config.get("seed", 0) + 7919 * replicas.rank)
     rng = np.random.default_rng(replicas.seed(config.get("seed", 0)))
-    portable = checkpoint.with_name(PORTABLE)
-    resumed = checkpoint.exists() or portable.exists()
+    resume_from = resume_point(checkpoint)
+    resumed = resume_from.exists()
     if resumed:
         # The full checkpoint, or on another machine the portable weights
         # committed with the run (a fresh optimiser, which AdamW rebuilds
         # within a few hundred steps).
-        saved = torch.load(checkpoint if checkpoint.exists() else portable, weights_only=False, map_location="cpu")
+        saved = torch.load(resume_from, weights_only=False, map_location="cpu")
         for name, module in modules.items():
             module.load_state_dict({k: v.to(module.state_dict()[k].dtype) for k, v in saved[name].items()})
         if "optimiser" in saved:
             optimiser.load_state_dict(saved["optimiser"])
         else:
-            print(f"{portable}: half-precision weights, a fresh optimiser", flush=True)
+            print(f"{resume_from}: half-precision weights, a fresh optimiser", flush=True)
         state = saved["state"]
         if replicas.main:
             generator.set_state(saved["generator"])
