@@ -34,48 +34,13 @@ from PIL import Image
 
 from . import se3
 from .data import Shard
+from .surfaces import read_ply_vertices
 
 BINS = 36
 
 # The YCB-V mug (`025_mug`, BOP id 14): body a cylinder about object z
 # through the origin; handle the points with x > 5 cm.
 MUG = {"obj_id": 14, "part_axis": (1.0, 0.0, 0.0), "beyond_m": 0.05, "turn_axis": (0.0, 0.0, 1.0)}
-
-
-def read_ply_vertices(path):
-    """Vertex positions [n, 3] (file units) of a PLY model, ASCII or binary
-    little-endian, with float x, y, z first."""
-    with open(path, "rb") as f:
-        header = []
-        while True:
-            line = f.readline()
-            if not line:
-                raise ValueError(f"{path}: PLY header without end_header")
-            header.append(line.decode("ascii", "replace").strip())
-            if header[-1] == "end_header":
-                break
-        fmt = next((h.split()[1] for h in header if h.startswith("format ")), None)
-        count = next((int(h.split()[2]) for h in header if h.startswith("element vertex ")), None)
-        if count is None:
-            raise ValueError(f"{path}: PLY header has no `element vertex`")
-        start = header.index(next(h for h in header if h.startswith("element vertex ")))
-        props = []
-        for h in header[start + 1 :]:
-            if not h.startswith("property "):
-                break
-            props.append(h.split())
-        if [p[-1] for p in props[:3]] != ["x", "y", "z"]:
-            raise ValueError(f"{path}: vertex properties start {[p[-1] for p in props[:3]]}, expected x, y, z")
-        if fmt == "ascii":
-            rows = [f.readline().split() for _ in range(count)]
-            return np.array([[float(v) for v in row[:3]] for row in rows])
-        if fmt != "binary_little_endian":
-            raise ValueError(f"{path}: PLY format {fmt!r}, expected ascii or binary_little_endian")
-        sizes = {"float": "<f4", "float32": "<f4", "double": "<f8", "uchar": "u1", "uint8": "u1", "char": "i1",
-                 "short": "<i2", "ushort": "<u2", "int": "<i4", "uint": "<u4", "int32": "<i4", "uint32": "<u4"}
-        dtype = np.dtype([(p[-1], sizes[p[1]]) for p in props])
-        data = np.frombuffer(f.read(dtype.itemsize * count), dtype=dtype)
-        return np.stack([data["x"], data["y"], data["z"]], -1).astype(np.float64)
 
 
 def turn(axis, phi):

@@ -94,11 +94,31 @@ def parameter_count(saved):
     return sum(v.numel() for part in ("encoder", "velocity") for v in saved[part].values() if v.is_floating_point())
 
 
-def contract_of(model_dir):
+def encoder_metadata(model_dir):
+    """The exported encoder's metadata, {key: text}."""
     import onnx
 
     encoder = onnx.load(str(Path(model_dir) / "encoder.onnx"), load_external_data=False)
-    return next(p.value for p in encoder.metadata_props if p.key == "contract")
+    return {p.key: p.value for p in encoder.metadata_props}
+
+
+def contract_of(model_dir):
+    return encoder_metadata(model_dir)["contract"]
+
+
+def verification_text(model_dir):
+    """The Architecture bullet of an encoder exported with `--verify-coarse`
+    (empty without it)."""
+    meta = encoder_metadata(model_dir).get("coarse_verification")
+    if meta is None:
+        return ""
+    meta = json.loads(meta)
+    return f"""- Coarse pose check (`export --verify-coarse`, inference only): the coarse
+  pose and its other {meta['turns'] - 1} turns of the cube's rotation group about the
+  object's centre each get one refiner pass and are scored by the observed
+  points' distance to {meta['surface_points']:,} points of the object's mesh; the best is
+  refined again and becomes the coarse pose token.
+"""
 
 
 def files_section(model_dir, saved, int8_eval=None):
@@ -334,7 +354,7 @@ the measurements below; nothing in it is typed by hand.
   frame by the current coarse pose, predict corrected object-frame
   coordinates (PointNet, residual) and align them again (Horn); the last
   pose is the coarse pose token (0 iterations: no refiner).
-- PointNet++'s "group all" level adds one global point token; a pooled
+{verification_text(out)}- PointNet++'s "group all" level adds one global point token; a pooled
   summary of the condition joins the adaLN conditioning
   (global_condition = {cfg.global_condition}).
 

@@ -62,6 +62,7 @@ def gains(clean_pose, truth, translation, axis, thetas, times):
 def main():
     from .data import Observations
     from .model import Encoder, ModelConfig, VelocityNet
+    from .train import model_weights
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", required=True)
@@ -75,8 +76,9 @@ def main():
     saved = torch.load(args.checkpoint, weights_only=False)
     cfg = ModelConfig(**saved["model_config"])
     encoder, velocity = Encoder(cfg).eval(), VelocityNet(cfg).eval()
-    encoder.load_state_dict(saved["encoder"])
-    velocity.load_state_dict(saved["velocity"])
+    weights = model_weights(saved)
+    encoder.load_state_dict(weights["encoder"])
+    velocity.load_state_dict(weights["velocity"])
     observations = Observations(args.shard, cfg.object_ids, 0.1)
     batch = observations.batch(range(len(observations)))
     axis = torch.tensor(args.axis)

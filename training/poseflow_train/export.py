@@ -36,8 +36,10 @@ import torch
 
 from . import se3
 from .data import CATEGORY_IDS
-from .model import SIZE_VALUES, Encoder, ModelConfig, VelocityNet
+from .model import SIZE_VALUES, Encoder, ModelConfig, VelocityNet, cube_turns
 from .objects import write_objects
+from .surfaces import SURFACE_POINTS, farthest_points, surface_points, twin_turns
+from .train import model_weights
 
 CONTRACT = "poseflow-onnx/2"
 
@@ -65,6 +67,25 @@ class ExportedVelocity(torch.nn.Module):
 
     def forward(self, condition, condition_mask, cross_kv, rotation, translation, t):
         return self.velocity(condition, condition_mask, rotation, translation, t, cross_kv)
+
+
+def surface_views(surfaces, count, generator):
+    """[B, count, 3]: each object's surface points [B, s, 3] turned by a
+    random rotation with 1 mm of noise (repeated where there are fewer than
+    `count`), `count` of them in farthest-point order, centred, as the ingest stage hands
+    points on. The parity inputs of an encoder that checks its coarse pose:
+    on a random cloud every turn fits about as badly, so which one wins is
+    a near tie that INT8 rounding may break, while on an object's surface
+    one turn fits clearly best."""
+    views = []
+    for surface in surfaces:
+        rotation = se3.uniform_rotation((1,), generator=generator)[0]
+        total = max(count, len(surface))
+        chosen = surface[torch.arange(total) % len(surface)] @ rotation.T
+        chosen = chosen + torch.randn(total, 3, generator=generator) * 0.001
+        chosen = chosen[torch.from_numpy(farthest_points(chosen.numpy(), count))]
+        views.append(chosen - chosen.mean(0))
+    return torch.stack(views)
 
 
 def metadata(cfg, extra):
@@ -126,16 +147,29 @@ def main():
     parser.add_argument("--training-data", default="", help="a line for the metadata: what the model was trained on")
     parser.add_argument("--models-info", nargs="*", default=[],
                         help="the training data's models_info.json files: objects.json records each object's diameter")
+    parser.add_argument("--verify-coarse", metavar="MODELS_DIR",
+                        help="a BOP models directory (millimetres) with the model's objects: the encoder then checks "
+                             "its coarse pose against the 24 turns of it and keeps the one whose refinement fits the "
+                             "object's surface best (Encoder.verify_coarse); turns that are symmetries of the shape "
+                             "(the directory's models_info_shape.json, if any) stay the network's call")
     args = parser.parse_args()
     saved = torch.load(args.checkpoint, weights_only=False)
     cfg = ModelConfig(**saved["model_config"])
     encoder, velocity = Encoder(cfg).eval(), VelocityNet(cfg).eval()
-    encoder.load_state_dict(saved["encoder"])
-    velocity.load_state_dict(saved["velocity"])
+    # The run's weight average where it kept one (`train.WeightAverage`).
+    weights = model_weights(saved)
+    encoder.load_state_dict(weights["encoder"])
+    velocity.load_state_dict(weights["velocity"])
+    extra = {"training_data": args.training_data, "training_steps": saved["state"]["step"],
+             "training_minutes": round(saved["state"]["train_s"] / 60, 1)}
+    if args.verify_coarse:
+        encoder.set_surfaces(surface_points(args.verify_coarse, cfg.object_ids),
+                             twin_turns(args.verify_coarse, cfg.object_ids, cube_turns()))
+        extra["coarse_verification"] = {"turns": 24, "surface_points": SURFACE_POINTS,
+                                        "twins": int(encoder.twins.sum())}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    meta = metadata(cfg, {"training_data": args.training_data, "training_steps": saved["state"]["step"],
-                          "training_minutes": round(saved["state"]["train_s"] / 60, 1)})
+    meta = metadata(cfg, extra)
 
     g = torch.Generator().manual_seed(0)
     s, p, n = cfg.image_size, cfg.patch_grid, cfg.point_count
@@ -143,6 +177,13 @@ def main():
     token_mask = (torch.rand(2, p * p, generator=g) < 0.5).float()
     points = torch.randn(2, n, 3, generator=g) * 0.03
     object_index = torch.tensor([0, len(cfg.object_ids) - 1])
+    if encoder.surfaces is not None:
+        # Objects without shape symmetries where there are such: a twin turn
+        # would leave even the coarse pose to a near tie.
+        plain = (encoder.twins.sum(1) == 0).nonzero()[:, 0]
+        if len(plain) > 0:
+            object_index = plain[[0, -1]]
+        points = surface_views(encoder.surfaces[object_index], n, g)
     encoder_inputs = ["image", "token_mask", "points", "object_index"]
     export(ExportedEncoder(encoder, velocity), (image, token_mask, points, object_index), encoder_inputs,
            ["condition", "condition_mask", "cross_kv"],

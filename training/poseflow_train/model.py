@@ -32,6 +32,7 @@ Units: points and translations in metres (centred on the observed points'
 mean); internally translations are divided by `translation_scale`.
 """
 
+import itertools
 import math
 from dataclasses import asdict, dataclass, field
 
@@ -370,6 +371,43 @@ def read_hint(condition, cfg):
     return values[:, :9].reshape(-1, 3, 3), values[:, 9:] * cfg.translation_scale
 
 
+def cube_turns(dtype=torch.float32):
+    """[24, 3, 3]: the proper rotations that permute and flip the object's
+    axes (the cube's rotation group), the identity first."""
+    turns = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            m = torch.zeros(3, 3, dtype=dtype)
+            for row, (col, sign) in enumerate(zip(perm, signs)):
+                m[row, col] = sign
+            if torch.det(m) > 0:
+                turns.append(m)
+    return torch.stack(sorted(turns, key=lambda m: -float(torch.trace(m))))
+
+
+# Coarse pose verification (`Encoder.verify_coarse`). Each turned candidate
+# gets one refiner pass over the first VERIFY_POINTS observed points (a
+# prefix of the farthest-point order, so spread over the object), and is
+# scored by the mean distance of the first VERIFY_SCORE_POINTS to the
+# object's surface, truncated at VERIFY_TRUNCATION_M so that background
+# points and occluders count as one fixed miss instead of dominating.
+VERIFY_POINTS = 64
+VERIFY_SCORE_POINTS = 256
+VERIFY_TRUNCATION_M = 0.01
+
+
+def surface_distance(points, rotation, translation, surface):
+    """[M]: mean over the points [M, n, 3] (camera axes, metres) of the
+    distance to the nearest surface point [M, s, 3] (object frame) under
+    the poses (R [M,3,3], p [M,3]), each truncated at VERIFY_TRUNCATION_M.
+    Squared distances by one product (|a|^2 + |b|^2 - 2 a.b), which exports
+    to ONNX where `cdist` does not."""
+    local = (points - translation[:, None]) @ rotation
+    squared = local.pow(2).sum(-1, keepdim=True) + surface.pow(2).sum(-1)[:, None, :] - 2.0 * local @ surface.transpose(1, 2)
+    nearest = squared.amin(-1).clamp_min(0.0).sqrt()
+    return nearest.clamp(max=VERIFY_TRUNCATION_M).mean(-1)
+
+
 class Encoder(nn.Module):
     """Observation -> condition tokens [B, T, D] and their mask [B, T]:
     P*P image tokens (masked by the token mask), point tokens, one object
@@ -392,6 +430,64 @@ class Encoder(nn.Module):
         if cfg.size_head:
             self.size = SizeHead(cfg)
         self.cfg = cfg
+        # Object surfaces for `verify_coarse` ([objects, s, 3] metres, object
+        # frame), set at export by `set_surfaces`; None: no verification (as
+        # in training). Buffers that checkpoints do not carry.
+        for name in ("surfaces", "turns", "twins"):
+            self.register_buffer(name, None, persistent=False)
+
+    def set_surfaces(self, surfaces, twins=None):
+        """Turns on the coarse pose's verification with these surface points
+        ([objects, s, 3] metres, in `object_ids` order). `twins` [objects,
+        24] bool marks the turns (`cube_turns`) that are symmetries of an
+        object's shape: the mesh cannot tell those apart, the network may
+        (a real box's print), so they are never preferred to its pose."""
+        if self.cfg.refine_iterations == 0:
+            raise SystemExit("coarse pose verification needs a model with a refiner (model.refine_iterations > 0)")
+        if surfaces.shape[0] != len(self.cfg.object_ids):
+            raise SystemExit(f"surfaces for {surfaces.shape[0]} objects, the model has {len(self.cfg.object_ids)}")
+        self.surfaces = surfaces
+        self.turns = cube_turns(surfaces.dtype)
+        if twins is None:
+            twins = torch.zeros(surfaces.shape[0], self.turns.shape[0], dtype=torch.bool)
+        # The identity is every shape's symmetry, and it is the network's pose.
+        self.twins = twins.clone()
+        self.twins[:, 0] = False
+
+    def verify_coarse(self, points, object_index, rotation, translation):
+        """The coarse pose or one of its 24 turns about the object's centre
+        (`cube_turns`), whichever puts the observed points nearest the
+        object's surface after one refiner pass, then refined as the coarse
+        pose is. A learned correspondence can land on a half or quarter turn
+        of the truth when a shape is nearly symmetric (a bottle, a block, a
+        banana); geometry the network has not weighed tells them apart.
+        Beyond the paper; inference only (`set_surfaces`)."""
+        b, k = points.shape[0], self.turns.shape[0]
+        surface = self.surfaces[object_index]
+        centre = surface.mean(1)
+        turned = rotation[:, None] @ self.turns[None]
+        # The centre stays where the pose put it: p + (R - R S) c.
+        shifted = translation[:, None] + ((rotation[:, None] - turned) @ centre[:, None, :, None])[..., 0]
+
+        def per_candidate(x):
+            return x[:, None].expand(b, k, *x.shape[1:]).reshape(b * k, *x.shape[1:])
+
+        _, candidates_r, candidates_p = self.refiner(
+            per_candidate(points[:, :VERIFY_POINTS]), per_candidate(object_index),
+            turned.reshape(b * k, 3, 3), shifted.reshape(b * k, 3))
+        score = surface_distance(per_candidate(points[:, :VERIFY_SCORE_POINTS]), candidates_r, candidates_p,
+                                 per_candidate(surface)).reshape(b, k)
+        # A truncated distance is at most VERIFY_TRUNCATION_M: a twin's score
+        # above it loses to every other turn.
+        best = torch.where(self.twins[object_index], score + 2 * VERIFY_TRUNCATION_M, score).argmin(1)
+        chosen_r = candidates_r.reshape(b, k, 3, 3).gather(1, best[:, None, None, None].expand(b, 1, 3, 3))[:, 0]
+        chosen_p = candidates_p.reshape(b, k, 3).gather(1, best[:, None, None].expand(b, 1, 3))[:, 0]
+        # The coarse pose itself when it wins, not its one-pass refinement
+        # on fewer points.
+        kept = (best == 0)[:, None]
+        rotation = torch.where(kept[..., None], rotation, chosen_r)
+        translation = torch.where(kept, translation, chosen_p)
+        return self.refine(points, object_index, rotation, translation)[1:]
 
     def first_pose(self, points, object_index):
         """(model-frame coordinates [B, n, 3], R [B,3,3], p [B,3]): the
@@ -417,6 +513,8 @@ class Encoder(nn.Module):
         its refinements; the pose is an input of the velocity network."""
         coordinates, rotation, translation = self.first_pose(points, object_index)
         refined, rotation, translation = self.refine(points, object_index, rotation, translation)
+        if self.surfaces is not None:
+            rotation, translation = self.verify_coarse(points, object_index, rotation, translation)
         return [coordinates, *refined], rotation, translation
 
     def encode(self, image, token_mask, points, object_index):

@@ -14,6 +14,7 @@ cumulative training time.
 """
 
 import argparse
+import contextlib
 import glob
 import json
 import math
@@ -459,20 +460,79 @@ def condition_cache(encoder, observations, path, source, device, batch=64):
     return [np.load(f, mmap_mode="r") for f in files]
 
 
-def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg):
+class WeightAverage:
+    """An exponential moving average of the modules' weights (config
+    `"ema": decay`), updated after every optimiser step:
+    shadow <- decay * shadow + (1 - decay) * weights. At a constant learning
+    rate neighbouring steps of one run differ a lot (the YCB-V run: 39.4 and
+    46.3 % per sample 150 steps apart), and the average of the last ~1 /
+    (1 - decay) steps is steadier; validation scores it, and the portable
+    weights (hence exports) hold it. Non-float entries are copied."""
+
+    def __init__(self, modules, decay, saved=None):
+        if not 0.0 < decay < 1.0:
+            raise SystemExit(f"config: ema {decay!r}: expected a decay between 0 and 1 (say 0.999)")
+        self.decay = decay
+        self.shadow = {name: {k: v.detach().clone() for k, v in module.state_dict().items()}
+                       for name, module in modules.items()}
+        if saved is not None:
+            for name, weights in self.shadow.items():
+                for k, v in weights.items():
+                    v.copy_(saved[name][k])
+
+    @torch.no_grad()
+    def update(self, modules):
+        for name, module in modules.items():
+            for k, v in module.state_dict().items():
+                shadow = self.shadow[name][k]
+                if v.is_floating_point():
+                    shadow.lerp_(v, 1.0 - self.decay)
+                else:
+                    shadow.copy_(v)
+
+    @contextlib.contextmanager
+    def applied(self, modules):
+        """The modules hold the average inside the block, their own weights
+        again after it."""
+        own = {name: {k: v.detach().clone() for k, v in module.state_dict().items()} for name, module in modules.items()}
+        for name, module in modules.items():
+            module.load_state_dict(self.shadow[name])
+        try:
+            yield
+        finally:
+            for name, module in modules.items():
+                module.load_state_dict(own[name])
+
+
+def model_weights(saved):
+    """{"encoder": ..., "velocity": ...}: the weights a checkpoint's model
+    is made of, its average where the run kept one (`WeightAverage`). A
+    run's portable weights already are the average."""
+    return saved.get("ema", saved)
+
+
+def save_checkpoint(path, modules, optimiser, state, generator, rng, cfg, average=None):
     """Everything a later run needs to continue, written atomically; and
     beside it `weights.pt`, the portable resume point small enough for git
-    (half-precision weights, step, time and random state, no optimiser)."""
+    (half-precision weights, step, time and random state, no optimiser).
+    With a weight average the checkpoint holds it beside the weights, and
+    the portable weights are the average (`"averaged": true`): a run resumed
+    from them starts from the model it would export."""
     # On the CPU whatever the device trained on: one format, resumable anywhere.
     saved = {name: moved(module.state_dict(), "cpu") for name, module in modules.items()}
     saved.update({"optimiser": moved(optimiser.state_dict(), "cpu"), "state": state, "generator": generator.get_state(),
                   "rng": rng.bit_generator.state, "model_config": cfg.to_dict()})
+    if average is not None:
+        saved["ema"] = moved(average.shadow, "cpu")
     tmp = path.with_suffix(".tmp")
     torch.save(saved, tmp)
     os.replace(tmp, path)
-    portable = {name: {k: v.half() if v.is_floating_point() else v for k, v in saved[name].items()}
+    weights = model_weights(saved)
+    portable = {name: {k: v.half() if v.is_floating_point() else v for k, v in weights[name].items()}
                 for name in modules}
     portable.update({k: saved[k] for k in ("state", "generator", "rng", "model_config")})
+    if average is not None:
+        portable["averaged"] = True
     tmp = path.with_name("weights.tmp")
     torch.save(portable, tmp)
     os.replace(tmp, path.with_name(PORTABLE))
@@ -501,14 +561,17 @@ def step(config, state, optimiser, params, loss):
 
 
 def finish_step(config, state, started, log, loss, parts, encoder, velocity, val, cfg, steps,
-                checkpoint, modules, optimiser, generator, rng, marks):
-    """Counts the step's time; logs (the loss and its `parts`, name ->
-    tensor), validates and checkpoints when due (`marks` holds the training
-    time of the last validation and checkpoint). `log` is None on replicas
-    other than rank 0, which only count time."""
+                checkpoint, modules, optimiser, generator, rng, marks, average=None):
+    """Counts the step's time; updates the weight average; logs (the loss
+    and its `parts`, name -> tensor), validates (the average, when kept) and
+    checkpoints when due (`marks` holds the training time of the last
+    validation and checkpoint). `log` is None on replicas other than rank
+    0, which only count time."""
     state["train_s"] += time.monotonic() - started
     if log is None:
         return
+    if average is not None:
+        average.update(modules)
     if state["step"] % config.get("log_every", 20) == 0:
         entry = {"step": state["step"], "train_s": round(state["train_s"], 1), "lr": learning_rate(config, state), "loss": loss.item(),
                  **{name: value.item() for name, value in parts.items()}}
@@ -518,17 +581,18 @@ def finish_step(config, state, started, log, loss, parts, encoder, velocity, val
     if state["train_s"] - marks["validation"] >= config.get("validate_s", 900):
         marks["validation"] = state["train_s"]
         count = config.get("val_observations", 64)
-        entry = {"step": state["step"], "train_s": round(state["train_s"], 1),
-                 "validation": validate(encoder, velocity, val["val"], cfg, count, 50, steps, seed=1)}
-        for name, observations in val.items():
-            if name != "val":
-                entry[f"validation_{name}"] = validate(encoder, velocity, observations, cfg, count, 50, steps, seed=1)
+        entry = {"step": state["step"], "train_s": round(state["train_s"], 1)}
+        with average.applied(modules) if average is not None else contextlib.nullcontext():
+            entry["validation"] = validate(encoder, velocity, val["val"], cfg, count, 50, steps, seed=1)
+            for name, observations in val.items():
+                if name != "val":
+                    entry[f"validation_{name}"] = validate(encoder, velocity, observations, cfg, count, 50, steps, seed=1)
         log.write(json.dumps(entry) + "\n")
         log.flush()
         print(entry, flush=True)
     if state["train_s"] - marks["checkpoint"] >= config.get("checkpoint_s", 300):
         marks["checkpoint"] = state["train_s"]
-        save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
+        save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg, average)
 
 
 def main():
@@ -602,6 +666,7 @@ def main():
     rng = np.random.default_rng(replicas.seed(config.get("seed", 0)))
     resume_from = resume_point(checkpoint)
     resumed = resume_from.exists()
+    saved_average = None
     if resumed:
         # The full checkpoint, or on another machine the portable weights
         # committed with the run (a fresh optimiser, which AdamW rebuilds
@@ -609,6 +674,7 @@ def main():
         saved = torch.load(resume_from, weights_only=False, map_location="cpu")
         for name, module in modules.items():
             module.load_state_dict({k: v.to(module.state_dict()[k].dtype) for k, v in saved[name].items()})
+        saved_average = saved.get("ema")
         if "optimiser" in saved:
             optimiser.load_state_dict(saved["optimiser"])
         else:
@@ -632,8 +698,9 @@ def main():
             # A tensor whose shape changed (the object tokens of another
             # object set) starts fresh like a missing one.
             own = module.state_dict()
-            reshaped = [k for k, v in saved[name].items() if k in own and own[k].shape != v.shape]
-            weights = {k: v for k, v in saved[name].items() if k not in reshaped}
+            source_weights = model_weights(saved)[name]
+            reshaped = [k for k, v in source_weights.items() if k in own and own[k].shape != v.shape]
+            weights = {k: v for k, v in source_weights.items() if k not in reshaped}
             if reshaped:
                 print(f"init_from: {name}: {', '.join(reshaped)} changed shape and start fresh", flush=True)
             missing, unexpected = module.load_state_dict(weights, strict=False)
@@ -666,6 +733,10 @@ def main():
             cache = condition_cache(encoder, train, config["condition_cache"], source, device)
     replicas.wrap(modules)
     log = open(out / "log.jsonl", "a") if replicas.main else None
+    # Rank 0 alone keeps the average: it alone validates and checkpoints. A
+    # run without one (or resumed from portable weights, which are the
+    # average) starts it at the current weights.
+    average = WeightAverage(modules, config["ema"], saved_average) if config.get("ema") and replicas.main else None
     batch_size, samples, steps = config.get("batch", 16), config.get("samples_per_observation", 16), config.get("steps", 5)
     lam = config.get("lambda_pos", 10.0)
     run_started = time.monotonic()
@@ -702,7 +773,7 @@ def main():
             loss, parts = replicas.loss(cached_loss)
             step(config, state, optimiser, params, loss)
             finish_step(config, state, started, log, loss, parts, encoder, velocity, val, cfg, steps,
-                        checkpoint, modules, optimiser, generator, rng, marks)
+                        checkpoint, modules, optimiser, generator, rng, marks, average)
             continue
         indices = draw(rng, len(train), batch_size, weights)
         batch = moved(train.batch(indices), device)
@@ -742,9 +813,9 @@ def main():
         loss, parts = replicas.loss(whole_loss)
         step(config, state, optimiser, params, loss)
         finish_step(config, state, started, log, loss, parts, encoder, velocity, val, cfg, steps, checkpoint, modules,
-                    optimiser, generator, rng, marks)
+                    optimiser, generator, rng, marks, average)
     if replicas.main:
-        save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg)
+        save_checkpoint(checkpoint, modules, optimiser, state, generator, rng, cfg, average)
     if args.replica_weights:
         Path(args.replica_weights).mkdir(parents=True, exist_ok=True)
         torch.save({name: moved(module.state_dict(), "cpu") for name, module in modules.items()},

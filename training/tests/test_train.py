@@ -3,6 +3,7 @@ and a symmetric twin), hint paths, the refiner and pose perturbation."""
 
 import math
 
+import pytest
 import torch
 
 from poseflow_train import se3
@@ -279,3 +280,54 @@ def test_part_weights_weigh_the_grasps_whose_contact_lies_on_the_part():
         part_weights(rotation, translation, 0.01, {"axis": [0.0, 0.0, 0.0], "beyond": 0.05, "factor": 2.0})
     with pytest.raises(SystemExit, match="oversample_parts"):
         part_weights(rotation, translation, 0.01, {"beyond": 0.05})
+
+
+def test_the_weight_average_follows_its_closed_form_and_is_swapped_in_and_out():
+    from poseflow_train.train import WeightAverage
+
+    module = torch.nn.Linear(2, 1)
+    with torch.no_grad():
+        module.weight.fill_(1.0)
+        module.bias.fill_(0.0)
+    modules = {"m": module}
+    average = WeightAverage(modules, 0.9)
+    for value in (2.0, 4.0):
+        with torch.no_grad():
+            module.weight.fill_(value)
+        average.update(modules)
+    # 0.9 (0.9 * 1 + 0.1 * 2) + 0.1 * 4 = 1.39
+    assert torch.allclose(average.shadow["m"]["weight"], torch.full((1, 2), 1.39))
+    with average.applied(modules):
+        assert torch.allclose(module.weight, torch.full((1, 2), 1.39))
+    assert torch.equal(module.weight, torch.full((1, 2), 4.0))
+    with pytest.raises(SystemExit, match="ema 1.0"):
+        WeightAverage(modules, 1.0)
+
+
+def test_a_checkpoint_keeps_the_average_and_the_portable_weights_are_it(tmp_path):
+    import numpy as np
+
+    from poseflow_train.train import WeightAverage, model_weights, save_checkpoint
+
+    cfg = ModelConfig(object_ids=[1])
+    module = torch.nn.Linear(2, 1)
+    modules = {"encoder": module, "velocity": torch.nn.Linear(1, 1)}
+    average = WeightAverage(modules, 0.5)
+    with torch.no_grad():
+        module.weight.fill_(3.0)
+    average.update(modules)
+    optimiser = torch.optim.AdamW(module.parameters())
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, modules, optimiser, {"step": 1, "train_s": 1.0}, torch.Generator(),
+                    np.random.default_rng(0), cfg, average)
+    full = torch.load(path, weights_only=False)
+    portable = torch.load(tmp_path / "weights.pt", weights_only=False)
+    assert torch.equal(full["encoder"]["weight"], torch.full((1, 2), 3.0))
+    assert torch.equal(model_weights(full)["encoder"]["weight"], average.shadow["encoder"]["weight"])
+    assert portable["averaged"] and torch.equal(portable["encoder"]["weight"].float(),
+                                                average.shadow["encoder"]["weight"].half().float())
+    # A run resumed from its checkpoint takes the average up where it was.
+    again = WeightAverage(modules, 0.5, full["ema"])
+    assert torch.equal(again.shadow["encoder"]["weight"], average.shadow["encoder"]["weight"])
+    # Without an average, the model is the weights.
+    assert model_weights({"encoder": 1, "velocity": 2}) == {"encoder": 1, "velocity": 2}

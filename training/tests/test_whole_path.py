@@ -54,10 +54,11 @@ def config(root, out, max_steps):
     return {
         "train": [str(root / "train.obs")], "val": [str(root / "test.obs")], "out": str(out),
         "model": {"object_ids": [7], "image_size": 112, "patch_grid": 8, "point_count": 1024, "width": 32,
-                  "image_depth": 1, "dit_depth": 1, "group_points": 128, "correspondence_points": 64},
+                  "image_depth": 1, "dit_depth": 1, "group_points": 128, "correspondence_points": 64,
+                  "refine_iterations": 1},
         "threads": 1, "batch": 4, "samples_per_observation": 2, "steps": 2, "lr": 1e-3, "log_every": 1,
         "validate_s": 10**6, "checkpoint_s": 10**6, "val_observations": 4, "seed": 0, "loss": "clean-pose",
-        "max_steps": max_steps,
+        "max_steps": max_steps, "ema": 0.5,
     }
 
 
@@ -87,7 +88,8 @@ def test_an_own_object_goes_from_mesh_to_estimates_through_the_graph(data):
     model = data / "model"
     env = dict(os.environ, PYTHONPATH=str(TRAINING))
     subprocess.run([sys.executable, "-m", "poseflow_train.export", "--checkpoint", str(out / "checkpoint.pt"),
-                    "--out", str(model), "--models-info", str(data / "models" / "models_info.json")],
+                    "--out", str(model), "--models-info", str(data / "models" / "models_info.json"),
+                    "--verify-coarse", str(data / "models")],
                    cwd=TRAINING, env=env, check=True, capture_output=True)
     # The INT8 files the inference stage serves by default.
     subprocess.run([sys.executable, "-m", "poseflow_train.quantize", "--model", str(model)],
