@@ -38,7 +38,7 @@ from . import se3
 from .data import CATEGORY_IDS
 from .model import SIZE_VALUES, Encoder, ModelConfig, VelocityNet, cube_turns
 from .objects import write_objects
-from .surfaces import SURFACE_POINTS, farthest_points, surface_points, twin_turns
+from .surfaces import SURFACE_POINTS, farthest_point_order, surface_points, twin_turns
 from .train import model_weights
 
 CONTRACT = "poseflow-onnx/2"
@@ -83,7 +83,7 @@ def surface_views(surfaces, count, generator):
         total = max(count, len(surface))
         chosen = surface[torch.arange(total) % len(surface)] @ rotation.T
         chosen = chosen + torch.randn(total, 3, generator=generator) * 0.001
-        chosen = chosen[torch.from_numpy(farthest_points(chosen.numpy(), count))]
+        chosen = chosen[torch.from_numpy(farthest_point_order(chosen.numpy(), count))]
         views.append(chosen - chosen.mean(0))
     return torch.stack(views)
 

@@ -39,6 +39,7 @@ from torch import nn
 
 from . import se3
 from .model import DiTBlock, PointEncoder, fourier
+from .surfaces import farthest_point_order
 
 CONTRACT = "poseflow-grasp-onnx/1"
 HALF_TURN_Z = torch.diag(torch.tensor([-1.0, -1.0, 1.0]))
@@ -63,19 +64,6 @@ class GraspConfig:
 
     def to_dict(self):
         return asdict(self)
-
-
-def farthest_point_order(points, count, start):
-    """Indices of `count` points [N, 3] in farthest-point order from
-    `start`: every prefix is an even subsample (the set abstraction's
-    centres are a prefix)."""
-    chosen = np.empty(count, dtype=np.int64)
-    chosen[0] = start
-    distance = np.full(points.shape[0], np.inf)
-    for i in range(1, count):
-        distance = np.minimum(distance, ((points - points[chosen[i - 1]]) ** 2).sum(-1))
-        chosen[i] = int(distance.argmax())
-    return chosen
 
 
 def part_weights(rotation, translation, contact_depth, part):

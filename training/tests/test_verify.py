@@ -11,7 +11,7 @@ import torch
 
 from poseflow_train import se3
 from poseflow_train.model import VERIFY_TRUNCATION_M, Encoder, ModelConfig, cube_turns, surface_distance
-from poseflow_train.surfaces import farthest_points, surface_points, twin_turns
+from poseflow_train.surfaces import farthest_point_order, surface_points, twin_turns
 
 
 def test_the_turns_are_the_cubes_24_rotations_identity_first_and_closed_under_products():
@@ -105,7 +105,7 @@ def test_surface_points_are_metres_spread_by_farthest_points_and_a_mesh_in_metre
 
 def test_farthest_points_start_at_the_first_and_take_the_far_end_next():
     points = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [0.1, 0, 0], [0.5, 0, 0]]).numpy()
-    assert farthest_points(points, 3).tolist() == [0, 1, 3]
+    assert farthest_point_order(points, 3).tolist() == [0, 1, 3]
 
 
 def nearly_a_box():
