@@ -323,6 +323,10 @@ def main():
         f"{e['coarse']['acc_10deg_2cm']} | {e['coarse']['median_rot_deg']} | {e['coarse']['median_trans_cm']} |\n"
         for e in others)
     timing = lambda t: f"{t['p50_ms']:.1f} ms p50, {t['p99_ms']:.1f} ms p99 (mean {t['mean_ms']:.1f})"  # noqa: E731
+    time_grid = evaluation.get("time_grid", "uniform")
+    grid_flag = "" if time_grid == "uniform" else f" --time-grid {time_grid}"
+    grid_text = "" if time_grid == "uniform" else (
+        f" on the {time_grid} time grid (the sampler stage's `time_grid = \"{time_grid}\"`, docs/distributions.md)")
     text = f"""# Model card: {out.name}
 
 {args.intro}, exported to the ONNX contract `{contract_of(out)}` that the
@@ -384,9 +388,9 @@ the coarse pose's there.
 
 ## Held-out accuracy (the exported ONNX files through ONNX Runtime)
 
-`python -m poseflow_train.evaluate --model {args.model} --shard {' '.join(evaluation['shard'])}`:
+`python -m poseflow_train.evaluate --model {args.model} --shard {' '.join(evaluation['shard'])}{grid_flag}`:
 {instances(evaluation)} (visible fraction ≥ {evaluation['min_visib_fract']}),
-N = {evaluation['samples']} samples from uniform rotations, K = {evaluation['steps']} Euler steps, no selection;
+N = {evaluation['samples']} samples from uniform rotations, K = {evaluation['steps']} Euler steps{grid_text}, no selection;
 accuracy averaged over individual samples, with the minimum error over each
 object's symmetries (`{SYMMETRY_FILES[symmetries]}`; continuous ones in 1° steps).
 

@@ -47,24 +47,39 @@ def sample(encoder, velocity, batch, cfg, samples, steps, generator):
     and Gaussian translations: ([B, N, 3, 3], [B, N, 3]), and the encoder's
     coarse poses ([B, 3, 3], [B, 3])."""
     condition, mask = encoder(batch["image"], batch["token_mask"], batch["points"], batch["object_index"])
-    r, p = rollout(velocity, condition, mask, cfg, samples, steps, generator)
+    r, p = rollout(velocity, condition, mask, cfg, samples, steps, generator, getattr(cfg, "time_grid", "uniform"))
     return r, p, read_hint(condition, cfg)
 
 
-def rollout(velocity, condition, mask, cfg, samples, steps, generator):
+TIME_GRIDS = ("uniform", "quadratic")
+
+
+def flow_times(steps, time_grid="uniform"):
+    """t_0 = 0 < ... < t_K = 1 of K Euler steps, as the sampler stage's
+    `time_grid` (poseflow_geometry::flow::TimeGrid): uniform t_k = k/K,
+    quadratic t_k = 1 - (1 - k/K)^2."""
+    if time_grid == "uniform":
+        return [k / steps for k in range(steps + 1)]
+    if time_grid == "quadratic":
+        return [1.0 - (1.0 - k / steps) ** 2 for k in range(steps + 1)]
+    raise ValueError(f"time grid {time_grid!r}: expected one of {', '.join(TIME_GRIDS)}")
+
+
+def rollout(velocity, condition, mask, cfg, samples, steps, generator, time_grid="uniform"):
     """The sampler of the inference stage: `samples` uniform rotations and
-    Gaussian translations per observation, carried by K Euler steps at
-    t = 0, 1/K, ... ([B, N, 3, 3], [B, N, 3]). Differentiable, so training
-    can score what K steps produce (`rollout_energy`)."""
+    Gaussian translations per observation, carried by K Euler steps at the
+    times of `flow_times` ([B, N, 3, 3], [B, N, 3]). Differentiable, so
+    training can score what K steps produce (`rollout_energy`)."""
     b = condition.shape[0]
     m = b * samples
     # Drawn on the generator's CPU, carried where the condition is.
     r = se3.uniform_rotation((m,), generator=generator).to(condition.device)
     p = (torch.randn(m, 3, generator=generator) * cfg.translation_noise_std).to(condition.device)
+    times = flow_times(steps, time_grid)
     for k in range(steps):
-        t = torch.full((m,), k / steps, device=condition.device)
+        t = torch.full((m,), times[k], device=condition.device)
         v_rot, v_pos = velocity(condition, mask, r, p, t)
-        r, p = se3.euler_step(r, p, v_rot, v_pos, 1.0 / steps)
+        r, p = se3.euler_step(r, p, v_rot, v_pos, times[k + 1] - times[k])
     return r.reshape(b, samples, 3, 3), p.reshape(b, samples, 3)
 
 
@@ -171,6 +186,7 @@ def accuracy(encoder, velocity, observations, cfg, count, samples, steps, seed, 
     summary = summarise
     total_missed = sum(missed.values())
     result = {"observations": len(rots), "unobserved": total_missed, "samples": samples, "steps": steps,
+              "time_grid": getattr(cfg, "time_grid", "uniform"),
               **summary(torch.cat(rots), torch.cat(transs), total_missed, samples)}
     # The encoder's coarse pose alone (one per observation), for comparison.
     result["coarse"] = summary(torch.cat(coarse_rots), torch.cat(coarse_transs), total_missed, 1)
@@ -269,6 +285,8 @@ def add_model_arguments(parser):
     parser.add_argument("--model", required=True, help="directory with encoder.onnx and velocity.onnx")
     parser.add_argument("--samples", type=int, default=50)
     parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--time-grid", choices=TIME_GRIDS, default="uniform",
+                        help="where the Euler steps ask for the velocity (the sampler stage's time_grid)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--precision", choices=["fp32", "int8"], default="fp32",
@@ -285,7 +303,8 @@ def load_model(args):
 
     torch.set_num_threads(args.threads)
     model = OnnxPoseFlow(args.model, args.threads, args.precision)
-    cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std, translation_scale=model.translation_scale)
+    cfg = SimpleNamespace(translation_noise_std=model.translation_noise_std, translation_scale=model.translation_scale,
+                          time_grid=args.time_grid)
     return model, cfg
 
 

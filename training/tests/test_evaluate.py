@@ -1,6 +1,7 @@
 import json
 import math
 
+import pytest
 import torch
 
 from poseflow_train import se3
@@ -8,7 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from poseflow_train.evaluate import errors, summarise, symmetries, unobserved
+from poseflow_train.evaluate import errors, flow_times, rollout, summarise, symmetries, unobserved
 
 
 def write_info(tmp_path, entry):
@@ -59,3 +60,33 @@ def test_instances_the_ingest_could_not_observe_are_misses(tmp_path):
     rot, trans = torch.tensor([1.0, 2.0, 3.0, 4.0]), torch.tensor([0.5, 0.5, 0.5, 0.5])
     assert summarise(rot, trans, 1, 2)["acc_5deg_5cm"] == 66.67
     assert summarise(rot, trans, 0, 2)["acc_5deg_5cm"] == 100.0
+
+
+def test_flow_times_are_the_sampler_stages_grids():
+    # poseflow_geometry::flow::TimeGrid's closed forms (K = 5).
+    assert flow_times(5) == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8, 1.0])
+    assert flow_times(5, "quadratic") == pytest.approx([0.0, 0.36, 0.64, 0.84, 0.96, 1.0])
+    with pytest.raises(ValueError, match="cosine"):
+        flow_times(5, "cosine")
+
+
+def test_a_rollout_on_either_grid_with_the_exact_field_lands_on_the_target():
+    # The rectified flow's exact velocity toward one pose is constant along
+    # the path, so Euler steps of any lengths reach it.
+    target_r = se3.so3_exp(torch.tensor([[0.3, -1.2, 0.5]]))[0]
+    target_p = torch.tensor([0.02, -0.01, 0.03])
+    asked = []
+
+    def velocity(condition, mask, r, p, t):
+        asked.append(float(t[0]))
+        return (se3.so3_log(r.transpose(-1, -2) @ target_r) / (1 - t[:, None]),
+                (target_p - p) / (1 - t[:, None]))
+
+    cfg = SimpleNamespace(translation_noise_std=0.05)
+    for grid in ("uniform", "quadratic"):
+        asked.clear()
+        r, p = rollout(velocity, torch.zeros(1, 2, 4), None, cfg, 3, 5,
+                       torch.Generator().manual_seed(0), grid)
+        assert asked == pytest.approx(flow_times(5, grid)[:-1])
+        assert torch.allclose(r[0], target_r.expand(3, 3, 3), atol=1e-4)
+        assert torch.allclose(p[0], target_p.expand(3, 3), atol=1e-6)

@@ -39,7 +39,7 @@ use self::estimates::{Estimated, bop_rows, count_estimates, read_recording, read
 use self::score::{EstimatedInstance, ScoredObject, score_instance};
 use self::summary::{InstanceOutcome, Summary, instances_csv, summarise};
 use crate::demo::graph::{Overrides, graph_with_overrides};
-use crate::demo::{DetectorMode, SelectionArg};
+use crate::demo::{DetectorMode, SelectionArg, TimeGridArg};
 use crate::demo::{print_report, run_graph};
 use poseflow_runtime::progress::Progress;
 
@@ -117,6 +117,11 @@ pub struct EvalArgs {
     /// Euler steps.
     #[arg(long, default_value_t = 5)]
     pub steps: usize,
+    /// Where the Euler steps ask for the velocity: `uniform` (t = k/K) or `quadratic` (t = 1 − (1 − k/K)²:
+    /// sharper samples, a narrower spread where the view is ambiguous; docs/distributions.md) [default: the
+    /// graph's sampler setting, uniform].
+    #[arg(long, value_enum)]
+    pub time_grid: Option<TimeGridArg>,
     /// Euler steps of a frame that starts from an earlier estimate or a prior (tracking graphs, e.g.
     /// evaluation/graphs/tracking-from-truth.toml) [default: the graph's].
     #[arg(long)]
@@ -219,6 +224,8 @@ enum Method {
         refine: bool,
         samples: usize,
         steps: usize,
+        /// The sampler's time grid as the graph ran it.
+        time_grid: String,
         #[serde(skip_serializing_if = "Option::is_none")]
         tracking_steps: Option<usize>,
         rgb: bool,
@@ -485,6 +492,7 @@ fn eval_graph(args: &EvalArgs, objects_dir: &Path, object_ids: Vec<u32>) -> anyh
         refine: args.refine,
         samples: args.samples,
         steps: args.steps,
+        time_grid: args.time_grid,
         tracking_steps: args.tracking_steps,
         rate_hz: args.rate_hz,
         rgb: !args.no_rgb,
@@ -537,10 +545,19 @@ fn run_graph_on(
         refine: args.refine,
         samples: args.samples,
         steps: args.steps,
+        time_grid: sampler_time_grid(run),
         tracking_steps: args.tracking_steps,
         rgb: !args.no_rgb,
     };
     Ok((estimates, csv, method))
+}
+
+/// The `time_grid` of the graph's sampler stage (after the graph file, its
+/// config and every override), `uniform` when unset.
+fn sampler_time_grid(run: &Graph) -> String {
+    let sampler = run.stages.values().find(|stage| stage.exe_name() == "sampler");
+    let grid = sampler.and_then(|stage| stage.params.get("time_grid")).and_then(|grid| grid.as_str());
+    grid.unwrap_or(TimeGridArg::Uniform.name()).to_string()
 }
 
 /// What a model's `objects.json` (written at export) says it was trained on.
@@ -750,9 +767,10 @@ fn optional(value: Option<f64>, precision: usize) -> String {
 fn print_table(report: &EvalReport) {
     let s = &report.summary;
     let method = match &report.method {
-        Method::Graph { selection, refine, samples, steps, tracking_steps, rgb, .. } => format!(
-            "selection {selection}{}, {samples} samples, {steps} steps{}{}; accuracies in % of instances{}",
+        Method::Graph { selection, refine, samples, steps, time_grid, tracking_steps, rgb, .. } => format!(
+            "selection {selection}{}, {samples} samples, {steps} steps{}{}{}; accuracies in % of instances{}",
             if *refine { " + refinement" } else { "" },
+            if time_grid == "uniform" { String::new() } else { format!(" on the {time_grid} time grid") },
             tracking_steps.map_or(String::new(), |k| format!(" ({k} when tracked)")),
             if *rgb { "" } else { ", no image (depth only)" },
             if *selection == "none" { ", averaged over the samples" } else { "" }

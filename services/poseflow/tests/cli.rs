@@ -212,6 +212,7 @@ fn eval_scores_a_rendered_dataset_and_writes_bop19_results() {
     let stages = &summary["stages"];
     assert_eq!(stages["ingest"]["frames_out"], stages["selector"]["frames_out"], "{summary}");
     assert_eq!(stages["selector"]["dropped"], 0, "{summary}");
+    assert_eq!(summary["time_grid"], "uniform", "the graph's sampler setting: {summary}");
     // The rendered dataset has depth: VSD and the BOP19 average recall.
     for key in [
         "acc_5deg_2cm",
@@ -1061,7 +1062,9 @@ fn annotate_category_then_eval_category_scores_the_real_frames_cans_only() {
         serde_json::from_slice(&out.stdout).unwrap()
     };
     let out_dir = dir.join("eval");
-    let summary = eval_real_frame(&out_dir, &["--model", "models/test-tiny-cat", "--samples", "8", "--steps", "2"]);
+    let options = ["--model", "models/test-tiny-cat", "--samples", "8", "--steps", "2", "--time-grid", "quadratic"];
+    let summary = eval_real_frame(&out_dir, &options);
+    assert_eq!(summary["time_grid"], "quadratic", "the flag reached the graph's sampler: {summary}");
     let per_category = summary["category"]["per_category"].as_object().unwrap();
     assert_eq!(per_category.keys().collect::<Vec<_>>(), ["can"], "{summary}");
     assert_eq!(

@@ -13,7 +13,7 @@ use nalgebra::Vector3;
 use poseflow_contracts::{
     ConditionHandle, MAX_SEGMENTS, POSE_LEN, VELOCITY_LEN, VelocityRequest, VelocitySegment, limits,
 };
-use poseflow_geometry::flow::euler_step;
+use poseflow_geometry::flow::{TimeGrid, euler_step};
 use poseflow_geometry::sampling::{TranslationNoise, initial_pose, sample_seed, seeded_rng};
 use poseflow_geometry::{Pose, Velocity, so3};
 use rand::Rng;
@@ -206,7 +206,7 @@ impl FlowSampler {
         self.request.clear();
         for group in groups {
             let handle = &jobs[group.job].0;
-            let t = group.start_time + k as f64 * group.dt();
+            let t = group.time(k);
             request.push(VelocitySegment {
                 condition_id: handle.condition_id,
                 sample_count: group.samples.len() as u32,
@@ -235,7 +235,7 @@ impl FlowSampler {
             self.velocities.clear();
             self.velocities
                 .extend(values.chunks_exact(VELOCITY_LEN).map(|v| Velocity::from_f32(v.try_into().expect("6 values"))));
-            euler_step(&mut self.poses[group.samples.clone()], &self.velocities, group.dt())
+            euler_step(&mut self.poses[group.samples.clone()], &self.velocities, group.step(k))
                 .map_err(|e| SamplerError::Geometry { frame, object, detail: e.to_string() })?;
         }
         Ok(())
@@ -262,7 +262,14 @@ impl FlowSampler {
         self.poses.extend((0..from_prior).map(|_| initial_pose(&mut rng, &noise)));
         let mut groups = Vec::with_capacity(2);
         if from_prior > 0 {
-            groups.push(Group { job: 0, within_job: 0, samples: 0..from_prior, start_time: 0.0, steps: params.steps });
+            groups.push(Group {
+                job: 0,
+                within_job: 0,
+                samples: 0..from_prior,
+                start_time: 0.0,
+                steps: params.steps,
+                grid: params.time_grid,
+            });
         }
         if let Some(previous) = previous {
             let tracking = &params.tracking;
@@ -289,6 +296,7 @@ impl FlowSampler {
                     samples: from_prior..integrated_end,
                     start_time: tracking.start_time,
                     steps: tracking.steps,
+                    grid: params.time_grid,
                 });
             }
         }
@@ -326,11 +334,18 @@ struct Group {
     samples: Range<usize>,
     start_time: f64,
     steps: usize,
+    grid: TimeGrid,
 }
 
 impl Group {
-    fn dt(&self) -> f64 {
-        (1.0 - self.start_time) / self.steps as f64
+    /// The flow time of step `k`'s velocity.
+    fn time(&self, k: usize) -> f64 {
+        self.grid.time(self.start_time, k, self.steps)
+    }
+
+    /// The length of step `k`.
+    fn step(&self, k: usize) -> f64 {
+        self.grid.step(self.start_time, k, self.steps)
     }
 }
 

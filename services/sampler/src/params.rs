@@ -1,5 +1,6 @@
 //! The sampler's parameters (graph `params` over `config/sampler.toml`).
 
+use poseflow_geometry::flow::TimeGrid;
 use serde::Deserialize;
 
 use crate::SamplerError;
@@ -8,6 +9,7 @@ use crate::SamplerError;
 /// |---|---|---|
 /// | `samples` | N hypotheses per observation | 50 |
 /// | `steps` | K Euler steps from t = 0 | 5 |
+/// | `time_grid` | where the steps ask for the velocity: `uniform` (t = k/K) or `quadratic` (t = 1 − (1 − k/K)², ending nearer 1) | `uniform` |
 /// | `seed` | seed of the initial draws (mixed with frame and object ids) | 0 |
 /// | `translation_noise_std` | σ of the initial translations, metres; must match the model's `translation_noise_std` metadata | 0.05 |
 /// | `velocity_timeout_ms` | how long one velocity request may take before the frame is dropped (counted) | 5000 |
@@ -20,6 +22,9 @@ pub struct SamplerParams {
     pub samples: usize,
     #[serde(default = "default_steps")]
     pub steps: usize,
+    /// Of every integration, the prior's and a tracked group's.
+    #[serde(default)]
+    pub time_grid: TimeGrid,
     #[serde(default)]
     pub seed: u64,
     #[serde(default = "default_noise")]

@@ -111,6 +111,19 @@ fn the_exact_flow_carries_every_sample_to_the_target_in_the_camera_frame() {
 }
 
 #[test]
+fn a_quadratic_time_grid_asks_nearer_one_and_still_lands_on_the_target() {
+    let handle = handle(3);
+    let mut times = Vec::new();
+    let params = SamplerParams::from_json(&serde_json::json!({"samples": 20, "time_grid": "quadratic"})).unwrap();
+    let mut sampler = FlowSampler::new(params);
+    let sampled = sampler.sample(&handle, &Start::Prior, &mut toward_target(&handle, &mut times)).unwrap();
+    assert_near_target(sampled.poses, 1e-3, 1e-5);
+    let expected = [0.0, 0.36, 0.64, 0.84, 0.96];
+    assert!(times.iter().zip(expected).all(|(t, e)| (f64::from(*t) - e).abs() < 1e-6), "{times:?}");
+    assert_eq!(times.len(), expected.len());
+}
+
+#[test]
 fn draws_depend_on_seed_frame_and_object_only() {
     let zero = |_: &VelocityRequest, _: &[f32], out: &mut [f32]| -> Result<(), FieldError> {
         out.fill(0.0);
@@ -618,6 +631,7 @@ fn bad_parameters_are_named() {
         (serde_json::json!({"tracking": {"start_time": 1.0}}), "tracking.start_time"),
         (serde_json::json!({"tracking": {"enable": true}}), "unknown field `enable`"),
         (serde_json::json!({"translation_noise_std": -1.0}), "translation_noise_std"),
+        (serde_json::json!({"time_grid": "cosine"}), "unknown variant `cosine`, expected `uniform` or `quadratic`"),
     ] {
         let err = SamplerParams::from_json(&json).unwrap_err().to_string();
         assert!(err.contains(expected), "{json}: {err}");

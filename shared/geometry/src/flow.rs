@@ -77,10 +77,60 @@ pub fn euler_times(steps: usize) -> impl Iterator<Item = f64> {
     (0..steps).map(move |k| k as f64 / steps as f64)
 }
 
+/// Where a K-step Euler integration from flow time `s` to 1 asks for the
+/// velocity: times `t_0 = s < t_1 < … < t_K = 1`, step `k` going from `t_k`
+/// to `t_{k+1}`.
+///
+/// With a network trained on the clean pose, the last step lands on its
+/// prediction at `t_{K−1}`, so a grid whose last time is nearer 1 ends on a
+/// prediction made from a less noisy sample, at the same number of network
+/// calls (docs/distributions.md, "time grid").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TimeGrid {
+    /// `t_k = s + (1 − s) k / K`: the paper's.
+    #[default]
+    Uniform,
+    /// `t_k = 1 − (1 − s)(1 − k / K)²`: steps shrink towards t = 1 (for
+    /// s = 0, K = 5: 0, 0.36, 0.64, 0.84, 0.96).
+    Quadratic,
+}
+
+impl TimeGrid {
+    /// `t_k` of a `steps`-step integration from `start` (`k` = `steps`
+    /// gives 1).
+    pub fn time(self, start: f64, k: usize, steps: usize) -> f64 {
+        let done = k as f64 / steps as f64;
+        match self {
+            TimeGrid::Uniform => start + (1.0 - start) * done,
+            TimeGrid::Quadratic => 1.0 - (1.0 - start) * (1.0 - done).powi(2),
+        }
+    }
+
+    /// `t_{k+1} − t_k`.
+    pub fn step(self, start: f64, k: usize, steps: usize) -> f64 {
+        self.time(start, k + 1, steps) - self.time(start, k, steps)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::pose::Twist;
+
+    #[test]
+    fn time_grids_closed_forms() {
+        let quadratic: Vec<f64> = (0..=5).map(|k| TimeGrid::Quadratic.time(0.0, k, 5)).collect();
+        for (got, want) in quadratic.iter().zip([0.0, 0.36, 0.64, 0.84, 0.96, 1.0]) {
+            assert!((got - want).abs() < 1e-12, "{quadratic:?}");
+        }
+        let uniform: Vec<f64> = (0..5).map(|k| TimeGrid::Uniform.time(0.0, k, 5)).collect();
+        assert_eq!(uniform, euler_times(5).collect::<Vec<_>>());
+        assert!((TimeGrid::Uniform.step(0.8, 0, 2) - 0.1).abs() < 1e-12);
+        assert!((TimeGrid::Quadratic.time(0.8, 1, 2) - 0.95).abs() < 1e-12);
+        // One step is the same whatever the grid.
+        assert_eq!(TimeGrid::Quadratic.step(0.8, 0, 1), TimeGrid::Uniform.step(0.8, 0, 1));
+    }
 
     fn sample_pair() -> (Pose, Pose) {
         (Pose::exp(&Twist::new(0.1, 0.2, 0.3, 0.5, -1.0, 0.7)), Pose::exp(&Twist::new(-0.3, 0.0, 0.9, -1.2, 0.4, 0.2)))

@@ -132,6 +132,24 @@ proptest! {
     }
 
     #[test]
+    fn every_time_grid_rises_from_its_start_to_one_and_integrates_exactly(
+        start in pose(), axis in unit_axis(), angle in 0.0..(PI - 0.01), p1 in translation(2.0), steps in 1usize..8,
+        from in 0.0..0.95f64, quadratic in any::<bool>(),
+    ) {
+        let grid = if quadratic { flow::TimeGrid::Quadratic } else { flow::TimeGrid::Uniform };
+        let target = Pose::new(start.rotation * so3::exp(&(axis * angle)), p1);
+        let mut poses = [flow::interpolate(&start, &target, from)];
+        prop_assert!((grid.time(from, 0, steps) - from).abs() < 1e-12);
+        prop_assert!((grid.time(from, steps, steps) - 1.0).abs() < 1e-12);
+        for k in 0..steps {
+            prop_assert!(grid.step(from, k, steps) > 0.0);
+            let v = flow::target_velocity(&poses[0], &target, grid.time(from, k, steps)).unwrap();
+            flow::euler_step(&mut poses, &[v], grid.step(from, k, steps)).unwrap();
+        }
+        prop_assert!(max_abs_diff(&poses[0], &target) < 1e-9);
+    }
+
+    #[test]
     fn karcher_mean_of_a_symmetric_cluster_is_its_centre(
         centre in pose(),
         offsets in prop::collection::vec((unit_axis(), 0.0..1.2f64, translation(0.1), 0.1..2.0f64), 1..6),

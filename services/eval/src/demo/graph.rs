@@ -9,7 +9,7 @@ use anyhow::Context;
 use poseflow_graph::Graph;
 use serde_json::json;
 
-use super::DetectorMode;
+use super::{DetectorMode, TimeGridArg};
 
 /// Per-stage inline parameters the demo sets on top of the graph file's.
 pub struct Overrides<'a> {
@@ -23,6 +23,8 @@ pub struct Overrides<'a> {
     pub refine: bool,
     pub samples: usize,
     pub steps: usize,
+    /// The sampler's time grid, when set.
+    pub time_grid: Option<TimeGridArg>,
     /// Euler steps of a tracked frame (the sampler's `tracking.steps`), when
     /// set.
     pub tracking_steps: Option<usize>,
@@ -112,6 +114,9 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
             "sampler" => {
                 graph.set(stage, &["samples"], overrides.samples.into())?;
                 graph.set(stage, &["steps"], overrides.steps.into())?;
+                if let Some(grid) = overrides.time_grid {
+                    graph.set(stage, &["time_grid"], grid.name().into())?;
+                }
                 if let Some(steps) = overrides.tracking_steps {
                     graph.set(stage, &["tracking", "steps"], steps.into())?;
                 }

@@ -52,6 +52,25 @@ impl SelectionArg {
     }
 }
 
+/// Where the sampler's Euler steps ask for the velocity (the sampler's
+/// `time_grid`, `poseflow_geometry::flow::TimeGrid`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TimeGridArg {
+    /// t = k/K: the paper's.
+    Uniform,
+    /// t = 1 − (1 − k/K)²: the last step starts nearer t = 1.
+    Quadratic,
+}
+
+impl TimeGridArg {
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Self::Uniform => "uniform",
+            Self::Quadratic => "quadratic",
+        }
+    }
+}
+
 /// How the detector stage finds the objects (`--detect`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum DetectorMode {
@@ -189,6 +208,10 @@ pub struct DemoArgs {
     /// Euler steps.
     #[arg(long, default_value_t = 5)]
     pub steps: usize,
+    /// Where the Euler steps ask for the velocity: `quadratic` ends nearer t = 1, sharper samples but a
+    /// narrower spread where the view is ambiguous (docs/distributions.md) [default: the graph's, uniform].
+    #[arg(long, value_enum)]
+    pub time_grid: Option<TimeGridArg>,
     /// Tracking: render a video (the camera orbits the scene) and run the tracking graph over it, each
     /// estimate seeding the next frame; reports accuracy over the sequence.
     #[arg(long)]
@@ -412,6 +435,7 @@ fn render_and_run(
         refine: !args.no_refine,
         samples: args.samples,
         steps: args.steps,
+        time_grid: args.time_grid,
         tracking_steps: None,
         rate_hz: args.track.then_some(args.rate_hz),
         rgb: true,
