@@ -129,8 +129,8 @@ fn the_ycbv_demo_runs_the_ycbv_model_on_a_real_camera_render() {
         })
         .count();
     // Floor on this fixed scene: the shipped model has 10 of 11 objects
-    // within 10°5cm here with 12 samples and 3 steps (11 of 11 with the
-    // demo's 50 and 5); an untrained network has none.
+    // within 10°5cm here, with 12 samples and 3 steps as with the demo's
+    // 50 and 5; an untrained network has none.
     assert!(within * 5 >= objects.len() * 2, "{within} of {} within 10°5cm: {report}", objects.len());
     let mollweide = image::open(out_dir.join("mollweide.png")).unwrap();
     assert_eq!(mollweide.height(), 36 + 340 * objects.len() as u32);
