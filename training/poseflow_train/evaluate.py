@@ -65,21 +65,29 @@ def flow_times(steps, time_grid="uniform"):
     raise ValueError(f"time grid {time_grid!r}: expected one of {', '.join(TIME_GRIDS)}")
 
 
+def euler_steps(steps, time_grid="uniform"):
+    """(t_k, t_{k+1} - t_k) of each Euler step; the uniform grid's length is
+    exactly 1/K, as it was before grids existed."""
+    times = flow_times(steps, time_grid)
+    if time_grid == "uniform":
+        return [(t, 1.0 / steps) for t in times[:-1]]
+    return [(t, after - t) for t, after in zip(times, times[1:])]
+
+
 def rollout(velocity, condition, mask, cfg, samples, steps, generator, time_grid="uniform"):
     """The sampler of the inference stage: `samples` uniform rotations and
     Gaussian translations per observation, carried by K Euler steps at the
-    times of `flow_times` ([B, N, 3, 3], [B, N, 3]). Differentiable, so
+    times of `euler_steps` ([B, N, 3, 3], [B, N, 3]). Differentiable, so
     training can score what K steps produce (`rollout_energy`)."""
     b = condition.shape[0]
     m = b * samples
     # Drawn on the generator's CPU, carried where the condition is.
     r = se3.uniform_rotation((m,), generator=generator).to(condition.device)
     p = (torch.randn(m, 3, generator=generator) * cfg.translation_noise_std).to(condition.device)
-    times = flow_times(steps, time_grid)
-    for k in range(steps):
-        t = torch.full((m,), times[k], device=condition.device)
+    for time, length in euler_steps(steps, time_grid):
+        t = torch.full((m,), time, device=condition.device)
         v_rot, v_pos = velocity(condition, mask, r, p, t)
-        r, p = se3.euler_step(r, p, v_rot, v_pos, times[k + 1] - times[k])
+        r, p = se3.euler_step(r, p, v_rot, v_pos, length)
     return r.reshape(b, samples, 3, 3), p.reshape(b, samples, 3)
 
 
