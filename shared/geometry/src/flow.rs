@@ -101,8 +101,8 @@ impl TimeGrid {
     /// gives 1).
     pub fn time(self, start: f64, k: usize, steps: usize) -> f64 {
         match self {
-            // As `start + k dt` so that the uniform sampler's samples stay
-            // bit for bit what they were before grids existed.
+            // Exactly `start + k dt`: results recorded with the uniform
+            // sampler then reproduce bit for bit.
             TimeGrid::Uniform => start + k as f64 * self.step(start, k, steps),
             TimeGrid::Quadratic => 1.0 - (1.0 - start) * (1.0 - k as f64 / steps as f64).powi(2),
         }
