@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use clap::Args;
 use nalgebra::Point3;
+use poseflow_geometry::flow::TimeGrid;
 use poseflow_geometry::metrics::NearestPoints;
 use poseflow_geometry::models_info::ModelsInfo;
 use poseflow_geometry::sampling::sample_seed;
@@ -225,7 +226,7 @@ enum Method {
         samples: usize,
         steps: usize,
         /// The sampler's time grid as the graph ran it.
-        time_grid: String,
+        time_grid: TimeGrid,
         #[serde(skip_serializing_if = "Option::is_none")]
         tracking_steps: Option<usize>,
         rgb: bool,
@@ -492,7 +493,7 @@ fn eval_graph(args: &EvalArgs, objects_dir: &Path, object_ids: Vec<u32>) -> anyh
         refine: args.refine,
         samples: args.samples,
         steps: args.steps,
-        time_grid: args.time_grid,
+        time_grid: args.time_grid.map(TimeGrid::from),
         tracking_steps: args.tracking_steps,
         rate_hz: args.rate_hz,
         rgb: !args.no_rgb,
@@ -553,11 +554,11 @@ fn run_graph_on(
 }
 
 /// The `time_grid` of the graph's sampler stage (after the graph file, its
-/// config and every override), `uniform` when unset.
-fn sampler_time_grid(run: &Graph) -> String {
+/// config and every override), uniform when unset (as the sampler reads it).
+fn sampler_time_grid(run: &Graph) -> TimeGrid {
     let sampler = run.stages.values().find(|stage| stage.exe_name() == "sampler");
-    let grid = sampler.and_then(|stage| stage.params.get("time_grid")).and_then(|grid| grid.as_str());
-    grid.unwrap_or(TimeGridArg::Uniform.name()).to_string()
+    let grid = sampler.and_then(|stage| stage.params.get("time_grid"));
+    grid.and_then(|grid| serde_json::from_value(grid.clone()).ok()).unwrap_or_default()
 }
 
 /// What a model's `objects.json` (written at export) says it was trained on.
@@ -770,7 +771,10 @@ fn print_table(report: &EvalReport) {
         Method::Graph { selection, refine, samples, steps, time_grid, tracking_steps, rgb, .. } => format!(
             "selection {selection}{}, {samples} samples, {steps} steps{}{}{}; accuracies in % of instances{}",
             if *refine { " + refinement" } else { "" },
-            if time_grid == "uniform" { String::new() } else { format!(" on the {time_grid} time grid") },
+            match time_grid {
+                TimeGrid::Uniform => "",
+                TimeGrid::Quadratic => " on the quadratic time grid",
+            },
             tracking_steps.map_or(String::new(), |k| format!(" ({k} when tracked)")),
             if *rgb { "" } else { ", no image (depth only)" },
             if *selection == "none" { ", averaged over the samples" } else { "" }

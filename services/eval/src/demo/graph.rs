@@ -6,10 +6,11 @@
 use std::path::Path;
 
 use anyhow::Context;
+use poseflow_geometry::flow::TimeGrid;
 use poseflow_graph::Graph;
 use serde_json::json;
 
-use super::{DetectorMode, TimeGridArg};
+use super::DetectorMode;
 
 /// Per-stage inline parameters the demo sets on top of the graph file's.
 pub struct Overrides<'a> {
@@ -24,7 +25,7 @@ pub struct Overrides<'a> {
     pub samples: usize,
     pub steps: usize,
     /// The sampler's time grid, when set.
-    pub time_grid: Option<TimeGridArg>,
+    pub time_grid: Option<TimeGrid>,
     /// Euler steps of a tracked frame (the sampler's `tracking.steps`), when
     /// set.
     pub tracking_steps: Option<usize>,
@@ -115,7 +116,7 @@ pub fn graph_with_overrides(graph_file: &Path, overrides: &Overrides<'_>) -> any
                 graph.set(stage, &["samples"], overrides.samples.into())?;
                 graph.set(stage, &["steps"], overrides.steps.into())?;
                 if let Some(grid) = overrides.time_grid {
-                    graph.set(stage, &["time_grid"], grid.name().into())?;
+                    graph.set(stage, &["time_grid"], serde_json::to_value(grid)?)?;
                 }
                 if let Some(steps) = overrides.tracking_steps {
                     graph.set(stage, &["tracking", "steps"], steps.into())?;

@@ -13,6 +13,7 @@ use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use poseflow_contracts::{EstimateHeader, HypothesesHeader, POSE_LEN};
 use poseflow_geometry::Pose;
+use poseflow_geometry::flow::TimeGrid;
 use poseflow_graph::Graph;
 use poseflow_runtime::recording::{RecordingReader, header_from_bytes};
 use poseflow_scene::bop::{CameraEntry, GtEntry, SceneDir, read_json, read_rgb_png};
@@ -62,11 +63,11 @@ pub enum TimeGridArg {
     Quadratic,
 }
 
-impl TimeGridArg {
-    pub(crate) fn name(self) -> &'static str {
-        match self {
-            Self::Uniform => "uniform",
-            Self::Quadratic => "quadratic",
+impl From<TimeGridArg> for TimeGrid {
+    fn from(arg: TimeGridArg) -> Self {
+        match arg {
+            TimeGridArg::Uniform => TimeGrid::Uniform,
+            TimeGridArg::Quadratic => TimeGrid::Quadratic,
         }
     }
 }
@@ -435,7 +436,7 @@ fn render_and_run(
         refine: !args.no_refine,
         samples: args.samples,
         steps: args.steps,
-        time_grid: args.time_grid,
+        time_grid: args.time_grid.map(TimeGrid::from),
         tracking_steps: None,
         rate_hz: args.track.then_some(args.rate_hz),
         rgb: true,
