@@ -15,7 +15,7 @@ use poseflow_scene::{ObjectGeometry, ObjectLibrary};
 
 use crate::select::{Observed, scorer, select_turning};
 use crate::track::{Evidence, TrackMonitor, Verdict, jump_from};
-use crate::visibility::{DepthGrid, FitSettings, INSIDE_DEPTH, point_fit, silhouette};
+use crate::visibility::{DepthGrid, FitSettings, INSIDE_DEPTH, Sightlines, point_fit, silhouette};
 use crate::{Method, Selection, SelectorError, SelectorParams, Turns};
 use poseflow_geometry::metrics::Pinhole;
 
@@ -31,6 +31,9 @@ struct Kept {
     /// prefix is an even subsample).
     points: Vec<Point3<f64>>,
     camera: Pinhole,
+    /// The full image's width and height, pixels, when the Observation
+    /// gives them.
+    image: Option<(f64, f64)>,
     depth: Option<DepthGrid>,
 }
 
@@ -134,6 +137,8 @@ impl SelectorStage {
                 cx: f64::from(header.intrinsics.cx),
                 cy: f64::from(header.intrinsics.cy),
             },
+            image: (header.intrinsics.width > 0 && header.intrinsics.height > 0)
+                .then(|| (f64::from(header.intrinsics.width), f64::from(header.intrinsics.height))),
         });
         Ok(())
     }
@@ -354,7 +359,11 @@ impl Job {
             fit: model.and_then(|model| point_fit(&selection.best, seen.points, &settings, |y| model.grid().value(y))),
             silhouette: match (model, observed) {
                 (Some(model), Some(o)) if check.min_covered > 0.0 => {
-                    silhouette(&selection.best, model.surface(), &o.points, &o.camera, SILHOUETTE_CELLS)
+                    let sight = match check.covered_where_visible {
+                        true => Sightlines { image: o.image, depth: o.depth.as_ref() },
+                        false => Sightlines::default(),
+                    };
+                    silhouette(&selection.best, model.surface(), &o.points, &o.camera, SILHOUETTE_CELLS, &sight)
                 }
                 _ => None,
             },
@@ -608,7 +617,7 @@ pub fn from_wiring(wiring: &poseflow_graph::StageWiring) -> Result<SelectorStage
 #[cfg(test)]
 mod tests {
     use super::*;
-    use poseflow_contracts::ObjectCategory;
+    use poseflow_contracts::{CameraIntrinsics, ObjectCategory};
     use poseflow_geometry::so3;
 
     fn observation(crop: [f32; 4], depth_span: f32) -> ObservationHeader {
@@ -809,6 +818,53 @@ mod tests {
         // Unsure on every other frame: the spread is held against a track only.
         let unsure = plain[2..].iter().filter(|&&f| f & flags::UNSURE != 0).count();
         assert!(unsure >= 3, "without the symmetries a spread over the twins is doubt: {plain:?}");
+    }
+
+    /// The driller standing half out of a 640 × 480 image, seen for eight
+    /// frames, its hypotheses the truth: the silhouette's cells beyond the
+    /// image's edge hold no points, and only with `covered_where_visible`
+    /// (the default) do they not make the track unsure.
+    #[test]
+    fn a_track_running_off_the_image_is_not_doubted_for_the_part_outside() {
+        let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../objects/lmo8");
+        let camera = CameraIntrinsics { fx: 600.0, fy: 600.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };
+        let flags_of = |covered_where_visible: bool| -> Vec<u32> {
+            let params = SelectorParams::from_json(&serde_json::json!({
+                "method": "sdf", "refine": false, "sdf_resolution": 24, "models": models, "turns": "none",
+                "tracking": { "check": true, "covered_where_visible": covered_where_visible }
+            }))
+            .unwrap();
+            let mut stage = SelectorStage::new(params).unwrap();
+            let surface = stage.library.as_ref().unwrap().get(8).unwrap().surface().to_vec();
+            // Its centre projects onto the image's right edge (u = 640).
+            let truth =
+                Pose::new(nalgebra::Rotation3::from_euler_angles(0.4, -0.3, 0.2), Vector3::new(0.3733, 0.0, 0.7));
+            let points: Vec<Point3<f64>> = surface
+                .iter()
+                .map(|p| truth.transform_point(p))
+                .filter(|p| p.z < truth.translation.z && 600.0 * p.x / p.z + 320.0 < 640.0)
+                .collect();
+            (0..8u64)
+                .map(|frame| {
+                    let mut header = Header::new(frame, 8);
+                    if frame > 0 {
+                        header.flags |= flags::TRACKING;
+                    }
+                    let (mut observation, payload) = observation_of(&points);
+                    (observation.header, observation.intrinsics) = (header, camera);
+                    let message = HypothesesHeader { header, sample_count: 1, step_count: 5, ..Default::default() };
+                    stage.keep_observation(&observation, &payload).unwrap();
+                    stage.select_and_check(&message, &truth.to_f32_row_major()).unwrap().1
+                })
+                .collect()
+        };
+        let visible = flags_of(true);
+        assert!(visible[2..].iter().all(|&f| f == 0), "tracked without flags from the second frame on: {visible:?}");
+        let whole = flags_of(false);
+        assert!(
+            whole[2..].iter().all(|&f| f & flags::UNSURE != 0),
+            "judged over the whole silhouette, half of it is empty: {whole:?}"
+        );
     }
 
     /// The driller turning 1° a frame about the camera's axis, its one

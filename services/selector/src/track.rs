@@ -95,6 +95,7 @@ use crate::visibility::{FreeSpace, PointFit, Silhouette};
 /// | `residual_ratio` | an RMS residual this many times the track's usual one makes a tracked object unsure (weak) | 1.5 |
 /// | `max_hidden_share` | a larger share of the points hidden by the object's own body at the pose is a poor fit (soft) | 0.25 |
 /// | `min_covered` | a smaller share of the pose's silhouette interior holding observed points makes a tracked object unsure (weak); 0 switches the test off | 0.5 |
+/// | `covered_where_visible` | the silhouette's share counts only cells the camera could see: inside the image, and not behind a nearer unmasked depth of the Observation's depth grid ([`crate::visibility::Sightlines`]) | true |
 /// | `max_seen_past` | a larger share of lines of sight on which the camera saw past the object at the pose (outside the mask, depth behind it: [`crate::visibility::free_space`]) is a poor fit (soft); needs the Observation's depth grid | 0.1 |
 /// | `max_spread_deg` | tracking: a wider rotational spread of the kept hypotheses is unsure (soft) | 45 |
 /// | `max_jump_deg` | tracking: a larger turn away from the predicted pose is a jump (soft) | 30 |
@@ -127,6 +128,8 @@ pub struct TrackCheckParams {
     pub max_hidden_share: f64,
     #[serde(default = "default_min_covered")]
     pub min_covered: f64,
+    #[serde(default = "default_true")]
+    pub covered_where_visible: bool,
     #[serde(default = "default_max_seen_past")]
     pub max_seen_past: f64,
     #[serde(default = "default_max_spread_deg")]

@@ -47,6 +47,14 @@ impl DepthGrid {
         let (j, i) = ((k % self.cells) as f64, (k / self.cells) as f64);
         ((self.x_min + (j + 0.5) * cell).round(), (self.y_min + (i + 0.5) * cell).round())
     }
+
+    /// The cell holding image pixel `(u, v)`; `None` outside the grid.
+    fn cell_at(&self, (u, v): (f64, f64)) -> Option<usize> {
+        let cell = self.side / self.cells as f64;
+        let (j, i) = (((u - self.x_min) / cell).floor(), ((v - self.y_min) / cell).floor());
+        let range = 0.0..self.cells as f64;
+        (range.contains(&j) && range.contains(&i)).then(|| i as usize * self.cells + j as usize)
+    }
 }
 
 /// What [`free_space`] found on the lines of sight of a [`DepthGrid`].
@@ -141,23 +149,64 @@ pub struct Silhouette {
     pub explained: f64,
 }
 
-/// Fewer interior cells than this (a thin object seen edge-on) are too few
-/// to judge the silhouette by.
+/// Fewer interior cells than this (a thin object seen edge-on, or one
+/// mostly outside the image or behind other things) are too few to judge
+/// the silhouette by.
 const MIN_INTERIOR_CELLS: usize = 8;
+
+/// Depth this much nearer than the posed object's front surface (metres)
+/// is something in front of it: beyond depth noise at working range.
+const OCCLUDER_MARGIN: f64 = 0.01;
+
+/// What the camera could have seen of a silhouette. A correct pose's
+/// silhouette holds no observed points where it runs off the image or lies
+/// behind a nearer surface (a neighbouring object, a hand), so those cells
+/// say nothing about the pose.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Sightlines<'a> {
+    /// The image's width and height, pixels; `None`: not known, every
+    /// pixel counts as inside.
+    pub image: Option<(f64, f64)>,
+    /// The Observation's depth grid, whose unmasked cells show what lies in
+    /// front of the object.
+    pub depth: Option<&'a DepthGrid>,
+}
+
+impl Sightlines<'_> {
+    /// Whether the camera could see the object's surface at `depth`
+    /// (camera z, metres) along pixel `(u, v)`.
+    fn could_see(&self, (u, v): (f64, f64), depth: f64) -> bool {
+        let in_image = self.image.is_none_or(|(width, height)| (0.0..width).contains(&u) && (0.0..height).contains(&v));
+        let occluded = self.depth.is_some_and(|grid| {
+            grid.cell_at((u, v)).is_some_and(|k| {
+                let seen = f64::from(grid.depth[k]);
+                !grid.mask[k] && seen > 0.0 && seen < depth - OCCLUDER_MARGIN
+            })
+        });
+        in_image && !occluded
+    }
+}
 
 /// Compares the silhouette of `surface` (model frame, metres: points
 /// spread over the whole surface) at `pose` with the pixels of `observed`
 /// (camera frame: the object's masked depth points, spread over the mask),
-/// on cells `cells_across` to the silhouette's larger side. `None` when
-/// nothing projects, or the silhouette has too few interior cells.
+/// on cells `cells_across` to the silhouette's larger side. Interior cells
+/// the camera could not see (`sight`) are left out of `covered`. `None`
+/// when nothing projects, or too few interior cells are left to judge.
 pub fn silhouette(
     pose: &Pose,
     surface: &[Point3<f64>],
     observed: &[Point3<f64>],
     camera: &Pinhole,
     cells_across: usize,
+    sight: &Sightlines,
 ) -> Option<Silhouette> {
-    let model: Vec<(f64, f64)> = surface.iter().filter_map(|p| camera.pixel(&pose.transform_point(p))).collect();
+    let posed: Vec<(f64, (f64, f64))> = surface
+        .iter()
+        .map(|p| pose.transform_point(p))
+        .filter_map(|x| camera.pixel(&x).map(|pixel| (x.z, pixel)))
+        .collect();
+    let model: Vec<(f64, f64)> = posed.iter().map(|&(_, pixel)| pixel).collect();
     let seen: Vec<(f64, f64)> = observed.iter().filter_map(|x| camera.pixel(x)).collect();
     if model.is_empty() || seen.is_empty() {
         return None;
@@ -176,11 +225,18 @@ pub fn silhouette(
     };
     let n = (side * side) as usize;
     let mut inside = vec![false; n];
-    for &pixel in &model {
+    // The object's front surface in each cell: camera z, metres.
+    let mut front = vec![f64::INFINITY; n];
+    for &(z, pixel) in &posed {
         if let Some(k) = index(pixel) {
             inside[k] = true;
+            front[k] = front[k].min(z);
         }
     }
+    let centre = |k: usize| {
+        let (i, j) = ((k as i64 % side - 2) as f64, (k as i64 / side - 2) as f64);
+        (low.0 + (i + 0.5) * cell, low.1 + (j + 0.5) * cell)
+    };
     let mut hit = vec![false; n];
     for &pixel in &seen {
         if let Some(k) = index(pixel) {
@@ -189,7 +245,8 @@ pub fn silhouette(
     }
     // Only the silhouette's interior is judged: a cell on its edge may hold
     // a sliver of the mask, and the sensor loses depth at object edges, so
-    // an edge cell without points says nothing.
+    // an edge cell without points says nothing. Nor does a cell the camera
+    // could not see.
     let interior: Vec<usize> = (0..n)
         .filter(|&k| {
             let (i, j) = ((k as i64) % side, (k as i64) / side);
@@ -198,6 +255,7 @@ pub fn silhouette(
                     let (a, b) = (i + di, j + dj);
                     (0..side).contains(&a) && (0..side).contains(&b) && inside[(b * side + a) as usize]
                 })
+                && sight.could_see(centre(k), front[k])
         })
         .collect();
     if interior.len() < MIN_INTERIOR_CELLS {
@@ -363,7 +421,7 @@ mod tests {
         // The visible cap's points, as a mask would give them.
         let observed: Vec<_> =
             sphere_points(0.05, 3000).into_iter().map(|p| pose.transform_point(&p)).filter(|x| x.z < 0.5).collect();
-        let agreement = silhouette(&pose, &surface, &observed, &CAMERA, 12).unwrap();
+        let agreement = silhouette(&pose, &surface, &observed, &CAMERA, 12, &Sightlines::default()).unwrap();
         assert!(agreement.covered > 0.95, "{agreement:?}");
         assert_eq!(agreement.explained, 1.0);
 
@@ -371,13 +429,13 @@ mod tests {
         // points on the far side of the true one are not explained.
         let shifted = at(0.5);
         let moved = Pose::new(shifted.rotation, shifted.translation + Vector3::new(0.05, 0.0, 0.0));
-        let agreement = silhouette(&moved, &surface, &observed, &CAMERA, 12).unwrap();
+        let agreement = silhouette(&moved, &surface, &observed, &CAMERA, 12, &Sightlines::default()).unwrap();
         assert!((0.3..0.7).contains(&agreement.covered), "{agreement:?}");
         assert!((0.3..0.8).contains(&agreement.explained), "{agreement:?}");
-        assert!(silhouette(&pose, &surface, &[], &CAMERA, 12).is_none());
+        assert!(silhouette(&pose, &surface, &[], &CAMERA, 12, &Sightlines::default()).is_none());
         // A rod seen side-on has no interior to judge.
         let rod: Vec<_> = (0..200).map(|i| Point3::new(-0.05 + i as f64 * 5e-4, 0.0, 0.0)).collect();
-        assert!(silhouette(&pose, &rod, &observed, &CAMERA, 12).is_none());
+        assert!(silhouette(&pose, &rod, &observed, &CAMERA, 12, &Sightlines::default()).is_none());
     }
 
     /// The depth grid of the sphere at `pose` in front of a wall at depth
@@ -448,5 +506,52 @@ mod tests {
         let blind = DepthGrid { depth: vec![0.0; 32 * 32], ..grid };
         assert_eq!(free_space(&moved, &blind, &CAMERA, sphere_bound, &FREE, sphere), FreeSpace::default());
         assert_eq!(FreeSpace::default().share(), 0.0);
+    }
+
+    /// The sphere at 0.5 m seen in front of a wall at 0.8 m, with a plate at
+    /// 0.3 m over the right half of the crop (from the image centre's
+    /// column on): the points the camera sees of the sphere, and the grid.
+    fn sphere_behind_plate(truth: &Pose) -> (Vec<Point3<f64>>, DepthGrid) {
+        let mut grid = sphere_depth(truth, 0.8, None);
+        for k in (0..32 * 32).filter(|k| k % 32 >= 16) {
+            (grid.depth[k], grid.mask[k]) = (0.3, false);
+        }
+        let observed = sphere_points(0.05, 3000)
+            .into_iter()
+            .map(|p| truth.transform_point(&p))
+            .filter(|x| x.z < 0.5 && x.x < 0.0)
+            .collect();
+        (observed, grid)
+    }
+
+    #[test]
+    fn silhouette_cells_behind_a_nearer_surface_or_off_the_image_are_not_judged() {
+        let truth = at(0.5);
+        let surface = sphere_points(0.05, 2000);
+        let (observed, plated) = sphere_behind_plate(&truth);
+        let blind = silhouette(&truth, &surface, &observed, &CAMERA, 12, &Sightlines::default()).unwrap();
+        assert!(blind.covered < 0.6, "{blind:?}");
+        let sight = Sightlines { image: None, depth: Some(&plated) };
+        let seen = silhouette(&truth, &surface, &observed, &CAMERA, 12, &sight).unwrap();
+        assert!(seen.covered > 0.95, "{seen:?}");
+        assert_eq!(seen.explained, blind.explained);
+
+        // Moved 5 cm into the open, left of the truth: the wall behind it is
+        // no occluder, so its empty cells still count.
+        let moved = Pose::new(truth.rotation, truth.translation - Vector3::new(0.05, 0.0, 0.0));
+        let open = silhouette(&moved, &surface, &observed, &CAMERA, 12, &sight).unwrap();
+        assert!(open.covered < 0.6, "{open:?}");
+        // Moved 5 cm to the right, wholly behind the plate: nothing to judge.
+        let hidden = Pose::new(truth.rotation, truth.translation + Vector3::new(0.05, 0.0, 0.0));
+        assert!(silhouette(&hidden, &surface, &observed, &CAMERA, 12, &sight).is_none());
+
+        // The image ends at the sphere's centre column: the same points, and
+        // only the part inside the image is judged.
+        let cut = Sightlines { image: Some((CAMERA.cx, 480.0)), depth: None };
+        let inside = silhouette(&truth, &surface, &observed, &CAMERA, 12, &cut).unwrap();
+        assert!(inside.covered > 0.95, "{inside:?}");
+        // An image that ends before the sphere leaves nothing to judge.
+        let gone = Sightlines { image: Some((200.0, 480.0)), depth: None };
+        assert!(silhouette(&truth, &surface, &observed, &CAMERA, 12, &gone).is_none());
     }
 }
