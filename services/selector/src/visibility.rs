@@ -206,13 +206,12 @@ pub fn silhouette(
         .map(|p| pose.transform_point(p))
         .filter_map(|x| camera.pixel(&x).map(|pixel| (x.z, pixel)))
         .collect();
-    let model: Vec<(f64, f64)> = posed.iter().map(|&(_, pixel)| pixel).collect();
     let seen: Vec<(f64, f64)> = observed.iter().filter_map(|x| camera.pixel(x)).collect();
-    if model.is_empty() || seen.is_empty() {
+    if posed.is_empty() || seen.is_empty() {
         return None;
     }
     let (mut low, mut high) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
-    for &(u, v) in &model {
+    for &(_, (u, v)) in &posed {
         (low, high) = ((low.0.min(u), low.1.min(v)), (high.0.max(u), high.1.max(v)));
     }
     let cell = ((high.0 - low.0).max(high.1 - low.1) / cells_across.max(1) as f64).max(1.0);
