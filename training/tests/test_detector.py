@@ -5,22 +5,33 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from poseflow_train.detector import HEIGHT, WIDTH, Detector, class_weights, evaluate_arrays, to_input
+import pytest
+
+from poseflow_train.detector import (
+    HEIGHT,
+    WIDTH,
+    build,
+    class_weights,
+    evaluate_arrays,
+    input_size,
+    random_crops,
+    to_input,
+)
 
 
-def squares(n, rng):
+def squares(n, rng, height=HEIGHT, width=WIDTH, side=30):
     """Images with one square per image whose colour says its class, on a
     table at 1 m; the square stands 10 cm nearer."""
-    rgb = np.full((n, HEIGHT, WIDTH, 3), 90, np.uint8)
-    depth = np.full((n, HEIGHT, WIDTH), 1000, np.uint16)
-    labels = np.zeros((n, HEIGHT, WIDTH), np.uint8)
+    rgb = np.full((n, height, width, 3), 90, np.uint8)
+    depth = np.full((n, height, width), 1000, np.uint16)
+    labels = np.zeros((n, height, width), np.uint8)
     colours = {1: (220, 40, 40), 2: (40, 220, 40)}
     for i in range(n):
         k = 1 + i % 2
-        y, x = rng.integers(10, HEIGHT - 40), rng.integers(10, WIDTH - 40)
-        rgb[i, y : y + 30, x : x + 30] = colours[k]
-        depth[i, y : y + 30, x : x + 30] = 900
-        labels[i, y : y + 30, x : x + 30] = k
+        y, x = rng.integers(10, height - side - 10), rng.integers(10, width - side - 10)
+        rgb[i, y : y + side, x : x + side] = colours[k]
+        depth[i, y : y + side, x : x + side] = 900
+        labels[i, y : y + side, x : x + side] = k
     return rgb, depth, labels
 
 
@@ -32,11 +43,15 @@ def test_input_layout():
     assert torch.all(x[0, 4] == 1)
 
 
-def test_a_trained_detector_finds_the_objects_an_untrained_one_misses():
+@pytest.mark.parametrize("arch", ["unet", "fine"])
+def test_a_trained_detector_finds_the_objects_an_untrained_one_misses(arch):
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
-    rgb, depth, labels = squares(16, rng)
-    model = Detector(3, width=8)
+    # Half the input of either architecture keeps the test quick; both are
+    # convolutional, so the size is theirs to take.
+    height, width, _ = input_size(arch)
+    rgb, depth, labels = squares(16, rng, height // 2, width // 2, side=height // 8)
+    model = build(arch, 3, width=8)
     untrained = evaluate_arrays(model, rgb, depth, labels, [1, 2])["mean_iou"]
     optimiser = torch.optim.AdamW(model.parameters(), lr=5e-3)
     weights = torch.tensor(class_weights(2))
@@ -59,3 +74,30 @@ def test_learning_rate_decays_by_a_cosine_to_five_percent():
     assert abs(learning_rate(1.0, 50, 100) - (0.05 + 0.95 * 0.5)) < 1e-12
     assert abs(learning_rate(1.0, 100, 100) - 0.05) < 1e-12
     assert abs(learning_rate(1.0, 1000, 100) - 0.05) < 1e-12
+
+
+@pytest.mark.parametrize("arch", ["unet", "fine"])
+def test_the_output_has_the_input_size(arch):
+    height, width, down = input_size(arch)
+    assert (height * down, width * down) == (480, 640)
+    model = build(arch, 4, width=8).eval()
+    with torch.no_grad():
+        assert model(torch.zeros(1, 5, height, width)).shape == (1, 4, height, width)
+
+
+def test_random_crops_cut_the_same_window_from_image_depth_and_labels():
+    rng = np.random.default_rng(1)
+    n, h, w = 3, 12, 20
+    rgb = np.arange(n * h * w * 3, dtype=np.int64).reshape(n, h, w, 3) % 251
+    depth = (np.arange(n * h * w).reshape(n, h, w) % 4093).astype(np.uint16)
+    labels = (np.arange(n * h * w).reshape(n, h, w) % 7).astype(np.uint8)
+    c_rgb, c_depth, c_labels = random_crops(rgb.astype(np.uint8), depth, labels, (5, 8), rng)
+    assert c_rgb.shape == (n, 5, 8, 3) and c_depth.shape == (n, 5, 8) and c_labels.shape == (n, 5, 8)
+    for i in range(n):
+        # Each pixel of a crop is unique in its image's depth: find the window.
+        y, x = np.argwhere(depth[i] == c_depth[i, 0, 0])[0]
+        assert np.array_equal(c_rgb[i], rgb[i, y : y + 5, x : x + 8].astype(np.uint8))
+        assert np.array_equal(c_labels[i], labels[i, y : y + 5, x : x + 8])
+    # A window larger than the image is the whole image.
+    whole = random_crops(rgb.astype(np.uint8), depth, labels, (50, 50), rng)
+    assert whole[1].shape == depth.shape

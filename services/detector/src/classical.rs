@@ -77,6 +77,12 @@ pub struct ClassicalParams {
     /// agrees with it, metres.
     #[serde(default = "default_inlier_distance")]
     pub inlier_distance_m: f64,
+    /// A cluster point within this distance of the identified object's
+    /// posed surface is labelled the object (its mask), metres: wider than
+    /// `inlier_distance_m`, since the sensor's noise would otherwise leave
+    /// a ragged mask of the best-fitting points only.
+    #[serde(default = "default_mask_distance")]
+    pub mask_distance_m: f64,
     /// The least agreement ([`Fit::agreement`]) of an identified object.
     #[serde(default = "default_min_fit")]
     pub min_fit: f64,
@@ -105,10 +111,13 @@ fn default_min_points() -> usize {
     12
 }
 fn default_starts() -> usize {
-    40
+    120
 }
 fn default_inlier_distance() -> f64 {
     0.004
+}
+fn default_mask_distance() -> f64 {
+    0.02
 }
 fn default_min_fit() -> f64 {
     0.5
@@ -128,6 +137,7 @@ impl Default for ClassicalParams {
             min_points: default_min_points(),
             starts: default_starts(),
             inlier_distance_m: default_inlier_distance(),
+            mask_distance_m: default_mask_distance(),
             min_fit: default_min_fit(),
             sdf_resolution: default_sdf_resolution(),
             seed: 0,
@@ -146,6 +156,7 @@ impl ClassicalParams {
             ("plane_tolerance_m", self.plane_tolerance_m),
             ("cluster_gap_m", self.cluster_gap_m),
             ("inlier_distance_m", self.inlier_distance_m),
+            ("mask_distance_m", self.mask_distance_m),
         ] {
             if !(value.is_finite() && value > 0.0) {
                 return bad(key, format!("expected a positive distance in metres, got {value}"));
@@ -316,7 +327,7 @@ impl ClassicalDetector {
                 let object = self.library.get(fit.obj_id).expect("known");
                 let inverse = fit.pose.inverse();
                 let explained = |p: &Point3<f64>| {
-                    object.grid().value(&inverse.transform_point(p)).abs() <= self.params.inlier_distance_m
+                    object.grid().value(&inverse.transform_point(p)).abs() <= self.params.mask_distance_m
                 };
                 let (claimed, rest): (Vec<usize>, Vec<usize>) =
                     remaining.iter().partition(|&&i| explained(&grid.points[i].expect("clustered")));
@@ -361,6 +372,15 @@ impl ClassicalDetector {
                 // best part is still tried, but not one the object cannot span.
                 let (_, radius) = object.bounding_sphere();
                 (extent <= 4.0 * radius).then(|| self.fit(object, &cluster, grid))
+            })
+            .inspect(|fit| {
+                tracing::trace!(
+                    object = fit.obj_id,
+                    inliers = fit.inliers,
+                    agreement = fit.agreement,
+                    points = points.len(),
+                    "fit"
+                )
             })
             .filter(|fit| fit.agreement >= self.params.min_fit && fit.inliers >= self.params.min_points)
             .max_by(|a, b| a.merit().total_cmp(&b.merit()).then(b.obj_id.cmp(&a.obj_id)))

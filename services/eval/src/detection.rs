@@ -24,6 +24,9 @@ use serde::Serialize;
 
 use crate::dataset::MIN_VISIB_FRACT;
 
+/// The mask IoU at which a detection is a true positive (AP50).
+pub const MATCH_IOU: f64 = 0.5;
+
 /// One annotated instance's visible mask over the whole image.
 #[derive(Debug, Clone)]
 pub struct TruthMask {
@@ -107,7 +110,7 @@ pub fn tally_image(
             .max_by(|a, b| a.1.iou.total_cmp(&b.1.iou));
         let tally = tallies.entry(detection.obj_id).or_default();
         match candidate {
-            Some((k, found)) if found.iou >= 0.5 => {
+            Some((k, found)) if found.iou >= MATCH_IOU => {
                 taken[k] = true;
                 best[k] = found;
                 if !truths[k].ignored {
@@ -170,6 +173,9 @@ pub struct ObjectDetection {
     /// Mean over the instances of the best IoU of a detection with it
     /// (0 when none overlaps), %.
     pub mask_iou: Option<f64>,
+    /// Instances a detection of their object covers at mask IoU ≥ 0.5
+    /// (found and named), %.
+    pub found: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -179,6 +185,9 @@ pub struct DetectionSummary {
     /// Means over the objects with instances, %.
     pub ap50: Option<f64>,
     pub mask_iou: Option<f64>,
+    /// Of every object's instances together, those found (see
+    /// [`ObjectDetection::found`]), %.
+    pub found: Option<f64>,
     /// Detector milliseconds per image, median and 99th percentile (this
     /// process, one image at a time).
     pub ms_p50: f64,
@@ -228,6 +237,12 @@ pub fn instances_csv(instances: &[InstanceDetection]) -> String {
     csv
 }
 
+/// The share of instances whose best IoU is a true positive, %.
+fn share_found(best_ious: &[f64]) -> Option<f64> {
+    (!best_ious.is_empty())
+        .then(|| 100.0 * best_ious.iter().filter(|&&iou| iou >= MATCH_IOU).count() as f64 / best_ious.len() as f64)
+}
+
 pub fn summarise(
     tallies: &BTreeMap<u32, ObjectTally>,
     images: usize,
@@ -239,9 +254,11 @@ pub fn summarise(
         .map(|(&obj, t)| {
             let mask_iou = (!t.ious.is_empty()).then(|| 100.0 * t.ious.iter().sum::<f64>() / t.ious.len() as f64);
             let ap50 = average_precision(&t.detections, t.instances).map(|ap| 100.0 * ap);
-            (obj, ObjectDetection { instances: t.instances, detections: t.detections.len(), ap50, mask_iou })
+            let found = share_found(&t.ious);
+            (obj, ObjectDetection { instances: t.instances, detections: t.detections.len(), ap50, mask_iou, found })
         })
         .collect();
+    let all_ious: Vec<f64> = tallies.values().flat_map(|t| t.ious.iter().copied()).collect();
     let mean = |values: Vec<f64>| (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64);
     times_ms.sort_by(f64::total_cmp);
     let quantile = |q: f64| times_ms.get(((times_ms.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(0.0);
@@ -249,6 +266,7 @@ pub fn summarise(
         images,
         ap50: mean(per_object.values().filter_map(|o| o.ap50).collect()),
         mask_iou: mean(per_object.values().filter_map(|o| o.mask_iou).collect()),
+        found: share_found(&all_ious),
         ms_p50: quantile(0.5),
         ms_p99: quantile(0.99),
         per_object,
@@ -391,5 +409,7 @@ mod tests {
         let three = &summary.per_object[&3];
         assert_eq!((three.instances, three.detections, three.ap50), (0, 0, None));
         assert_eq!(summary.ap50, Some(50.0));
+        assert_eq!((one.found, two.found, three.found), (Some(100.0), Some(0.0), None));
+        assert_eq!(summary.found, Some(50.0), "one of the two counted instances");
     }
 }

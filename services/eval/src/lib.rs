@@ -862,16 +862,30 @@ fn print_detection(d: &detection::DetectionSummary) {
         "\ndetector on the same {} images (masks against the annotated visible masks; instances under 10 % visible ignored):",
         d.images
     );
-    println!("object  instances  detections  AP50 %  mask IoU %");
+    println!("object  instances  detections  AP50 %  mask IoU %  found %");
     for (obj_id, o) in &d.per_object {
         println!(
-            "{obj_id:>6}  {:>9}  {:>10}  {:>6}  {:>10}",
+            "{obj_id:>6}  {:>9}  {:>10}  {:>6}  {:>10}  {:>7}",
             o.instances,
             o.detections,
             optional(o.ap50, 1),
-            optional(o.mask_iou, 1)
+            optional(o.mask_iou, 1),
+            optional(o.found, 1)
         );
     }
-    println!("{:>6}  {:>9}  {:>10}  {:>6}  {:>10}", "mean", "", "", optional(d.ap50, 1), optional(d.mask_iou, 1));
+    println!(
+        "{:>6}  {:>9}  {:>10}  {:>6}  {:>10}  {:>7}",
+        "mean",
+        "",
+        "",
+        optional(d.ap50, 1),
+        optional(d.mask_iou, 1),
+        ""
+    );
+    println!(
+        "found (a detection of the object at mask IoU >= 0.5): {} % of the {} instances",
+        optional(d.found, 1),
+        d.per_object.values().map(|o| o.instances).sum::<usize>()
+    );
     println!("detector ms per image p50/p99 {:.1}/{:.1} (in this process)", d.ms_p50, d.ms_p99);
 }
