@@ -101,3 +101,13 @@ def test_random_crops_cut_the_same_window_from_image_depth_and_labels():
     # A window larger than the image is the whole image.
     whole = random_crops(rgb.astype(np.uint8), depth, labels, (50, 50), rng)
     assert whole[1].shape == depth.shape
+
+
+def test_the_exported_probabilities_are_the_softmax_of_the_logits():
+    from poseflow_train.detector import Exported
+
+    torch.manual_seed(3)
+    model = build("unet", 4, width=8).eval()
+    x = torch.rand(2, 5, 24, 32)
+    with torch.no_grad():
+        assert torch.allclose(Exported(model)(x), torch.softmax(model(x), dim=1), atol=1e-6)
