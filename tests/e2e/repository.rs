@@ -9,12 +9,13 @@ use std::process::Command;
 const CHECKPOINT_BUDGET_BYTES: u64 = 50_000_000;
 
 /// The checkpoints the shipped models were exported from, and the portable
-/// weights (half precision, no optimiser) the YCB-V run resumes from on a
-/// new machine.
-const ALLOWED_CHECKPOINTS: [&str; 3] = [
+/// weights (half precision, no optimiser) the YCB-V run and the detector's
+/// run resume from on a new machine.
+const ALLOWED_CHECKPOINTS: [&str; 4] = [
     "training/checkpoints/lmo10-energy3/checkpoint.pt",
     "training/checkpoints/grasp/checkpoint.pt",
     "training/checkpoints/ycbv/weights.pt",
+    "training/checkpoints/detect-lmo10-fine/weights.pt",
 ];
 
 #[test]

@@ -229,12 +229,17 @@ def train(args):
     optimiser = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     step, elapsed = 0, 0.0
     checkpoint = out / "detector.pt"
-    if checkpoint.exists():
-        state = torch.load(checkpoint, map_location="cpu")
+    if checkpoint.exists() or (out / PORTABLE).exists():
+        state = load_state(out)
         model.load_state_dict(state["model"])
-        optimiser.load_state_dict(state["optimiser"])
+        if "optimiser" in state:
+            optimiser.load_state_dict(state["optimiser"])
         step, elapsed = state["step"], state["elapsed_s"]
-        print(f"resumed at step {step} after {elapsed / 60:.1f} min", flush=True)
+        print(
+            f"resumed at step {step} after {elapsed / 60:.1f} min"
+            + ("" if "optimiser" in state else f" from {PORTABLE} (the optimiser starts afresh)"),
+            flush=True,
+        )
     weights = torch.tensor(class_weights(len(object_ids)))
     rng = np.random.default_rng(step)
     started, saved = time.time() - elapsed, time.time()
@@ -283,10 +288,37 @@ def learning_rate(base, step, decay_steps):
     return base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * progress)))
 
 
+# Beside `detector.pt`: the weights alone in half precision, small enough
+# for git, so a run (or the shipped network) can be trained on from another
+# machine; the optimiser's moments are not kept.
+PORTABLE = "weights.pt"
+
+
 def save(model, optimiser, step, elapsed, path):
+    state = {"model": model.state_dict(), "optimiser": optimiser.state_dict(), "step": step, "elapsed_s": elapsed}
     tmp = path.with_suffix(".tmp")
-    torch.save({"model": model.state_dict(), "optimiser": optimiser.state_dict(), "step": step, "elapsed_s": elapsed}, tmp)
+    torch.save(state, tmp)
     tmp.replace(path)
+    write_portable(state, path.with_name(PORTABLE))
+
+
+def write_portable(state, path):
+    half = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
+    tmp = path.with_suffix(".tmp")
+    torch.save({"model": half, "step": state["step"], "elapsed_s": state["elapsed_s"]}, tmp)
+    tmp.replace(path)
+
+
+def load_state(directory):
+    """`detector.pt` of a run's directory, or where it is missing (another
+    machine) its portable weights, in single precision."""
+    directory = Path(directory)
+    checkpoint = directory / "detector.pt"
+    if checkpoint.exists():
+        return torch.load(checkpoint, map_location="cpu")
+    state = torch.load(directory / PORTABLE, map_location="cpu")
+    state["model"] = {k: v.float() if v.is_floating_point() else v for k, v in state["model"].items()}
+    return state
 
 
 # Background dominates the pixels: the loss weighs the objects up. The
@@ -348,7 +380,7 @@ def export(args):
     arch = config.get("arch", "unet")
     height, width_px, down = input_size(arch)
     model = build(arch, 1 + len(config["object_ids"]), config["width"])
-    state = torch.load(source / "detector.pt", map_location="cpu")
+    state = load_state(source)
     model.load_state_dict(state["model"])
     model.eval()
     out = Path(args.out)

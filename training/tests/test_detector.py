@@ -111,3 +111,23 @@ def test_the_exported_probabilities_are_the_softmax_of_the_logits():
     x = torch.rand(2, 5, 24, 32)
     with torch.no_grad():
         assert torch.allclose(Exported(model)(x), torch.softmax(model(x), dim=1), atol=1e-6)
+
+
+def test_a_run_resumes_from_its_portable_weights_on_another_machine(tmp_path):
+    from poseflow_train.detector import PORTABLE, load_state, save
+
+    torch.manual_seed(4)
+    model = build("fine", 3, width=8)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=1e-3)
+    save(model, optimiser, 7, 12.5, tmp_path / "detector.pt")
+    full = load_state(tmp_path)
+    assert "optimiser" in full and full["step"] == 7
+    (tmp_path / "detector.pt").unlink()
+    portable = load_state(tmp_path)
+    assert (tmp_path / PORTABLE).exists() and "optimiser" not in portable
+    assert (portable["step"], portable["elapsed_s"]) == (7, 12.5)
+    for name, value in model.state_dict().items():
+        restored = portable["model"][name]
+        assert restored.dtype == value.dtype, name
+        # Half precision: within its rounding of the single-precision weights.
+        assert torch.allclose(restored, value, rtol=1e-3, atol=1e-4), name
