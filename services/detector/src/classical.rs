@@ -111,13 +111,13 @@ fn default_min_points() -> usize {
     12
 }
 fn default_starts() -> usize {
-    120
+    40
 }
 fn default_inlier_distance() -> f64 {
     0.004
 }
 fn default_mask_distance() -> f64 {
-    0.02
+    0.004
 }
 fn default_min_fit() -> f64 {
     0.5

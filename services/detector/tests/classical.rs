@@ -113,7 +113,8 @@ fn masks_cover_the_whole_object_through_depth_noise() {
         let (u1, u2): (f32, f32) = (rng.random::<f32>().max(1e-9), rng.random());
         *z += 0.003 * (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos();
     }
-    let whole = overlaps(&detect(&mut detector(), &rgb, &depth), &scene, &masks);
+    let mut wide = detector_with(serde_json::json!({"models": MODELS, "mask_distance_m": 0.02}));
+    let whole = overlaps(&detect(&mut wide, &rgb, &depth), &scene, &masks);
     let mut tight = detector_with(serde_json::json!({"models": MODELS, "mask_distance_m": 0.004}));
     let ragged = overlaps(&detect(&mut tight, &rgb, &depth), &scene, &masks);
     let mean = |ious: &[f64]| ious.iter().sum::<f64>() / ious.len() as f64;
