@@ -78,9 +78,9 @@ pub struct ClassicalParams {
     #[serde(default = "default_inlier_distance")]
     pub inlier_distance_m: f64,
     /// A cluster point within this distance of the identified object's
-    /// posed surface is labelled the object (its mask), metres: wider than
-    /// `inlier_distance_m`, since the sensor's noise would otherwise leave
-    /// a ragged mask of the best-fitting points only.
+    /// posed surface is labelled the object (its mask), metres. The default
+    /// is the inlier distance; wider keeps the mask whole where the sensor's
+    /// noise would leave only a ragged set of best-fitting points.
     #[serde(default = "default_mask_distance")]
     pub mask_distance_m: f64,
     /// The least agreement ([`Fit::agreement`]) of an identified object.
@@ -372,15 +372,6 @@ impl ClassicalDetector {
                 // best part is still tried, but not one the object cannot span.
                 let (_, radius) = object.bounding_sphere();
                 (extent <= 4.0 * radius).then(|| self.fit(object, &cluster, grid))
-            })
-            .inspect(|fit| {
-                tracing::trace!(
-                    object = fit.obj_id,
-                    inliers = fit.inliers,
-                    agreement = fit.agreement,
-                    points = points.len(),
-                    "fit"
-                )
             })
             .filter(|fit| fit.agreement >= self.params.min_fit && fit.inliers >= self.params.min_points)
             .max_by(|a, b| a.merit().total_cmp(&b.merit()).then(b.obj_id.cmp(&a.obj_id)))

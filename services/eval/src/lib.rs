@@ -883,7 +883,8 @@ fn print_detection(d: &detection::DetectionSummary) {
         ""
     );
     println!(
-        "found (a detection of the object at mask IoU >= 0.5): {} % of the {} instances",
+        "found (a detection of the object at mask IoU >= {}): {} % of the {} instances",
+        detection::MATCH_IOU,
         optional(d.found, 1),
         d.per_object.values().map(|o| o.instances).sum::<usize>()
     );
