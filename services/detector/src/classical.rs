@@ -15,10 +15,16 @@
 //!    the camera saw past. The object explaining the most points with an
 //!    agreement of at least `min_fit` claims them; what is left of the
 //!    cluster is tried again (touching objects), up to
-//!    [`MAX_OBJECTS_PER_CLUSTER`] times.
+//!    [`MAX_OBJECTS_PER_CLUSTER`] times;
+//! 5. each identified object's confidence is its agreement times the share
+//!    of its cluster that the cluster's objects explain: an object fitted
+//!    to a part of a bigger clutter shape leaves the rest unexplained.
 //!
-//! The result is a label map of the sampled grid, turned into detections
-//! by the same rules as the network's ([`crate::instances::detections`]).
+//! The result is a label map of the sampled grid in which each fit is an
+//! instance of its own (a later fit of the same object close by joins it),
+//! turned into detections by the same rules as the network's
+//! ([`crate::instances::detections`]), an object's most confident instance
+//! first.
 
 use std::path::{Path, PathBuf};
 
@@ -43,7 +49,7 @@ const FINE_POINTS: usize = 256;
 const COARSE_ITERATIONS: usize = 6;
 const FINE_ITERATIONS: usize = 20;
 /// Coarse fits refined further, per object.
-const FINE_FITS: usize = 3;
+const FINE_FITS: usize = 10;
 /// RANSAC triples for the support plane.
 const PLANE_ITERATIONS: usize = 300;
 
@@ -78,9 +84,9 @@ pub struct ClassicalParams {
     #[serde(default = "default_inlier_distance")]
     pub inlier_distance_m: f64,
     /// A cluster point within this distance of the identified object's
-    /// posed surface is labelled the object (its mask), metres. The default
-    /// is the inlier distance; wider keeps the mask whole where the sensor's
-    /// noise would leave only a ragged set of best-fitting points.
+    /// posed surface is labelled the object (its mask), metres. Wider than
+    /// the inlier distance, so the sensor's noise does not leave only a
+    /// ragged set of best-fitting points.
     #[serde(default = "default_mask_distance")]
     pub mask_distance_m: f64,
     /// The least agreement ([`Fit::agreement`]) of an identified object.
@@ -111,13 +117,13 @@ fn default_min_points() -> usize {
     12
 }
 fn default_starts() -> usize {
-    40
+    120
 }
 fn default_inlier_distance() -> f64 {
     0.004
 }
 fn default_mask_distance() -> f64 {
-    0.004
+    0.02
 }
 fn default_min_fit() -> f64 {
     0.5
@@ -241,15 +247,26 @@ impl SampledDepth {
         Self { width, height, points, camera }
     }
 
-    /// The measured depth at the grid cell a camera-frame point projects
-    /// to, if any.
-    fn depth_at(&self, p: &Point3<f64>) -> Option<f64> {
-        let (u, v) = self.camera.pixel(p)?;
-        let (x, y) = (u.round(), v.round());
-        if x < 0.0 || y < 0.0 || x >= self.width as f64 || y >= self.height as f64 {
-            return None;
-        }
-        self.points[y as usize * self.width + x as usize].map(|q| q.z)
+    /// The measured depth of grid cell (x, y), if it lies on the grid and
+    /// was measured.
+    fn depth_of_cell(&self, x: f64, y: f64) -> Option<f64> {
+        let on_grid = x >= 0.0 && y >= 0.0 && x < self.width as f64 && y < self.height as f64;
+        on_grid.then(|| self.points[y as usize * self.width + x as usize].map(|q| q.z)).flatten()
+    }
+
+    /// The grid cell a camera-frame point projects to (it may lie off the
+    /// grid).
+    fn cell_of(&self, p: &Point3<f64>) -> Option<(f64, f64)> {
+        self.camera.pixel(p).map(|(u, v)| (u.round(), v.round()))
+    }
+
+    /// The measured depths of the cell a camera-frame point projects to
+    /// and of its 8 neighbours (unmeasured ones left out).
+    fn depths_around(&self, p: &Point3<f64>) -> impl Iterator<Item = f64> + '_ {
+        let (x, y) = self.cell_of(p).unwrap_or((f64::NAN, f64::NAN));
+        (-1..=1)
+            .flat_map(move |dy| (-1..=1).map(move |dx| (x + f64::from(dx), y + f64::from(dy))))
+            .filter_map(|(x, y)| self.depth_of_cell(x, y))
     }
 }
 
@@ -312,40 +329,78 @@ impl ClassicalDetector {
         };
         let mut labels = vec![0u8; grid.points.len()];
         let mut confidence = vec![1.0f32; grid.points.len()];
+        let mut instances = vec![0u16; grid.points.len()];
+        // Each identified instance: its object, posed centre and id.
+        let mut placed: Vec<(u32, Point3<f64>, u16)> = Vec::new();
         for cluster in clusters(&above, grid.width, self.params.cluster_gap_m) {
             if cluster.len() < self.params.min_points {
                 break;
             }
-            let mut remaining = cluster;
-            for _ in 0..MAX_OBJECTS_PER_CLUSTER {
-                if remaining.len() < self.params.min_points {
-                    break;
-                }
-                let points: Vec<Point3<f64>> = remaining.iter().map(|&i| grid.points[i].expect("clustered")).collect();
-                let Some(fit) = self.identify(&points, &grid) else { break };
+            let (identified, share) = self.identify_cluster(&cluster, &grid);
+            for (fit, claimed) in identified {
                 let class = 1 + self.objects.iter().position(|&id| id == fit.obj_id).expect("known") as u8;
-                let object = self.library.get(fit.obj_id).expect("known");
-                let inverse = fit.pose.inverse();
-                let explained = |p: &Point3<f64>| {
-                    object.grid().value(&inverse.transform_point(p)).abs() <= self.params.mask_distance_m
-                };
-                let (claimed, rest): (Vec<usize>, Vec<usize>) =
-                    remaining.iter().partition(|&&i| explained(&grid.points[i].expect("clustered")));
+                let (centre, radius) = self.library.get(fit.obj_id).expect("known").bounding_sphere();
+                let posed_centre = fit.pose.transform_point(&centre);
+                // A second fit of the same object near an earlier one is a
+                // part of it that the first fit left out: the same instance.
+                let instance =
+                    match placed.iter().find(|(id, c, _)| *id == fit.obj_id && (c - posed_centre).norm() < radius) {
+                        Some(&(_, _, instance)) => instance,
+                        None => {
+                            let instance = u16::try_from(placed.len() + 1).unwrap_or(u16::MAX);
+                            placed.push((fit.obj_id, posed_centre, instance));
+                            instance
+                        }
+                    };
                 for &i in &claimed {
                     labels[i] = class;
-                    confidence[i] = fit.agreement as f32;
+                    confidence[i] = (fit.agreement * share) as f32;
+                    instances[i] = instance;
                 }
                 tracing::debug!(
                     object = fit.obj_id,
+                    instance,
                     points = claimed.len(),
                     agreement = fit.agreement,
+                    cluster_explained = share,
                     "cluster identified"
                 );
-                remaining = rest;
             }
         }
         let depth = grid.points.iter().map(|p| p.map_or(0.0, |p| p.z as f32)).collect();
-        LabelMap { width: grid.width, height: grid.height, labels, confidence, depth }
+        LabelMap { width: grid.width, height: grid.height, labels, confidence, depth, instances }
+    }
+
+    /// The objects of one cluster (grid indices), each with the cluster
+    /// points it claims (within `mask_distance_m` of its posed surface), and
+    /// the share of the cluster's points within `inlier_distance_m` of any
+    /// of them. An object fitted in part to clutter leaves most of its
+    /// cluster unexplained; objects explain theirs, alone or together.
+    fn identify_cluster(&self, cluster: &[usize], grid: &SampledDepth) -> (Vec<(Fit, Vec<usize>)>, f64) {
+        let point = |i: usize| grid.points[i].expect("clustered");
+        let distance = |fit: &Fit, p: &Point3<f64>| {
+            let object = self.library.get(fit.obj_id).expect("known");
+            object.grid().value(&fit.pose.inverse().transform_point(p)).abs()
+        };
+        let mut remaining = cluster.to_vec();
+        let mut identified: Vec<(Fit, Vec<usize>)> = Vec::new();
+        for _ in 0..MAX_OBJECTS_PER_CLUSTER {
+            if remaining.len() < self.params.min_points {
+                break;
+            }
+            let points: Vec<Point3<f64>> = remaining.iter().map(|&i| point(i)).collect();
+            let Some(fit) = self.identify(&points, grid) else { break };
+            let (claimed, rest): (Vec<usize>, Vec<usize>) =
+                remaining.iter().partition(|&&i| distance(&fit, &point(i)) <= self.params.mask_distance_m);
+            identified.push((fit, claimed));
+            remaining = rest;
+        }
+        let tolerance = self.params.inlier_distance_m;
+        let explained = cluster
+            .iter()
+            .filter(|&&i| identified.iter().any(|(fit, _)| distance(fit, &point(i)) <= tolerance))
+            .count();
+        (identified, explained as f64 / cluster.len().max(1) as f64)
     }
 
     /// The support plane, if one holds a tenth of the points.
@@ -414,12 +469,20 @@ impl ClassicalDetector {
         let (mut agree, mut in_front) = (0usize, 0usize);
         for y in object.surface() {
             let p = pose.transform_point(y);
+            // The sampled grid is coarse (4 px cells): a silhouette point
+            // off by a cell still lies on its surface, so any of the 3 × 3
+            // cells around may agree; in front means in front of them all.
+            let (mut nearest, mut measured, mut on) = (f64::INFINITY, false, false);
+            for depth in grid.depths_around(&p) {
+                measured = true;
+                nearest = nearest.min(depth);
+                on |= p.z >= depth - 2.0 * tolerance && p.z <= depth + tolerance;
+            }
             // Unmeasured or outside the view: no evidence either way.
-            let Some(depth) = grid.depth_at(&p) else { continue };
-            if p.z < depth - 2.0 * tolerance {
-                in_front += 1;
-            } else if p.z <= depth + tolerance {
+            if on {
                 agree += 1;
+            } else if measured && p.z < nearest - 2.0 * tolerance {
+                in_front += 1;
             }
         }
         let seen = agree + in_front;
@@ -522,7 +585,8 @@ mod tests {
                 let p = point.expect("every pixel measured");
                 let (u, v) = grid.camera.pixel(&p).expect("in front");
                 prop_assert_eq!((u.round() as usize, v.round() as usize), (i % grid.width, i / grid.width));
-                prop_assert_eq!(grid.depth_at(&p), Some(p.z));
+                let (x, y) = grid.cell_of(&p).expect("in front");
+                prop_assert_eq!(grid.depth_of_cell(x, y), Some(p.z));
             }
         }
     }

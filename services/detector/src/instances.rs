@@ -17,7 +17,10 @@ use crate::DetectedObject;
 /// Labels of a downsampled image, row-major: `labels[y·width + x]` is 0 for
 /// background or k for the k-th object id of the network; `confidence` is
 /// the probability of that label; `depth` is the depth in metres the
-/// labeller saw at each cell (0 where none), or empty when unknown.
+/// labeller saw at each cell (0 where none), or empty when unknown;
+/// `instances` says which labelled cells are one object instance (the same
+/// non-zero id), or is empty when the labeller does not know (the network:
+/// connected regions are found and near ones merged).
 #[derive(Debug, Clone, PartialEq)]
 pub struct LabelMap {
     pub width: usize,
@@ -25,6 +28,7 @@ pub struct LabelMap {
     pub labels: Vec<u8>,
     pub confidence: Vec<f32>,
     pub depth: Vec<f32>,
+    pub instances: Vec<u16>,
 }
 
 /// How regions become detections.
@@ -43,6 +47,9 @@ pub struct InstanceRules {
     /// frame pixel falls to e^-½ of its bilinear weight; 0 scales cells up
     /// as whole blocks.
     pub edge_depth_m: f32,
+    /// Instances of an object are kept highest score first (else largest
+    /// first).
+    pub most_confident_first: bool,
 }
 
 /// The frame the detections are for: its size and depth in metres (W·H
@@ -96,6 +103,28 @@ impl Region {
     }
 }
 
+/// The labeller's own instances: the labelled cells of each instance id.
+fn given_instances(map: &LabelMap) -> Vec<Region> {
+    let mut by_id: std::collections::BTreeMap<u16, Region> = std::collections::BTreeMap::new();
+    for (i, (&class, &id)) in map.labels.iter().zip(&map.instances).enumerate() {
+        if class == 0 || id == 0 {
+            continue;
+        }
+        let (x, y) = (i % map.width, i / map.width);
+        let region = by_id.entry(id).or_insert_with(|| Region {
+            class,
+            cells: Vec::new(),
+            confidence: 0.0,
+            bounds: [map.width, map.height, 0, 0],
+        });
+        region.cells.push(i);
+        region.confidence += f64::from(map.confidence[i]);
+        region.bounds =
+            [region.bounds[0].min(x), region.bounds[1].min(y), region.bounds[2].max(x), region.bounds[3].max(y)];
+    }
+    by_id.into_values().collect()
+}
+
 /// 4-connected regions of each non-zero label.
 fn regions(map: &LabelMap) -> Vec<Region> {
     let (w, h) = (map.width, map.height);
@@ -134,7 +163,8 @@ pub fn detections(map: &LabelMap, object_ids: &[u32], frame: &FrameGrid<'_>, rul
     let (sx, sy) = (frame.width as f64 / map.width as f64, frame.height as f64 / map.height as f64);
     let min_cells = (rules.min_pixels as f64 / (sx * sy)).ceil() as usize;
     let gap_cells = (rules.merge_gap_px as f64 / sx.max(sy)).round() as usize;
-    let mut all = regions(map);
+    let given = map.instances.len() == map.labels.len();
+    let mut all = if given { given_instances(map) } else { regions(map) };
     let mut dropped = 0;
     all.retain(|r| {
         let keep = r.cells.len() >= min_cells.max(1);
@@ -145,10 +175,15 @@ pub fn detections(map: &LabelMap, object_ids: &[u32], frame: &FrameGrid<'_>, rul
     all.sort_by(|a, b| b.cells.len().cmp(&a.cells.len()).then(a.cells[0].cmp(&b.cells[0])));
     let mut instances: Vec<Region> = Vec::new();
     for region in all {
-        match instances.iter_mut().find(|i| i.class == region.class && i.gap_to(&region) <= gap_cells) {
+        match instances.iter_mut().find(|i| !given && i.class == region.class && i.gap_to(&region) <= gap_cells) {
             Some(instance) => instance.absorb(region),
             None => instances.push(region),
         }
+    }
+    if rules.most_confident_first {
+        // Stable: equal scores keep the largest first.
+        instances
+            .sort_by(|a, b| (b.confidence / b.cells.len() as f64).total_cmp(&(a.confidence / a.cells.len() as f64)));
     }
     let depth_guided = rules.edge_depth_m > 0.0
         && map.depth.len() == map.labels.len()
@@ -290,8 +325,14 @@ mod tests {
         FrameGrid { width, height, depth: &[] }
     }
 
-    const RULES: InstanceRules =
-        InstanceRules { min_pixels: 16, merge_gap_px: 8, max_instances: 1, min_score: 0.3, edge_depth_m: 0.0 };
+    const RULES: InstanceRules = InstanceRules {
+        min_pixels: 16,
+        merge_gap_px: 8,
+        max_instances: 1,
+        min_score: 0.3,
+        edge_depth_m: 0.0,
+        most_confident_first: false,
+    };
 
     fn map_with(width: usize, height: usize, boxes: &[(u8, [usize; 4])]) -> LabelMap {
         let mut labels = vec![0; width * height];
@@ -302,7 +343,14 @@ mod tests {
                 }
             }
         }
-        LabelMap { width, height, confidence: vec![0.9; width * height], labels, depth: Vec::new() }
+        LabelMap {
+            width,
+            height,
+            confidence: vec![0.9; width * height],
+            labels,
+            depth: Vec::new(),
+            instances: Vec::new(),
+        }
     }
 
     #[test]
@@ -328,6 +376,39 @@ mod tests {
         assert!(!one.objects[0].mask[12]);
         let two = detections(&map, &[3], &frame(80, 40), &InstanceRules { max_instances: 2, ..RULES });
         assert_eq!(two.objects.iter().map(|o| o.instance).collect::<Vec<_>>(), [0, 1]);
+    }
+
+    #[test]
+    fn given_instances_are_kept_apart_and_whole() {
+        // Instance 1: two pieces of object 1 far apart (one object seen in
+        // two clusters); instance 2, object 1 again, touching the first
+        // piece: not merged with it, as regions would be.
+        let mut map = map_with(20, 10, &[(1, [0, 0, 2, 2]), (1, [3, 0, 4, 2]), (1, [15, 5, 16, 6])]);
+        map.instances = vec![0; 200];
+        for (i, label) in map.labels.iter().enumerate() {
+            if *label != 0 {
+                map.instances[i] = if (3..=4).contains(&(i % 20)) { 2 } else { 1 };
+            }
+        }
+        let rules = InstanceRules { max_instances: 2, ..RULES };
+        let found = detections(&map, &[5], &frame(80, 40), &rules);
+        assert_eq!(found.dropped, 0);
+        let boxes: Vec<[u32; 4]> = found.objects.iter().map(|o| o.bbox).collect();
+        assert_eq!(boxes, [[0, 0, 68, 28], [12, 0, 8, 12]], "{found:?}");
+    }
+
+    #[test]
+    fn the_most_confident_instance_wins_when_asked() {
+        // A large unsure region and a small sure one of the same object.
+        let mut map = map_with(20, 10, &[(1, [0, 0, 5, 5]), (1, [15, 0, 16, 1])]);
+        for (i, c) in map.confidence.iter_mut().enumerate() {
+            *c = if i % 20 >= 15 { 0.95 } else { 0.5 };
+        }
+        let largest = detections(&map, &[2], &frame(80, 40), &RULES);
+        assert_eq!(largest.objects[0].bbox, [0, 0, 24, 24]);
+        let surest = detections(&map, &[2], &frame(80, 40), &InstanceRules { most_confident_first: true, ..RULES });
+        assert_eq!(surest.objects[0].bbox, [60, 0, 8, 8]);
+        assert_eq!((surest.objects.len(), surest.dropped), (1, 1));
     }
 
     #[test]
@@ -370,8 +451,8 @@ mod tests {
             cells in proptest::collection::vec(0u8..3, 8 * 6),
             (fw, fh) in (1usize..64, 1usize..48),
         ) {
-            let map = LabelMap { width: 8, height: 6, confidence: vec![1.0; 48], labels: cells, depth: Vec::new() };
-            let rules = InstanceRules { min_pixels: 1, merge_gap_px: 0, max_instances: 100, min_score: 0.0, edge_depth_m: 0.0 };
+            let map = LabelMap { width: 8, height: 6, confidence: vec![1.0; 48], labels: cells, depth: Vec::new(), instances: Vec::new() };
+            let rules = InstanceRules { min_pixels: 1, merge_gap_px: 0, max_instances: 100, min_score: 0.0, ..RULES };
             let found = detections(&map, &[1, 2], &frame(fw, fh), &rules);
             let mut covered = [false; 48];
             for o in &found.objects {
@@ -408,8 +489,8 @@ mod tests {
         ) {
             let cell_depth: Vec<f32> = (0..48).map(|c| 0.5 + 0.05 * c as f32).collect();
             let depth: Vec<f32> = (0..fw * fh).map(|i| cell_depth[(i / fw) * 6 / fh * 8 + (i % fw) * 8 / fw]).collect();
-            let map = LabelMap { width: 8, height: 6, confidence: vec![1.0; 48], labels: cells, depth: cell_depth };
-            let rules = InstanceRules { min_pixels: 1, merge_gap_px: 0, max_instances: 100, min_score: 0.0, edge_depth_m: 0.0 };
+            let map = LabelMap { width: 8, height: 6, confidence: vec![1.0; 48], labels: cells, depth: cell_depth, instances: Vec::new() };
+            let rules = InstanceRules { min_pixels: 1, merge_gap_px: 0, max_instances: 100, min_score: 0.0, ..RULES };
             let frame = FrameGrid { width: fw, height: fh, depth: &depth };
             let blocks = detections(&map, &[1, 2], &frame, &rules);
             let guided = detections(&map, &[1, 2], &frame, &InstanceRules { edge_depth_m: 0.002, ..rules });

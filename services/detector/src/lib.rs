@@ -33,7 +33,8 @@ use serde::Deserialize;
 #[derive(Debug, Clone, PartialEq)]
 pub struct DetectedObject {
     pub obj_id: u32,
-    /// 0 for an object's first (largest) instance, 1 for its second, …
+    /// 0 for an object's first instance (the largest; the classical mode's
+    /// most confident), 1 for its second, …
     pub instance: u32,
     /// Mean probability of the object over its mask, 0–1.
     pub score: f32,
@@ -142,6 +143,7 @@ impl DetectorParams {
             max_instances: self.max_instances,
             min_score: self.min_score,
             edge_depth_m: self.edge_depth_m,
+            most_confident_first: self.mode == Mode::Classical,
         }
     }
 }

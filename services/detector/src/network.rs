@@ -116,7 +116,7 @@ pub fn label_map(probabilities: &[f32], weights: &[f32], spec: &InputSpec, input
         confidence[i] = if total > 0.0 { p / total } else { 0.0 };
     }
     let depth = input[3 * plane..4 * plane].iter().map(|d| d * spec.depth_scale_m).collect();
-    LabelMap { width: spec.width, height: spec.height, labels, confidence, depth }
+    LabelMap { width: spec.width, height: spec.height, labels, confidence, depth, instances: Vec::new() }
 }
 
 /// A loaded detector network.

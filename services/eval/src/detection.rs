@@ -293,6 +293,7 @@ pub fn evaluate_split(split_dir: &Path, detector: &mut Detector) -> anyhow::Resu
         let gts: ByImage<Vec<GtEntry>> = read_json(&scene.scene_gt())?;
         let infos: ByImage<Vec<GtInfoEntry>> = read_json(&scene.scene_gt_info())?;
         for (&im_id, camera) in &cameras {
+            let _frame = tracing::debug_span!("detect", scene = scene_id, image = im_id).entered();
             let rgb = read_rgb_png(&scene.rgb(im_id))?;
             let depth = read_depth_png(&scene.depth(im_id), camera.depth_scale)?;
             let (width, height) = (rgb.width as usize, rgb.height as usize);
