@@ -277,12 +277,15 @@ pub struct ClassicalDetector {
     objects: Vec<u32>,
     params: ClassicalParams,
     starts: Vec<Rotation3<f64>>,
+    threads: usize,
 }
 
 impl ClassicalDetector {
     /// Loads the objects of `params.models` (only `objects`, unless empty)
     /// and builds their signed distance grids.
-    pub fn new(params: ClassicalParams, objects: &[u32]) -> Result<Self, DetectorError> {
+    /// `threads` fit objects at once (each thread its share of the
+    /// objects); the detections do not depend on it.
+    pub fn new(params: ClassicalParams, objects: &[u32], threads: usize) -> Result<Self, DetectorError> {
         params.check()?;
         let dir = params.models.clone().unwrap_or_default();
         let library = ObjectLibrary::load(&dir, params.sdf_resolution)
@@ -304,7 +307,7 @@ impl ClassicalDetector {
         }
         let mut rng = seeded_rng(params.seed ^ 0x5eed_c1a5);
         let starts = (0..params.starts).map(|_| uniform_rotation(&mut rng)).collect();
-        Ok(Self { library, objects, params, starts })
+        Ok(Self { library, objects, params, starts, threads: threads.max(1) })
     }
 
     pub fn models_dir(&self) -> &Path {
@@ -419,15 +422,31 @@ impl ClassicalDetector {
     pub fn identify(&self, points: &[Point3<f64>], grid: &SampledDepth) -> Option<Fit> {
         let extent = bounding_diagonal(points);
         let cluster = Cluster::of(points);
-        self.objects
-            .iter()
-            .filter_map(|&id| {
-                let object = self.library.get(id).expect("known");
-                // A cluster wider than the object holds more than it; its
-                // best part is still tried, but not one the object cannot span.
-                let (_, radius) = object.bounding_sphere();
-                (extent <= 4.0 * radius).then(|| self.fit(object, &cluster, grid))
+        let fit_all = |objects: &[u32]| -> Vec<Fit> {
+            objects
+                .iter()
+                .filter_map(|&id| {
+                    let object = self.library.get(id).expect("known");
+                    // A cluster wider than the object holds more than it; its
+                    // best part is still tried, but not one the object cannot span.
+                    let (_, radius) = object.bounding_sphere();
+                    (extent <= 4.0 * radius).then(|| self.fit(object, &cluster, grid))
+                })
+                .collect()
+        };
+        let fits = if self.threads == 1 {
+            fit_all(&self.objects)
+        } else {
+            let share = self.objects.len().div_ceil(self.threads);
+            std::thread::scope(|scope| {
+                let workers: Vec<_> =
+                    self.objects.chunks(share).map(|objects| scope.spawn(move || fit_all(objects))).collect();
+                workers.into_iter().flat_map(|worker| worker.join().expect("a fit does not panic")).collect()
             })
+        };
+        // Ties go to the lower id, so the order the threads finish in does
+        // not matter.
+        fits.into_iter()
             .filter(|fit| fit.agreement >= self.params.min_fit && fit.inliers >= self.params.min_points)
             .max_by(|a, b| a.merit().total_cmp(&b.merit()).then(b.obj_id.cmp(&a.obj_id)))
     }

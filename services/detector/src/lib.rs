@@ -57,7 +57,8 @@ pub struct DetectorParams {
     /// Directory of the network (`detector.onnx`, `detector.json`).
     #[serde(default = "default_model")]
     pub model: PathBuf,
-    /// ONNX Runtime threads.
+    /// ONNX Runtime threads (network), or threads fitting objects at
+    /// once (classical).
     #[serde(default = "one")]
     pub threads: usize,
     /// Only these objects are reported (empty: every object the network
@@ -170,7 +171,7 @@ impl Detector {
                 (Backend::Network(SegmentationNetwork::load(&params.model, params.threads)?), params.model.clone())
             }
             Mode::Classical => {
-                let classical = ClassicalDetector::new(params.classical.clone(), &params.objects)?;
+                let classical = ClassicalDetector::new(params.classical.clone(), &params.objects, params.threads)?;
                 let dir = classical.models_dir().to_path_buf();
                 (Backend::Classical(classical), dir)
             }

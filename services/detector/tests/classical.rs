@@ -107,6 +107,16 @@ fn objects_standing_apart_are_found_and_named_without_training() {
     assert_eq!(found.len(), scene.len(), "nothing else: {:?}", summary(&found));
 }
 
+#[test]
+fn fitting_on_several_threads_gives_the_same_detections() {
+    let scene = [(1, [-0.12, 0.02], 0.3), (5, [0.0, 0.06], 2.0), (9, [0.12, -0.02], -1.0)];
+    let (rgb, depth, _) = tabletop(&scene);
+    let one = detect(&mut detector(), &rgb, &depth);
+    let params = serde_json::json!({"mode": "classical", "threads": 3, "classical": {"models": MODELS}});
+    let mut threaded = Detector::new(DetectorParams::from_json(&params).expect("valid")).expect("the meshes load");
+    assert_eq!(detect(&mut threaded, &rgb, &depth), one);
+}
+
 /// Each object's mask IoU (0 when not found).
 fn overlaps(found: &[DetectedObject], scene: &[(u32, [f64; 2], f64)], masks: &[Vec<bool>]) -> Vec<f64> {
     scene
