@@ -381,9 +381,10 @@ impl ClassicalDetector {
     /// cluster unexplained; objects explain theirs, alone or together.
     fn identify_cluster(&self, cluster: &[usize], grid: &SampledDepth) -> (Vec<(Fit, Vec<usize>)>, f64) {
         let point = |i: usize| grid.points[i].expect("clustered");
-        let distance = |fit: &Fit, p: &Point3<f64>| {
-            let object = self.library.get(fit.obj_id).expect("known");
-            object.grid().value(&fit.pose.inverse().transform_point(p)).abs()
+        // Each fit's object and camera-to-object pose, computed once.
+        let mut posed: Vec<(&ObjectGeometry, Pose)> = Vec::new();
+        let distance = |(object, inverse): &(&ObjectGeometry, Pose), p: &Point3<f64>| {
+            object.grid().value(&inverse.transform_point(p)).abs()
         };
         let mut remaining = cluster.to_vec();
         let mut identified: Vec<(Fit, Vec<usize>)> = Vec::new();
@@ -393,16 +394,16 @@ impl ClassicalDetector {
             }
             let points: Vec<Point3<f64>> = remaining.iter().map(|&i| point(i)).collect();
             let Some(fit) = self.identify(&points, grid) else { break };
+            let object = (self.library.get(fit.obj_id).expect("known"), fit.pose.inverse());
             let (claimed, rest): (Vec<usize>, Vec<usize>) =
-                remaining.iter().partition(|&&i| distance(&fit, &point(i)) <= self.params.mask_distance_m);
+                remaining.iter().partition(|&&i| distance(&object, &point(i)) <= self.params.mask_distance_m);
+            posed.push(object);
             identified.push((fit, claimed));
             remaining = rest;
         }
         let tolerance = self.params.inlier_distance_m;
-        let explained = cluster
-            .iter()
-            .filter(|&&i| identified.iter().any(|(fit, _)| distance(fit, &point(i)) <= tolerance))
-            .count();
+        let explained =
+            cluster.iter().filter(|&&i| posed.iter().any(|object| distance(object, &point(i)) <= tolerance)).count();
         (identified, explained as f64 / cluster.len().max(1) as f64)
     }
 

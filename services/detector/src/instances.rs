@@ -91,6 +91,19 @@ impl Region {
         ))
     }
 
+    /// An empty region of `class` on a map of this size.
+    fn empty(class: u8, map: &LabelMap) -> Self {
+        Region { class, cells: Vec::new(), confidence: 0.0, bounds: [map.width, map.height, 0, 0] }
+    }
+
+    /// Adds cell `i` of `map`.
+    fn add(&mut self, i: usize, map: &LabelMap) {
+        let (x, y) = (i % map.width, i / map.width);
+        self.cells.push(i);
+        self.confidence += f64::from(map.confidence[i]);
+        self.bounds = [self.bounds[0].min(x), self.bounds[1].min(y), self.bounds[2].max(x), self.bounds[3].max(y)];
+    }
+
     fn absorb(&mut self, other: Region) {
         self.cells.extend(other.cells);
         self.confidence += other.confidence;
@@ -110,17 +123,7 @@ fn given_instances(map: &LabelMap) -> Vec<Region> {
         if class == 0 || id == 0 {
             continue;
         }
-        let (x, y) = (i % map.width, i / map.width);
-        let region = by_id.entry(id).or_insert_with(|| Region {
-            class,
-            cells: Vec::new(),
-            confidence: 0.0,
-            bounds: [map.width, map.height, 0, 0],
-        });
-        region.cells.push(i);
-        region.confidence += f64::from(map.confidence[i]);
-        region.bounds =
-            [region.bounds[0].min(x), region.bounds[1].min(y), region.bounds[2].max(x), region.bounds[3].max(y)];
+        by_id.entry(id).or_insert_with(|| Region::empty(class, map)).add(i, map);
     }
     by_id.into_values().collect()
 }
@@ -138,13 +141,9 @@ fn regions(map: &LabelMap) -> Vec<Region> {
         }
         seen[start] = true;
         stack.push(start);
-        let mut region = Region { class, cells: Vec::new(), confidence: 0.0, bounds: [w, h, 0, 0] };
+        let mut region = Region::empty(class, map);
         while let Some(i) = stack.pop() {
-            let (x, y) = (i % w, i / w);
-            region.cells.push(i);
-            region.confidence += f64::from(map.confidence[i]);
-            region.bounds =
-                [region.bounds[0].min(x), region.bounds[1].min(y), region.bounds[2].max(x), region.bounds[3].max(y)];
+            region.add(i, map);
             for n in crate::grid_neighbours(i, w, h).into_iter().flatten() {
                 if !seen[n] && map.labels[n] == class {
                     seen[n] = true;
