@@ -72,12 +72,12 @@ pub struct Found {
 
 /// One connected region (or a merged group of them) in map cells.
 #[derive(Debug, Clone)]
-struct Region {
-    class: u8,
-    cells: Vec<usize>,
+pub(crate) struct Region {
+    pub(crate) class: u8,
+    pub(crate) cells: Vec<usize>,
     confidence: f64,
     /// `x0, y0, x1, y1`, inclusive, in map cells.
-    bounds: [usize; 4],
+    pub(crate) bounds: [usize; 4],
 }
 
 impl Region {
@@ -129,7 +129,7 @@ fn given_instances(map: &LabelMap) -> Vec<Region> {
 }
 
 /// 4-connected regions of each non-zero label.
-fn regions(map: &LabelMap) -> Vec<Region> {
+pub(crate) fn regions(map: &LabelMap) -> Vec<Region> {
     let (w, h) = (map.width, map.height);
     let mut seen = vec![false; w * h];
     let mut found = Vec::new();

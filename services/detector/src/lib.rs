@@ -14,6 +14,7 @@
 //! by fitting the known objects to it ([`classical`]).
 
 pub mod classical;
+pub mod identify;
 pub mod instances;
 pub mod network;
 pub mod stage;
@@ -25,6 +26,7 @@ use std::path::PathBuf;
 
 pub use classical::{ClassicalDetector, ClassicalParams};
 pub use error::DetectorError;
+pub use identify::{Identifier, Relabelled};
 pub use instances::{Found, FrameGrid, InstanceRules, LabelMap};
 pub use network::{ImageView, SegmentationNetwork};
 use serde::Deserialize;
@@ -54,9 +56,14 @@ pub struct DetectorParams {
     /// model fits (the `classical` table).
     #[serde(default)]
     pub mode: Mode,
-    /// Directory of the network (`detector.onnx`, `detector.json`).
+    /// Directory of the network (`detector.onnx`, `detector.json`, and
+    /// optionally the identifier, `identify.onnx` and `identify.json`).
     #[serde(default = "default_model")]
     pub model: PathBuf,
+    /// Relabel each region by the model directory's identifier, when it has
+    /// one (`false`: the segmentation's labels as they are).
+    #[serde(default = "yes")]
+    pub identify: bool,
     /// ONNX Runtime threads (network), or threads fitting objects at
     /// once (classical).
     #[serde(default = "one")]
@@ -100,6 +107,9 @@ fn default_model() -> PathBuf {
 }
 fn one() -> usize {
     1
+}
+fn yes() -> bool {
+    true
 }
 fn default_min_pixels() -> usize {
     64
@@ -152,7 +162,7 @@ impl DetectorParams {
 /// What finds the objects' pixels.
 #[derive(Debug)]
 enum Backend {
-    Network(SegmentationNetwork),
+    Network { segmentation: SegmentationNetwork, identifier: Option<Identifier> },
     Classical(ClassicalDetector),
 }
 
@@ -168,7 +178,13 @@ impl Detector {
     pub fn new(params: DetectorParams) -> Result<Self, DetectorError> {
         let (backend, source) = match params.mode {
             Mode::Network => {
-                (Backend::Network(SegmentationNetwork::load(&params.model, params.threads)?), params.model.clone())
+                let segmentation = SegmentationNetwork::load(&params.model, params.threads)?;
+                let identifier = if params.identify {
+                    Identifier::load(&params.model, params.threads, &segmentation.meta().object_ids)?
+                } else {
+                    None
+                };
+                (Backend::Network { segmentation, identifier }, params.model.clone())
             }
             Mode::Classical => {
                 let classical = ClassicalDetector::new(params.classical.clone(), &params.objects, params.threads)?;
@@ -177,7 +193,7 @@ impl Detector {
             }
         };
         let known = match &backend {
-            Backend::Network(network) => network.meta().object_ids.clone(),
+            Backend::Network { segmentation, .. } => segmentation.meta().object_ids.clone(),
             Backend::Classical(classical) => classical.object_ids().to_vec(),
         };
         let unknown: Vec<u32> = params.objects.iter().copied().filter(|id| !known.contains(id)).collect();
@@ -197,14 +213,15 @@ impl Detector {
                 detail: format!("none of {unknown:?} is known to the detector at {} ({known:?})", source.display()),
             });
         }
-        tracing::info!(mode = ?params.mode, model = %source.display(), objects = ?params.objects, "detector ready");
+        let identifies = matches!(&backend, Backend::Network { identifier: Some(_), .. });
+        tracing::info!(mode = ?params.mode, model = %source.display(), objects = ?params.objects, identifies, "detector ready");
         Ok(Self { backend, params })
     }
 
     /// The objects of the label map, label k being the k-th.
     fn labelled_ids(&self) -> &[u32] {
         match &self.backend {
-            Backend::Network(network) => &network.meta().object_ids,
+            Backend::Network { segmentation, .. } => &segmentation.meta().object_ids,
             Backend::Classical(classical) => classical.object_ids(),
         }
     }
@@ -217,7 +234,16 @@ impl Detector {
     /// The detections of one frame: the heart of the stage.
     pub fn detect(&mut self, image: &ImageView<'_>) -> Result<Found, DetectorError> {
         let map = match &mut self.backend {
-            Backend::Network(network) => network.segment(image)?,
+            Backend::Network { segmentation, identifier } => {
+                let mut map = segmentation.segment(image)?;
+                if let Some(identifier) = identifier {
+                    let cell_pixels = (image.width * image.height) as f64 / (map.width * map.height) as f64;
+                    let min_cells = (self.params.min_pixels as f64 / cell_pixels).ceil() as usize;
+                    let relabelled = identifier.relabel(&mut map, image, min_cells, Some(segmentation.posteriors()))?;
+                    tracing::debug!(?relabelled, "regions identified");
+                }
+                map
+            }
             Backend::Classical(classical) => classical.segment(image),
         };
         let frame = FrameGrid { width: image.width, height: image.height, depth: image.depth };

@@ -98,15 +98,24 @@ pub fn network_input(image: &ImageView<'_>, spec: &InputSpec, out: &mut Vec<f32>
 /// Each pixel's most probable class and its probability, from `N = 1`
 /// probabilities of `weights.len()` planes divided by the classes'
 /// training weights and normalised, with the depth the network saw in
-/// `input` (its [`network_input`]).
-pub fn label_map(probabilities: &[f32], weights: &[f32], spec: &InputSpec, input: &[f32]) -> LabelMap {
+/// `input` (its [`network_input`]). `posteriors` is overwritten with those
+/// normalised probabilities, class-major like the network's output.
+pub fn label_map(
+    probabilities: &[f32],
+    weights: &[f32],
+    spec: &InputSpec,
+    input: &[f32],
+    posteriors: &mut Vec<f32>,
+) -> LabelMap {
     let plane = spec.height * spec.width;
     let mut labels = vec![0u8; plane];
     let mut confidence = vec![0.0f32; plane];
+    posteriors.resize(weights.len() * plane, 0.0);
     for i in 0..plane {
         let (mut best, mut p, mut total) = (0usize, f32::NEG_INFINITY, 0.0f32);
         for (c, weight) in weights.iter().enumerate() {
             let q = probabilities[c * plane + i] / weight;
+            posteriors[c * plane + i] = q;
             total += q;
             if q > p {
                 (best, p) = (c, q);
@@ -114,6 +123,9 @@ pub fn label_map(probabilities: &[f32], weights: &[f32], spec: &InputSpec, input
         }
         labels[i] = best as u8;
         confidence[i] = if total > 0.0 { p / total } else { 0.0 };
+        for c in 0..weights.len() {
+            posteriors[c * plane + i] = if total > 0.0 { posteriors[c * plane + i] / total } else { 0.0 };
+        }
     }
     let depth = input[3 * plane..4 * plane].iter().map(|d| d * spec.depth_scale_m).collect();
     LabelMap { width: spec.width, height: spec.height, labels, confidence, depth, instances: Vec::new() }
@@ -129,6 +141,8 @@ pub struct SegmentationNetwork {
     path: PathBuf,
     /// The input tensor, reused from frame to frame.
     input: Vec<f32>,
+    /// The last frame's [`label_map`] posteriors.
+    posteriors: Vec<f32>,
 }
 
 impl SegmentationNetwork {
@@ -181,7 +195,7 @@ impl SegmentationNetwork {
             &[poseflow_onnx::port("probabilities", F, &[-1, classes as i64, h, w])],
         )?;
         let weights = meta.weights();
-        Ok(Self { session, meta, weights, path, input: Vec::new() })
+        Ok(Self { session, meta, weights, path, input: Vec::new(), posteriors: Vec::new() })
     }
 
     pub fn meta(&self) -> &DetectorMeta {
@@ -197,7 +211,13 @@ impl SegmentationNetwork {
             TensorRef::from_array_view(([1, 5, spec.height, spec.width], &self.input[..])).map_err(run_error)?;
         let outputs = self.session.run(ort::inputs!["rgbd" => tensor]).map_err(run_error)?;
         let (_, probabilities) = outputs["probabilities"].try_extract_tensor::<f32>().map_err(run_error)?;
-        Ok(label_map(probabilities, &self.weights, &spec, &self.input))
+        Ok(label_map(probabilities, &self.weights, &spec, &self.input, &mut self.posteriors))
+    }
+
+    /// The last segmented frame's class probabilities per map cell, the
+    /// training weights divided out: class-major, `(1 + K) × H × W`.
+    pub fn posteriors(&self) -> &[f32] {
+        &self.posteriors
     }
 }
 
@@ -245,7 +265,7 @@ mod tests {
         for i in 0..6 {
             input[3 * 6 + i] = 0.25 * i as f32;
         }
-        let map = label_map(&probabilities, &[1.0; 3], &SPEC, &input);
+        let map = label_map(&probabilities, &[1.0; 3], &SPEC, &input, &mut Vec::new());
         assert_eq!(map.labels, [0, 1, 2, 0, 1, 2]);
         assert!(map.confidence.iter().all(|&c| (c - 0.8).abs() < 1e-6));
         assert_eq!(map.depth, [0.0, 0.5, 1.0, 1.5, 2.0, 2.5], "metres, depth_scale_m being 2");
@@ -258,10 +278,13 @@ mod tests {
         // (2 + 0.6) ≈ 0.77.
         let probabilities = [0.4, 0.9, 0.6, 0.1];
         let spec = InputSpec { height: 1, width: 2, down: 1, depth_scale_m: 1.0 };
-        let map = label_map(&probabilities, &[0.2, 1.0], &spec, &[0.0; 10]);
+        let mut posteriors = Vec::new();
+        let map = label_map(&probabilities, &[0.2, 1.0], &spec, &[0.0; 10], &mut posteriors);
         assert_eq!(map.labels, [0, 0]);
         assert!((map.confidence[0] - 2.0 / 2.6).abs() < 1e-6, "{:?}", map.confidence);
-        let unweighted = label_map(&probabilities, &[1.0, 1.0], &spec, &[0.0; 10]);
+        assert!((posteriors[0] - 2.0 / 2.6).abs() < 1e-6 && (posteriors[2] - 0.6 / 2.6).abs() < 1e-6);
+        assert!((posteriors[1] + posteriors[3] - 1.0).abs() < 1e-6, "normalised: {posteriors:?}");
+        let unweighted = label_map(&probabilities, &[1.0, 1.0], &spec, &[0.0; 10], &mut Vec::new());
         assert_eq!(unweighted.labels, [1, 0]);
     }
 }
