@@ -162,8 +162,16 @@ impl DetectorParams {
 /// What finds the objects' pixels.
 #[derive(Debug)]
 enum Backend {
-    Network { segmentation: SegmentationNetwork, identifier: Option<Identifier> },
-    Classical(ClassicalDetector),
+    Network(Box<Learned>),
+    Classical(Box<ClassicalDetector>),
+}
+
+/// The network mode's networks: the segmentation and, when the model
+/// directory has one, the identifier.
+#[derive(Debug)]
+struct Learned {
+    segmentation: SegmentationNetwork,
+    identifier: Option<Identifier>,
 }
 
 /// A ready detector: the network (or the classical fits) and the rules that
@@ -184,16 +192,16 @@ impl Detector {
                 } else {
                     None
                 };
-                (Backend::Network { segmentation, identifier }, params.model.clone())
+                (Backend::Network(Box::new(Learned { segmentation, identifier })), params.model.clone())
             }
             Mode::Classical => {
                 let classical = ClassicalDetector::new(params.classical.clone(), &params.objects, params.threads)?;
                 let dir = classical.models_dir().to_path_buf();
-                (Backend::Classical(classical), dir)
+                (Backend::Classical(Box::new(classical)), dir)
             }
         };
         let known = match &backend {
-            Backend::Network { segmentation, .. } => segmentation.meta().object_ids.clone(),
+            Backend::Network(learned) => learned.segmentation.meta().object_ids.clone(),
             Backend::Classical(classical) => classical.object_ids().to_vec(),
         };
         let unknown: Vec<u32> = params.objects.iter().copied().filter(|id| !known.contains(id)).collect();
@@ -213,7 +221,7 @@ impl Detector {
                 detail: format!("none of {unknown:?} is known to the detector at {} ({known:?})", source.display()),
             });
         }
-        let identifies = matches!(&backend, Backend::Network { identifier: Some(_), .. });
+        let identifies = matches!(&backend, Backend::Network(learned) if learned.identifier.is_some());
         tracing::info!(mode = ?params.mode, model = %source.display(), objects = ?params.objects, identifies, "detector ready");
         Ok(Self { backend, params })
     }
@@ -221,7 +229,7 @@ impl Detector {
     /// The objects of the label map, label k being the k-th.
     fn labelled_ids(&self) -> &[u32] {
         match &self.backend {
-            Backend::Network { segmentation, .. } => &segmentation.meta().object_ids,
+            Backend::Network(learned) => &learned.segmentation.meta().object_ids,
             Backend::Classical(classical) => classical.object_ids(),
         }
     }
@@ -234,7 +242,8 @@ impl Detector {
     /// The detections of one frame: the heart of the stage.
     pub fn detect(&mut self, image: &ImageView<'_>) -> Result<Found, DetectorError> {
         let map = match &mut self.backend {
-            Backend::Network { segmentation, identifier } => {
+            Backend::Network(learned) => {
+                let Learned { segmentation, identifier } = learned.as_mut();
                 let mut map = segmentation.segment(image)?;
                 if let Some(identifier) = identifier {
                     let cell_pixels = (image.width * image.height) as f64 / (map.width * map.height) as f64;
