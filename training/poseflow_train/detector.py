@@ -262,21 +262,31 @@ def train(args):
             b_rgb, b_depth, b_labels = random_crops(b_rgb, b_depth, b_labels, args.crop, rng)
         logits = model(to_input(b_rgb, b_depth))
         loss = F.cross_entropy(logits, torch.as_tensor(b_labels, dtype=torch.long), weight=weights)
-        optimiser.zero_grad()
-        loss.backward()
-        optimiser.step()
+        descend(optimiser, loss)
         step += 1
         if step % 50 == 0:
             entry = {"step": step, "train_s": round(time.time() - started, 1), "loss": loss.item(), "lr": rate}
             if step % 500 == 0:
                 entry["validation"] = evaluate_arrays(model, *val, object_ids)
-            print(entry, flush=True)
-            log.write(json.dumps(entry) + "\n")
-            log.flush()
+            write_entry(log, entry)
         if time.time() - saved > args.checkpoint_s:
             save(model, optimiser, step, time.time() - started, checkpoint)
             saved = time.time()
     save(model, optimiser, step, time.time() - started, checkpoint)
+
+
+def descend(optimiser, loss):
+    """One optimiser step on `loss`."""
+    optimiser.zero_grad()
+    loss.backward()
+    optimiser.step()
+
+
+def write_entry(log, entry):
+    """One training-log entry, printed and appended to the open log."""
+    print(entry, flush=True)
+    log.write(json.dumps(entry) + "\n")
+    log.flush()
 
 
 def learning_rate(base, step, decay_steps):
@@ -374,6 +384,21 @@ class Exported(nn.Module):
         return e / e.sum(dim=1, keepdim=True)
 
 
+def export_onnx(module, example, path, input_name):
+    """`module` to ONNX at `path`: one input, output `probabilities`, the
+    batch dimension dynamic (the stage's contracts)."""
+    torch.onnx.export(
+        module,
+        (example,),
+        path,
+        input_names=[input_name],
+        output_names=["probabilities"],
+        dynamic_axes={input_name: {0: "n"}, "probabilities": {0: "n"}},
+        opset_version=17,
+        dynamo=False,
+    )
+
+
 def export(args):
     source = Path(args.checkpoint)
     config = json.loads((source / "detector.json").read_text())
@@ -386,17 +411,7 @@ def export(args):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     exported = Exported(model).eval()
-    example = torch.zeros(1, 5, height, width_px)
-    torch.onnx.export(
-        exported,
-        (example,),
-        out / "detector.onnx",
-        input_names=["rgbd"],
-        output_names=["probabilities"],
-        dynamic_axes={"rgbd": {0: "n"}, "probabilities": {0: "n"}},
-        opset_version=17,
-        dynamo=False,
-    )
+    export_onnx(exported, torch.zeros(1, 5, height, width_px), out / "detector.onnx", "rgbd")
     meta = {
         "format": "poseflow-detector/1",
         "object_ids": config["object_ids"],

@@ -39,7 +39,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from poseflow_train.detector import conv, block, learning_rate, read_split
+from poseflow_train.detector import block, conv, descend, export_onnx, learning_rate, read_split, write_entry
 
 CROP = 48
 CONTEXT = 1.25
@@ -306,9 +306,7 @@ def train(args):
             group["lr"] = rate
         x, y = examples.batch(args.batch, rng, jitter=True)
         loss = F.cross_entropy(model(x), y)
-        optimiser.zero_grad()
-        loss.backward()
-        optimiser.step()
+        descend(optimiser, loss)
         step += 1
         if step % 50 == 0:
             entry = {"step": step, "train_s": round(time.time() - started, 1), "loss": loss.item(), "lr": rate}
@@ -321,9 +319,7 @@ def train(args):
                     "accuracy": round(float((predicted == val_y).float().mean()), 4),
                     "objects_accuracy": round(float((predicted == val_y)[val_y > 0].float().mean()), 4),
                 }
-            print(entry, flush=True)
-            log.write(json.dumps(entry) + "\n")
-            log.flush()
+            write_entry(log, entry)
         if time.time() - saved > args.checkpoint_s:
             torch.save({"model": model.state_dict(), "optimiser": optimiser.state_dict(), "step": step, "elapsed_s": time.time() - started}, checkpoint)
             saved = time.time()
@@ -349,16 +345,7 @@ def export(args):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     exported = Exported(model).eval()
-    torch.onnx.export(
-        exported,
-        (torch.zeros(1, CHANNELS, CROP, CROP),),
-        out / "identify.onnx",
-        input_names=["crops"],
-        output_names=["probabilities"],
-        dynamic_axes={"crops": {0: "n"}, "probabilities": {0: "n"}},
-        opset_version=17,
-        dynamo=False,
-    )
+    export_onnx(exported, torch.zeros(1, CHANNELS, CROP, CROP), out / "identify.onnx", "crops")
     meta = {
         "format": FORMAT,
         "object_ids": config["object_ids"],
