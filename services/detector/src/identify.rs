@@ -142,6 +142,11 @@ impl Identifier {
         min_cells: usize,
         posteriors: Option<&[f32]>,
     ) -> Result<Relabelled, DetectorError> {
+        let (grid_width, grid_height) = grid_size(image);
+        if grid_width == 0 || grid_height == 0 {
+            // A frame under two pixels wide or high has no grid to crop from.
+            return Ok(Relabelled::default());
+        }
         let found: Vec<Region> = regions(map).into_iter().filter(|r| r.cells.len() >= min_cells.max(1)).collect();
         let mut done = Relabelled { regions: found.len(), ..Relabelled::default() };
         if found.is_empty() {

@@ -170,3 +170,25 @@ fn the_shipped_identifier_reproduces_its_export_and_names_the_annotated_regions(
     // eleven regions right.
     assert!(named * 4 >= firsts.len() * 3, "{named} of {} regions named as annotated", firsts.len());
 }
+
+#[test]
+fn a_frame_too_small_for_the_identifiers_grid_keeps_its_labels() {
+    use poseflow_detector::{Identifier, LabelMap};
+    let segmentation = SegmentationNetwork::load(&model_dir(), 1).expect("the shipped detector loads");
+    let object_ids = segmentation.meta().object_ids.clone();
+    let mut identifier = Identifier::load(&model_dir(), 1, &object_ids).expect("it loads").expect("it is shipped");
+    let camera = Pinhole { fx: 500.0, fy: 500.0, cx: 0.5, cy: 0.5 };
+    let (rgb, depth) = ([10.0, 20.0, 30.0], [1.0]);
+    let image = ImageView { rgb: &rgb, depth: &depth, width: 1, height: 1, camera };
+    let mut map = LabelMap {
+        width: 1,
+        height: 1,
+        labels: vec![3],
+        confidence: vec![0.9],
+        depth: Vec::new(),
+        instances: Vec::new(),
+    };
+    let done = identifier.relabel(&mut map, &image, 1, None).expect("no error");
+    assert_eq!(done.regions, 0);
+    assert_eq!((map.labels[0], map.confidence[0]), (3, 0.9));
+}

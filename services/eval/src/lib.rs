@@ -148,7 +148,8 @@ pub struct EvalArgs {
     /// (deploy/estimation-detect.toml unless --graph names another).
     #[arg(long)]
     pub detect: bool,
-    /// The detector's model directory (detector.onnx, detector.json), with --detect.
+    /// The detector's model directory (detector.onnx, detector.json, and the identifier's identify.onnx and
+    /// identify.json if present), with --detect.
     #[arg(long, default_value = "models/detector-lmo10")]
     pub detector_model: PathBuf,
     /// How the detector finds the objects, with --detect (classical: the objects of --objects).
