@@ -464,6 +464,15 @@ def plot_curve(curve, path):
     fig.savefig(path, dpi=110)
 
 
+def add_export_command(sub):
+    """The `export` sub-command: a checkpoint directory, the data (for the
+    parity file) and the model directory to write."""
+    e = sub.add_parser("export")
+    e.add_argument("--checkpoint", required=True)
+    e.add_argument("--data", required=True)
+    e.add_argument("--out", required=True)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
@@ -481,10 +490,7 @@ def main():
     t.add_argument("--max-minutes", type=float)
     t.add_argument("--checkpoint-s", type=float, default=300)
     t.add_argument("--threads", type=int, default=2)
-    e = sub.add_parser("export")
-    e.add_argument("--checkpoint", required=True)
-    e.add_argument("--data", required=True)
-    e.add_argument("--out", required=True)
+    add_export_command(sub)
     args = ap.parse_args()
     if args.command == "train":
         train(args)

@@ -39,7 +39,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from poseflow_train.detector import block, conv, descend, export_onnx, learning_rate, read_split, write_entry
+from poseflow_train.detector import add_export_command, block, conv, descend, export_onnx, learning_rate, read_split, write_entry
 
 CROP = 48
 CONTEXT = 1.25
@@ -407,10 +407,7 @@ def main():
     t.add_argument("--max-minutes", type=float, default=40)
     t.add_argument("--checkpoint-s", type=float, default=300)
     t.add_argument("--threads", type=int, default=2)
-    e = sub.add_parser("export")
-    e.add_argument("--checkpoint", required=True)
-    e.add_argument("--data", required=True)
-    e.add_argument("--out", required=True)
+    add_export_command(sub)
     args = ap.parse_args()
     {"regions": regions, "train": train, "export": export}[args.command](args)
 

@@ -165,8 +165,13 @@ impl Identifier {
         let size = CHANNELS * self.meta.crop * self.meta.crop;
         self.input.clear();
         self.input.resize(found.len() * size, 0.0);
+        // One membership raster for the frame: each region's cells are
+        // marked for its crop and cleared after, not a raster per region.
+        let mut inside = vec![false; plane];
         for (region, out) in found.iter().zip(self.input.chunks_exact_mut(size)) {
-            crop_input(map, region, image, &self.meta, out);
+            region.cells.iter().for_each(|&c| inside[c] = true);
+            crop_input(map, region, &inside, image, &self.meta, out);
+            region.cells.iter().for_each(|&c| inside[c] = false);
         }
         let run_error = |e: ort::Error| DetectorError::Run { path: self.path.clone(), detail: e.to_string() };
         let crop = self.meta.crop;
@@ -214,14 +219,17 @@ fn grid_span(c0: usize, c1: usize, cells: usize, grid: usize) -> (usize, usize) 
 }
 
 /// Writes one region's `CHANNELS × crop × crop` input (the module's
-/// contract) into `out`.
-pub(crate) fn crop_input(map: &LabelMap, region: &Region, image: &ImageView<'_>, meta: &IdentifyMeta, out: &mut [f32]) {
+/// contract) into `out`; `inside` marks the region's map cells.
+pub(crate) fn crop_input(
+    map: &LabelMap,
+    region: &Region,
+    inside: &[bool],
+    image: &ImageView<'_>,
+    meta: &IdentifyMeta,
+    out: &mut [f32],
+) {
     let (gw, gh) = grid_size(image);
     let (mw, mh) = (map.width, map.height);
-    let mut inside = vec![false; mw * mh];
-    for &c in &region.cells {
-        inside[c] = true;
-    }
     let in_region = |gx: usize, gy: usize| inside[(gy * mh / gh) * mw + gx * mw / gw];
     let pixel = |gx: usize, gy: usize| (GRID_DOWN * gy + 1) * image.width + GRID_DOWN * gx + 1;
     let depth_m = |gx: usize, gy: usize| {
@@ -275,6 +283,7 @@ mod tests {
     use poseflow_geometry::metrics::Pinhole;
 
     use super::*;
+    use crate::instances::membership;
 
     fn meta(crop: usize, context: f64) -> IdentifyMeta {
         IdentifyMeta {
@@ -327,7 +336,7 @@ mod tests {
         let labels = map(4, 4, &[5, 6, 9, 10]);
         let region = regions(&labels).remove(0);
         let mut out = vec![f32::NAN; CHANNELS * 16];
-        crop_input(&labels, &region, &image, &meta(4, 1.0), &mut out);
+        crop_input(&labels, &region, &membership(&labels, &region), &image, &meta(4, 1.0), &mut out);
         let plane = |c: usize| &out[c * 16..(c + 1) * 16];
         // Cell (x, y) is pixel (2x + 1, 2y + 1).
         let expected_red: Vec<f32> = (0..16).map(|k| (2 * (k % 4) + 1) as f32 / 255.0).collect();
@@ -364,7 +373,7 @@ mod tests {
         let labels = map(2, 2, &[0]);
         let region = regions(&labels).remove(0);
         let mut out = vec![f32::NAN; CHANNELS * 16];
-        crop_input(&labels, &region, &image, &meta(4, 1.0), &mut out);
+        crop_input(&labels, &region, &membership(&labels, &region), &image, &meta(4, 1.0), &mut out);
         for k in 0..16 {
             let (i, j) = (k / 4, k % 4);
             let outside = i == 0 || j == 0;

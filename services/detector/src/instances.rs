@@ -220,7 +220,7 @@ pub fn detections(map: &LabelMap, object_ids: &[u32], frame: &FrameGrid<'_>, rul
 type FrameMask = ([u32; 4], Vec<bool>);
 
 /// Which cells of the map are the region's.
-fn membership(map: &LabelMap, region: &Region) -> Vec<bool> {
+pub(crate) fn membership(map: &LabelMap, region: &Region) -> Vec<bool> {
     let mut inside = vec![false; map.width * map.height];
     for &c in &region.cells {
         inside[c] = true;
