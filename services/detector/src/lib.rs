@@ -47,6 +47,47 @@ pub struct DetectedObject {
     pub mask: Vec<bool>,
 }
 
+impl DetectedObject {
+    /// How the mask overlaps a whole-frame mask `other` (row-major, `width`
+    /// columns, covering the box): the mask's pixels and, of those, the ones
+    /// also in `other`.
+    pub fn overlap(&self, other: &[bool], width: usize) -> (usize, usize) {
+        let [x, y, w, _] = self.bbox.map(|v| v as usize);
+        let (mut mine, mut both) = (0, 0);
+        for (row, line) in self.mask.chunks(w.max(1)).enumerate() {
+            for (col, &inside) in line.iter().enumerate() {
+                if inside {
+                    mine += 1;
+                    both += usize::from(other.get((y + row) * width + x + col).copied().unwrap_or(false));
+                }
+            }
+        }
+        (mine, both)
+    }
+
+    /// Intersection over union with a whole-frame mask `other` (`width`
+    /// columns); 0 when both are empty.
+    pub fn iou(&self, other: &[bool], width: usize) -> f64 {
+        let (mine, both) = self.overlap(other, width);
+        let union = mine + other.iter().filter(|&&inside| inside).count() - both;
+        if union == 0 { 0.0 } else { both as f64 / union as f64 }
+    }
+
+    /// The mask over a whole `width × height` frame, row-major.
+    pub fn frame_mask(&self, width: usize, height: usize) -> Vec<bool> {
+        let mut frame = vec![false; width * height];
+        let [x, y, w, _] = self.bbox.map(|v| v as usize);
+        for (row, line) in self.mask.chunks(w.max(1)).enumerate() {
+            for (col, &inside) in line.iter().enumerate() {
+                if inside && x + col < width && y + row < height {
+                    frame[(y + row) * width + x + col] = true;
+                }
+            }
+        }
+        frame
+    }
+}
+
 /// Parameters of the detector stage (`config/detector.toml` and a graph's
 /// `params`).
 #[derive(Debug, Clone, Deserialize)]
@@ -285,6 +326,37 @@ pub fn registrations() -> Vec<poseflow_runtime::Registration> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    fn square(x: u32, y: u32, side: u32) -> DetectedObject {
+        let n = (side * side) as usize;
+        DetectedObject { obj_id: 1, instance: 0, score: 1.0, bbox: [x, y, side, side], mask: vec![true; n] }
+    }
+
+    #[test]
+    fn overlap_of_two_squares_is_their_closed_form() {
+        // 4×4 at (2, 0) against 4×4 at (0, 0) in a 10 × 6 frame: 2·4 shared.
+        let truth = square(0, 0, 4).frame_mask(10, 6);
+        let detection = square(2, 0, 4);
+        assert_eq!(detection.overlap(&truth, 10), (16, 8));
+        assert!((detection.iou(&truth, 10) - 8.0 / 24.0).abs() < 1e-12);
+        assert_eq!(detection.iou(&[false; 60], 10), 0.0);
+    }
+
+    proptest! {
+        #[test]
+        fn a_detection_covers_its_own_frame_mask_exactly(
+            x in 0u32..8, y in 0u32..6, w in 1u32..6, h in 1u32..5, bits in proptest::collection::vec(any::<bool>(), 30)
+        ) {
+            let mask: Vec<bool> = (0..(w * h) as usize).map(|i| bits[i % bits.len()]).collect();
+            let pixels = mask.iter().filter(|&&m| m).count();
+            let detection = DetectedObject { obj_id: 3, instance: 0, score: 0.5, bbox: [x, y, w, h], mask };
+            let frame = detection.frame_mask(16, 12);
+            prop_assert_eq!(frame.iter().filter(|&&m| m).count(), pixels);
+            prop_assert_eq!(detection.overlap(&frame, 16), (pixels, pixels));
+            prop_assert_eq!(detection.iou(&frame, 16), if pixels == 0 { 0.0 } else { 1.0 });
+        }
+    }
 
     #[test]
     fn bad_parameters_are_refused_naming_the_key() {

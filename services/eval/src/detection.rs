@@ -59,16 +59,7 @@ impl BestMatch {
     /// How `detection` overlaps a truth's whole-image mask of `width`
     /// columns.
     fn of(detection: &DetectedObject, truth: &TruthMask, width: usize) -> Self {
-        let [x, y, w, h] = detection.bbox.map(|v| v as usize);
-        let (mut both, mut detected) = (0usize, 0usize);
-        for row in 0..h {
-            for col in 0..w {
-                if detection.mask[row * w + col] {
-                    detected += 1;
-                    both += usize::from(truth.mask[(y + row) * width + x + col]);
-                }
-            }
-        }
+        let (detected, both) = detection.overlap(&truth.mask, width);
         let union = detected + truth.area - both;
         let iou = if union == 0 { 0.0 } else { both as f64 / union as f64 };
         Self { iou, detected_pixels: detected, overlap_pixels: both }

@@ -573,6 +573,44 @@ fn observe_jitters_masks_and_registration_the_same_way_every_run() {
 }
 
 #[test]
+fn observe_gives_found_objects_the_detectors_masks_and_counts_the_rest() {
+    let dataset = scratch("observe-detector");
+    render(&dataset, "3");
+    let write = |name: &str, extra: &[&str]| {
+        let shard = dataset.join(name);
+        let args = ["observe", "--dataset", dataset.to_str().unwrap(), "--split", "train", "--json"];
+        let sizes = ["--out", shard.to_str().unwrap(), "--image-size", "32", "--patch-grid", "4", "--points", "64"];
+        let out = poseflow(&[&args[..], &sizes, extra].concat());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let counts: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        (counts, std::fs::read(&shard).unwrap())
+    };
+    let (plain_counts, plain) = write("plain.obs", &[]);
+    assert!(plain_counts.get("detector_masks").is_none(), "{plain_counts}");
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/detector-lmo10");
+    let (counts, detected) = write("detected.obs", &["--detector-masks", model]);
+    let (swapped, kept) = (counts["detector_masks"].as_u64().unwrap(), counts["annotated_masks"].as_u64().unwrap());
+    assert!(swapped >= 1, "the detector found none of the rendered objects: {counts}");
+    assert_eq!(swapped + kept, 4 * 3, "every annotated object is counted once: {counts}");
+    assert_ne!(detected, plain, "the detector's masks changed no observation");
+
+    let missing = dataset.join("no-model");
+    let out = poseflow(&[
+        "observe",
+        "--dataset",
+        dataset.to_str().unwrap(),
+        "--out",
+        dataset.join("x.obs").to_str().unwrap(),
+        "--detector-masks",
+        missing.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("--detector-masks") && stderr.contains("detector.json"), "{stderr}");
+    std::fs::remove_dir_all(dataset).unwrap();
+}
+
+#[test]
 fn bench_model_times_both_networks() {
     let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/test-tiny");
     let out = poseflow(&["bench", "model", "--model", model, "--runs", "3", "--samples", "8", "--json"]);
