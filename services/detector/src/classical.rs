@@ -3,7 +3,7 @@
 //!
 //! 1. the frame's depth sampled at the centre of each `down` × `down` block
 //!    and back-projected (camera frame, metres);
-//! 2. the support plane found by RANSAC ([`ransac_plane`]); points on it or
+//! 2. the support plane found by RANSAC ([`support_plane`](crate::tabletop::support_plane)); points on it or
 //!    behind it are dropped;
 //! 3. the rest grouped into depth clusters ([`clusters`]);
 //! 4. each cluster identified by fitting every known object to it: from
@@ -37,7 +37,7 @@ use poseflow_scene::{ObjectGeometry, ObjectLibrary};
 use serde::Deserialize;
 
 use crate::instances::LabelMap;
-use crate::tabletop::{Plane, clusters, ransac_plane};
+use crate::tabletop::{Plane, clusters, support_plane};
 use crate::{DetectorError, ImageView};
 
 /// Objects sought in one cluster: its largest, then what remains.
@@ -411,11 +411,9 @@ impl ClassicalDetector {
     fn support_plane(&self, grid: &SampledDepth) -> Option<Plane> {
         let measured: Vec<Point3<f64>> = grid.points.iter().flatten().copied().collect();
         let mut rng = seeded_rng(self.params.seed);
-        let tolerance = self.params.plane_tolerance_m;
-        let plane = ransac_plane(&measured, tolerance, PLANE_ITERATIONS, &mut rng)?;
-        let support = measured.iter().filter(|p| plane.distance(p).abs() <= tolerance).count();
-        tracing::debug!(normal = ?plane.normal.as_slice(), offset = plane.offset, support, points = measured.len(), "support plane");
-        (support * 10 >= measured.len()).then_some(plane)
+        let plane = support_plane(&measured, self.params.plane_tolerance_m, PLANE_ITERATIONS, &mut rng)?;
+        tracing::debug!(normal = ?plane.normal.as_slice(), offset = plane.offset, points = measured.len(), "support plane");
+        Some(plane)
     }
 
     /// The object that explains most of `points` with an agreement of at

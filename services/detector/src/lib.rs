@@ -130,6 +130,11 @@ pub struct DetectorParams {
     /// the label map up block by block.
     #[serde(default = "default_edge_depth")]
     pub edge_depth_m: f32,
+    /// Mask pixels less than this many metres in front of the frame's
+    /// support plane (or behind it) are dropped: the table around an
+    /// object's foot. 0: masks keep them.
+    #[serde(default = "default_support_plane")]
+    pub support_plane_m: f64,
     /// Settings of `mode = "classical"`.
     #[serde(default)]
     pub classical: ClassicalParams,
@@ -164,6 +169,9 @@ fn default_min_score() -> f32 {
 fn default_edge_depth() -> f32 {
     0.01
 }
+fn default_support_plane() -> f64 {
+    0.005
+}
 
 impl DetectorParams {
     pub fn from_json(value: &serde_json::Value) -> Result<Self, DetectorError> {
@@ -181,6 +189,9 @@ impl DetectorParams {
         }
         if !(params.edge_depth_m.is_finite() && params.edge_depth_m >= 0.0) {
             return bad("edge_depth_m", format!("expected metres, 0 or more, got {}", params.edge_depth_m));
+        }
+        if !(params.support_plane_m.is_finite() && params.support_plane_m >= 0.0) {
+            return bad("support_plane_m", format!("expected metres, 0 or more, got {}", params.support_plane_m));
         }
         if params.mode == Mode::Classical {
             params.classical.check()?;
@@ -301,6 +312,10 @@ impl Detector {
         if !self.params.objects.is_empty() {
             found.objects.retain(|o| self.params.objects.contains(&o.obj_id));
         }
+        if self.params.support_plane_m > 0.0 {
+            let removed = tabletop::drop_support_pixels(&mut found.objects, image, self.params.support_plane_m);
+            tracing::debug!(pixels = removed, "table pixels removed from the masks");
+        }
         Ok(found)
     }
 }
@@ -366,6 +381,7 @@ mod tests {
             (serde_json::json!({ "max_instances": 0 }), "max_instances"),
             (serde_json::json!({ "min_score": 1.5 }), "min_score"),
             (serde_json::json!({ "edge_depth_m": -0.01 }), "edge_depth_m"),
+            (serde_json::json!({ "support_plane_m": -0.005 }), "support_plane_m"),
             (serde_json::json!({ "edge_depth": 0.01 }), "edge_depth"),
         ] {
             let message = refused(json.clone());

@@ -1,13 +1,18 @@
-//! Tabletop geometry for the classical detector (no training): the support
-//! plane found by RANSAC in the depth image, and the depth pixels above it
-//! grouped into clusters, one per object standing on it.
+//! Tabletop geometry: the support plane found by RANSAC in the depth image,
+//! and the depth pixels above it grouped into clusters, one per object
+//! standing on it (the classical detector); masks cleared of the table
+//! (both modes).
 //!
 //! Points are in the camera frame (metres, x right, y down, z forward);
 //! planes are `n · p = d` with a unit normal `n` pointing towards the
 //! camera (`n · (0, 0, -1) > 0` side: the side objects stand on).
 
 use nalgebra::{Matrix3, Point3, SymmetricEigen, Vector3};
+use poseflow_geometry::sampling::seeded_rng;
 use rand::Rng;
+
+use crate::classical::SampledDepth;
+use crate::{DetectedObject, ImageView};
 
 /// A plane `normal · p = offset`, `normal` a unit vector.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -77,6 +82,73 @@ pub fn ransac_plane(points: &[Point3<f64>], tolerance: f64, iterations: usize, r
     Plane::fit(&support).or(Some(plane))
 }
 
+/// The support plane: the RANSAC plane of `points`, if it holds a tenth of
+/// them (else the frame has no table in view, or too little of it).
+pub fn support_plane(points: &[Point3<f64>], tolerance: f64, iterations: usize, rng: &mut impl Rng) -> Option<Plane> {
+    let plane = ransac_plane(points, tolerance, iterations, rng)?;
+    let support = points.iter().filter(|p| plane.distance(p).abs() <= tolerance).count();
+    (support * 10 >= points.len()).then_some(plane)
+}
+
+/// The support plane is sought on every 8th pixel of each 8th row…
+const SUPPORT_GRID_DOWN: usize = 8;
+/// …among points this close to a candidate plane…
+const SUPPORT_TOLERANCE_M: f64 = 0.01;
+/// …over this many random triples, with a fixed seed (same frame, same
+/// masks).
+const SUPPORT_ITERATIONS: usize = 300;
+const SUPPORT_SEED: u64 = 0;
+
+/// Removes from each mask of `objects` the pixels whose depth puts them on
+/// the frame's support plane or behind it (less than `margin` metres in
+/// front of it): the table under and around an object, which masks scaled
+/// up from coarse cells take in, and which turns the pose stages. A mask
+/// that would lose every pixel is kept whole (an object lying flat), and
+/// masks stay as they are when the frame has no support plane. Each box is
+/// shrunk to its mask. Returns the pixels removed.
+pub fn drop_support_pixels(objects: &mut [DetectedObject], image: &ImageView<'_>, margin: f64) -> usize {
+    if objects.is_empty() {
+        return 0;
+    }
+    let grid = SampledDepth::of(image, SUPPORT_GRID_DOWN, f64::INFINITY);
+    let measured: Vec<Point3<f64>> = grid.points.iter().flatten().copied().collect();
+    let mut rng = seeded_rng(SUPPORT_SEED);
+    let Some(plane) = support_plane(&measured, SUPPORT_TOLERANCE_M, SUPPORT_ITERATIONS, &mut rng) else {
+        return 0;
+    };
+    let c = &image.camera;
+    let mut removed = 0;
+    for object in objects.iter_mut() {
+        let [x, y, w, _] = object.bbox.map(|v| v as usize);
+        let on_table = |i: usize| {
+            let (u, v) = (x + i % w, y + i / w);
+            let z = f64::from(image.depth[v * image.width + u]);
+            let point = Point3::new((u as f64 - c.cx) / c.fx * z, (v as f64 - c.cy) / c.fy * z, z);
+            z.is_finite() && z > 0.0 && plane.distance(&point) < margin
+        };
+        let kept: Vec<bool> = object.mask.iter().enumerate().map(|(i, &inside)| inside && !on_table(i)).collect();
+        if !kept.contains(&true) {
+            continue;
+        }
+        removed += object.mask.iter().filter(|&&m| m).count() - kept.iter().filter(|&&m| m).count();
+        (object.bbox, object.mask) = tight(object.bbox, &kept);
+    }
+    removed
+}
+
+/// A box and its row-major mask cut down to the mask's own bounds (`mask`
+/// holds at least one pixel).
+fn tight(bbox: [u32; 4], mask: &[bool]) -> ([u32; 4], Vec<bool>) {
+    let w = bbox[2] as usize;
+    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+    for i in (0..mask.len()).filter(|&i| mask[i]) {
+        let (x, y) = (i % w, i / w);
+        (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+    }
+    let cut = (y0..=y1).flat_map(|y| mask[y * w + x0..=y * w + x1].iter().copied()).collect();
+    ([bbox[0] + x0 as u32, bbox[1] + y0 as u32, (x1 - x0 + 1) as u32, (y1 - y0 + 1) as u32], cut)
+}
+
 /// Clusters of an organised point grid (`width` columns, `None` where there
 /// is no point): 4-neighbours closer than `gap` metres join. Returns each
 /// cluster's cell indices, largest first.
@@ -114,8 +186,8 @@ pub fn clusters(grid: &[Option<Point3<f64>>], width: usize, gap: f64) -> Vec<Vec
 #[cfg(test)]
 mod tests {
     use super::*;
-    use poseflow_geometry::sampling::seeded_rng;
     use proptest::prelude::*;
+    use rand::Rng;
 
     #[test]
     fn three_points_give_their_plane_facing_the_camera() {
@@ -149,6 +221,75 @@ mod tests {
         assert!((plane.normal - normal).norm() < 1e-9, "{plane:?}");
         let above = points.iter().filter(|p| plane.distance(p) > 0.01).count();
         assert_eq!(above, 100);
+    }
+
+    /// A 64 × 48 frame of a table 1 m ahead, facing the camera, with a box
+    /// whose top stands 5 cm above it on pixels 20..30 × 10..20.
+    fn tabletop_frame() -> (Vec<f32>, Vec<f32>) {
+        let (w, h) = (64, 48);
+        let on_box = |u: usize, v: usize| (20..30).contains(&u) && (10..20).contains(&v);
+        let depth = (0..w * h).map(|i| if on_box(i % w, i / w) { 0.95 } else { 1.0 }).collect();
+        (vec![128.0; 3 * w * h], depth)
+    }
+
+    fn image<'a>(rgb: &'a [f32], depth: &'a [f32]) -> ImageView<'a> {
+        let camera = poseflow_geometry::metrics::Pinhole { fx: 60.0, fy: 60.0, cx: 32.0, cy: 24.0 };
+        ImageView { rgb, depth, width: 64, height: 48, camera }
+    }
+
+    fn detection(bbox: [u32; 4]) -> DetectedObject {
+        let mask = vec![true; (bbox[2] * bbox[3]) as usize];
+        DetectedObject { obj_id: 1, instance: 0, score: 1.0, bbox, mask }
+    }
+
+    #[test]
+    fn the_table_around_an_object_leaves_its_mask() {
+        let (rgb, depth) = tabletop_frame();
+        // The box's mask, two pixels too wide all round; a second mask lying
+        // all on the table; a third that starts without its box tight.
+        let mut objects = vec![detection([18, 8, 14, 14]), detection([40, 30, 6, 6]), detection([20, 10, 10, 10])];
+        objects[2].mask.iter_mut().take(10).for_each(|m| *m = false);
+        let removed = drop_support_pixels(&mut objects, &image(&rgb, &depth), 0.005);
+        assert_eq!(removed, 14 * 14 - 100);
+        assert_eq!(objects[0].bbox, [20, 10, 10, 10]);
+        assert!(objects[0].mask.iter().all(|&m| m));
+        assert_eq!(objects[1], detection([40, 30, 6, 6]), "a mask all on the table is kept whole");
+        assert_eq!(objects[2].bbox, [20, 11, 10, 9], "each box is shrunk to its mask");
+        // A box 3 mm tall is on the table at a 5 mm margin but not at 2 mm.
+        let depth: Vec<f32> = depth.iter().map(|&z| if z < 1.0 { 0.997 } else { z }).collect();
+        let mut objects = vec![detection([18, 8, 14, 14])];
+        assert_eq!(drop_support_pixels(&mut objects, &image(&rgb, &depth), 0.002), 14 * 14 - 100);
+    }
+
+    #[test]
+    fn masks_stay_as_they_are_without_a_support_plane() {
+        // Depth scattered over 0.5–1.5 m: no plane holds a tenth of it.
+        let (rgb, _) = tabletop_frame();
+        let mut rng = seeded_rng(3);
+        let depth: Vec<f32> = (0..64 * 48).map(|_| rng.random_range(0.5..1.5)).collect();
+        let mut objects = vec![detection([18, 8, 14, 14])];
+        assert_eq!(drop_support_pixels(&mut objects, &image(&rgb, &depth), 0.005), 0);
+        assert_eq!(objects, vec![detection([18, 8, 14, 14])]);
+    }
+
+    proptest! {
+        #[test]
+        fn dropping_the_table_only_removes_pixels(
+            x in 0u32..50, y in 0u32..36, w in 1u32..14, h in 1u32..12, bits in proptest::collection::vec(any::<bool>(), 20)
+        ) {
+            let (rgb, depth) = tabletop_frame();
+            let mask: Vec<bool> = (0..(w * h) as usize).map(|i| bits[i % bits.len()]).collect();
+            let before = DetectedObject { obj_id: 1, instance: 0, score: 1.0, bbox: [x, y, w, h], mask };
+            let mut objects = vec![before.clone()];
+            let removed = drop_support_pixels(&mut objects, &image(&rgb, &depth), 0.005);
+            let after = &objects[0];
+            let frame_before = before.frame_mask(64, 48);
+            let frame_after = after.frame_mask(64, 48);
+            let count = |m: &[bool]| m.iter().filter(|&&p| p).count();
+            prop_assert_eq!(count(&frame_before) - count(&frame_after), removed);
+            prop_assert!(frame_after.iter().zip(&frame_before).all(|(&a, &b)| !a || b));
+            prop_assert!(count(&frame_after) > 0 || count(&frame_before) == 0);
+        }
     }
 
     #[test]
