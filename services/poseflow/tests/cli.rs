@@ -552,18 +552,22 @@ fn observe_writes_a_training_shard_with_the_ground_truth() {
     std::fs::remove_dir_all(dataset).unwrap();
 }
 
+/// `observe` of a small dataset's train split into `dataset/name` with
+/// `extra` options: the printed counts and the shard's bytes.
+fn observe_small(dataset: &Path, name: &str, extra: &[&str]) -> (serde_json::Value, Vec<u8>) {
+    let shard = dataset.join(name);
+    let args = ["observe", "--dataset", dataset.to_str().unwrap(), "--split", "train", "--json"];
+    let sizes = ["--out", shard.to_str().unwrap(), "--image-size", "32", "--patch-grid", "4", "--points", "64"];
+    let out = poseflow(&[&args[..], &sizes, extra].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    (serde_json::from_slice(&out.stdout).unwrap(), std::fs::read(&shard).unwrap())
+}
+
 #[test]
 fn observe_jitters_masks_and_registration_the_same_way_every_run() {
     let dataset = scratch("observe-jitter");
     render(&dataset, "3");
-    let write = |name: &str, jitter: &[&str]| {
-        let shard = dataset.join(name);
-        let args = ["observe", "--dataset", dataset.to_str().unwrap(), "--split", "train"];
-        let sizes = ["--out", shard.to_str().unwrap(), "--image-size", "32", "--patch-grid", "4", "--points", "64"];
-        let out = poseflow(&[&args[..], &sizes, jitter].concat());
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        std::fs::read(&shard).unwrap()
-    };
+    let write = |name: &str, jitter: &[&str]| observe_small(&dataset, name, jitter).1;
     let plain = write("plain.obs", &[]);
     let jitter = ["--grow-masks", "4", "--shrink-masks", "2", "--shift-depth", "2"];
     let jittered = write("jittered.obs", &jitter);
@@ -576,19 +580,10 @@ fn observe_jitters_masks_and_registration_the_same_way_every_run() {
 fn observe_gives_found_objects_the_detectors_masks_and_counts_the_rest() {
     let dataset = scratch("observe-detector");
     render(&dataset, "3");
-    let write = |name: &str, extra: &[&str]| {
-        let shard = dataset.join(name);
-        let args = ["observe", "--dataset", dataset.to_str().unwrap(), "--split", "train", "--json"];
-        let sizes = ["--out", shard.to_str().unwrap(), "--image-size", "32", "--patch-grid", "4", "--points", "64"];
-        let out = poseflow(&[&args[..], &sizes, extra].concat());
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        let counts: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-        (counts, std::fs::read(&shard).unwrap())
-    };
-    let (plain_counts, plain) = write("plain.obs", &[]);
+    let (plain_counts, plain) = observe_small(&dataset, "plain.obs", &[]);
     assert!(plain_counts.get("detector_masks").is_none(), "{plain_counts}");
     let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/detector-lmo10");
-    let (counts, detected) = write("detected.obs", &["--detector-masks", model]);
+    let (counts, detected) = observe_small(&dataset, "detected.obs", &["--detector-masks", model]);
     let (swapped, kept) = (counts["detector_masks"].as_u64().unwrap(), counts["annotated_masks"].as_u64().unwrap());
     assert!(swapped >= 1, "the detector found none of the rendered objects: {counts}");
     assert_eq!(swapped + kept, 4 * 3, "every annotated object is counted once: {counts}");
