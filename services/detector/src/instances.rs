@@ -39,7 +39,7 @@ pub struct InstanceRules {
     /// Regions of one object whose boxes are at most this many frame pixels
     /// apart are one instance.
     pub merge_gap_px: usize,
-    /// Instances kept per object, largest first.
+    /// Instances kept per object, in the order `most_confident_first` sets.
     pub max_instances: usize,
     /// Instances whose mean confidence is lower are dropped.
     pub min_score: f32,

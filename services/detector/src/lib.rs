@@ -206,7 +206,9 @@ impl DetectorParams {
             max_instances: self.max_instances,
             min_score: self.min_score,
             edge_depth_m: self.edge_depth_m,
-            most_confident_first: self.mode == Mode::Classical,
+            // A region the identifier and the segmentation disagree on can be
+            // larger than the object's own region and would win on size.
+            most_confident_first: true,
         }
     }
 }
