@@ -129,14 +129,17 @@ pub fn label_map(
             }
         }
     }
-    let confidence: Vec<f32> = best.iter().zip(&total).map(|(&b, &t)| if t > 0.0 { b / t } else { 0.0 }).collect();
+    // The winner's share, in place: `best` becomes the confidence.
+    for (b, &t) in best.iter_mut().zip(&total) {
+        *b = if t > 0.0 { *b / t } else { 0.0 };
+    }
     for class in posteriors.chunks_exact_mut(plane) {
         for (q, &t) in class.iter_mut().zip(&total) {
             *q = if t > 0.0 { *q / t } else { 0.0 };
         }
     }
     let depth = input[3 * plane..4 * plane].iter().map(|d| d * spec.depth_scale_m).collect();
-    LabelMap { width: spec.width, height: spec.height, labels, confidence, depth, instances: Vec::new() }
+    LabelMap { width: spec.width, height: spec.height, labels, confidence: best, depth, instances: Vec::new() }
 }
 
 /// A loaded detector network.
