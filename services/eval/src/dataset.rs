@@ -6,7 +6,6 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use poseflow_geometry::Pose;
-use poseflow_geometry::metrics::Pinhole;
 use poseflow_ingest::sources::BopFrames;
 use poseflow_scene::Camera;
 use poseflow_scene::bop::{ByImage, CameraEntry, GtEntry, GtInfoEntry, SceneDir, read_depth_png, read_json};
@@ -93,7 +92,7 @@ pub fn read_truth(split_dir: &Path, frames: &BopFrames) -> anyhow::Result<Vec<Tr
         let (width, height) = image::image_dimensions(dir.rgb(im_id))
             .with_context(|| format!("{}: cannot read the image size", dir.rgb(im_id).display()))?;
         let k = &entry.cam_k;
-        let camera = ImageCamera { pinhole: Pinhole { fx: k[0], fy: k[4], cx: k[2], cy: k[5] }, width };
+        let camera = ImageCamera { pinhole: entry.pinhole(), width };
         let depth = dir.depth(im_id).is_file().then(|| DepthFile {
             path: dir.depth(im_id),
             depth_scale: entry.depth_scale,

@@ -16,7 +16,6 @@ use std::path::Path;
 
 use anyhow::Context;
 use poseflow_detector::{DetectedObject, Detector, ImageView};
-use poseflow_geometry::metrics::Pinhole;
 use poseflow_scene::bop::{
     ByImage, CameraEntry, GtEntry, GtInfoEntry, SceneDir, read_depth_png, read_json, read_mask_png, read_rgb_png,
 };
@@ -289,9 +288,7 @@ pub fn evaluate_split(split_dir: &Path, detector: &mut Detector) -> anyhow::Resu
             let depth = read_depth_png(&scene.depth(im_id), camera.depth_scale)?;
             let (width, height) = (rgb.width as usize, rgb.height as usize);
             let rgb_f32: Vec<f32> = rgb.pixels.iter().flat_map(|p| p.map(f32::from)).collect();
-            let k = &camera.cam_k;
-            let pinhole = Pinhole { fx: k[0], fy: k[4], cx: k[2], cy: k[5] };
-            let image = ImageView { rgb: &rgb_f32, depth: &depth.pixels, width, height, camera: pinhole };
+            let image = ImageView { rgb: &rgb_f32, depth: &depth.pixels, width, height, camera: camera.pinhole() };
             let started = std::time::Instant::now();
             let found = detector.detect(&image)?;
             times.push(started.elapsed().as_secs_f64() * 1e3);

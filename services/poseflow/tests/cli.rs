@@ -480,6 +480,80 @@ fn preview_puts_rgb_depth_and_masks_side_by_side() {
 }
 
 #[test]
+fn preview_detect_shows_and_scores_the_detectors_masks() {
+    let dataset = scratch("preview-detect");
+    render(&dataset, "3");
+    let sheet = dataset.join("sheet.png");
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/detector-lmo10");
+    let config = concat!(env!("CARGO_MANIFEST_DIR"), "/../../config/detector.toml");
+    let mut close = 0;
+    for (scene, image) in [("000000", "0"), ("000000", "1"), ("000001", "0"), ("000001", "1")] {
+        let scene = dataset.join("train").join(scene);
+        let out = poseflow(&[
+            "preview",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--image",
+            image,
+            "--out",
+            sheet.to_str().unwrap(),
+            "--detect",
+            "--detector-config",
+            config,
+            "--detector-model",
+            model,
+        ]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(stdout.contains("object  instance  score  pixels  mask IoU with the annotation"), "{stdout}");
+        // Rows: object, instance, score, pixels, IoU with the object's annotation.
+        for row in stdout.lines().map(|l| l.split_whitespace().collect::<Vec<_>>()) {
+            if let [_, _, score, _, iou] = row.as_slice()
+                && let (Ok(score), Ok(iou)) = (score.parse::<f64>(), iou.parse::<f64>())
+            {
+                assert!((0.0..=1.0).contains(&score) && (0.0..=1.0).contains(&iou), "{stdout}");
+                close += usize::from(iou >= 0.8);
+            }
+        }
+        // Four panels: RGB, depth, annotated masks, the detector's masks.
+        let (panel_width, panel_height) = (160 + 56 + 2 * 12, 120 + 36 + 40 + 2 * 12);
+        assert_eq!(image::open(&sheet).unwrap().to_rgb8().dimensions(), (4 * panel_width + 150, panel_height));
+    }
+    // 12 objects in the four images; the shipped detector matched 7 at IoU ≥ 0.96.
+    assert!(close >= 4, "{close} detections matched their object's annotation at IoU 0.8 in four images");
+
+    let scene = dataset.join("train/000000");
+    let missing = poseflow(&[
+        "preview",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        sheet.to_str().unwrap(),
+        "--detect",
+        "--detector-config",
+        "/nonexistent/detector.toml",
+    ]);
+    assert_eq!(missing.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&missing.stderr);
+    assert!(stderr.contains("--detector-config /nonexistent/detector.toml"), "{stderr}");
+    let bad = dataset.join("bad.toml");
+    std::fs::write(&bad, "min_score = 2.0\n").unwrap();
+    let out = poseflow(&[
+        "preview",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        sheet.to_str().unwrap(),
+        "--detect",
+        "--detector-config",
+        bad.to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("min_score") && stderr.contains("got 2"), "{stderr}");
+    std::fs::remove_dir_all(dataset).unwrap();
+}
+
+#[test]
 fn render_rejects_bad_arguments_with_what_was_expected() {
     let out_dir = scratch("render-bad");
     let out = out_dir.to_str().unwrap();

@@ -84,6 +84,12 @@ impl CameraEntry {
         }
     }
 
+    /// The intrinsics of `cam_K` as they are (no checks; see [`Self::camera`]).
+    pub fn pinhole(&self) -> poseflow_geometry::metrics::Pinhole {
+        let k = &self.cam_k;
+        poseflow_geometry::metrics::Pinhole { fx: k[0], fy: k[4], cx: k[2], cy: k[5] }
+    }
+
     /// The pinhole camera for an image of the given size; rejects
     /// intrinsics that are not finite or not a pinhole matrix.
     pub fn camera(&self, width: u32, height: u32, file: &Path, im_id: u32) -> Result<Camera, SceneError> {
