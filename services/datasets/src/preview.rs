@@ -141,10 +141,15 @@ fn detect(
         scored.len(),
         found.dropped
     );
-    println!("object  instance  score  pixels  mask IoU with the annotation");
+    println!("object  instance  score  pixels  box (x, y, w, h)      mask IoU with the annotation");
     for Scored { detection, iou } in &scored {
         let pixels = detection.mask.iter().filter(|&&inside| inside).count();
-        println!("{:>6}  {:>8}  {:>5.2}  {pixels:>6}  {iou:.2}", detection.obj_id, detection.instance, detection.score);
+        let [x, y, w, h] = detection.bbox;
+        let bbox = format!("{x}, {y}, {w}, {h}");
+        println!(
+            "{:>6}  {:>8}  {:>5.2}  {pixels:>6}  {bbox:<20}  {iou:.2}",
+            detection.obj_id, detection.instance, detection.score
+        );
     }
     let missed: Vec<String> = annotated
         .iter()

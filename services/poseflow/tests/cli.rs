@@ -505,10 +505,10 @@ fn preview_detect_shows_and_scores_the_detectors_masks() {
         ]);
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
         let stdout = String::from_utf8_lossy(&out.stdout);
-        assert!(stdout.contains("object  instance  score  pixels  mask IoU with the annotation"), "{stdout}");
-        // Rows: object, instance, score, pixels, IoU with the object's annotation.
+        assert!(stdout.contains("object  instance  score  pixels  box (x, y, w, h)"), "{stdout}");
+        // Rows: object, instance, score, pixels, box (4 values), IoU with the object's annotation.
         for row in stdout.lines().map(|l| l.split_whitespace().collect::<Vec<_>>()) {
-            if let [_, _, score, _, iou] = row.as_slice()
+            if let [_, _, score, _, _, _, _, _, iou] = row.as_slice()
                 && let (Ok(score), Ok(iou)) = (score.parse::<f64>(), iou.parse::<f64>())
             {
                 assert!((0.0..=1.0).contains(&score) && (0.0..=1.0).contains(&iou), "{stdout}");
