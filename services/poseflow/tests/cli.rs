@@ -523,31 +523,17 @@ fn preview_detect_shows_and_scores_the_detectors_masks() {
     assert!(close >= 4, "{close} detections matched their object's annotation at IoU 0.8 in four images");
 
     let scene = dataset.join("train/000000");
-    let missing = poseflow(&[
-        "preview",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        sheet.to_str().unwrap(),
-        "--detect",
-        "--detector-config",
-        "/nonexistent/detector.toml",
-    ]);
+    let preview_with = |config: &str| {
+        let args = ["preview", "--scene", scene.to_str().unwrap(), "--out", sheet.to_str().unwrap(), "--detect"];
+        poseflow(&[&args[..], &["--detector-config", config]].concat())
+    };
+    let missing = preview_with("/nonexistent/detector.toml");
     assert_eq!(missing.status.code(), Some(1));
     let stderr = String::from_utf8_lossy(&missing.stderr);
     assert!(stderr.contains("--detector-config /nonexistent/detector.toml"), "{stderr}");
     let bad = dataset.join("bad.toml");
     std::fs::write(&bad, "min_score = 2.0\n").unwrap();
-    let out = poseflow(&[
-        "preview",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        sheet.to_str().unwrap(),
-        "--detect",
-        "--detector-config",
-        bad.to_str().unwrap(),
-    ]);
+    let out = preview_with(bad.to_str().unwrap());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && stderr.contains("min_score") && stderr.contains("got 2"), "{stderr}");
     std::fs::remove_dir_all(dataset).unwrap();
