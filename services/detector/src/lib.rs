@@ -35,8 +35,8 @@ use serde::Deserialize;
 #[derive(Debug, Clone, PartialEq)]
 pub struct DetectedObject {
     pub obj_id: u32,
-    /// 0 for an object's first instance (the largest; the classical mode's
-    /// most confident), 1 for its second, …
+    /// 0 for an object's first instance (the most confident), 1 for its
+    /// second, …
     pub instance: u32,
     /// Mean probability of the object over its mask, 0–1.
     pub score: f32,
@@ -76,10 +76,11 @@ impl DetectedObject {
     /// Grows the mask by `by` pixels: every pixel within `by` columns and
     /// `by` rows of a mask pixel joins it (a dilation by a (2·by + 1)²
     /// square). The box grows by `by` on each side, clipped to the
-    /// `width × height` frame.
+    /// `width × height` frame. A mask whose length is not its box's area
+    /// is left as it is.
     pub fn grow(&mut self, by: usize, width: usize, height: usize) {
         let [x, y, w, h] = self.bbox.map(|v| v as usize);
-        if by == 0 || w == 0 || h == 0 {
+        if by == 0 || w == 0 || h == 0 || self.mask.len() != w * h {
             return;
         }
         let (x0, y0) = (x.saturating_sub(by), y.saturating_sub(by));
@@ -158,10 +159,11 @@ pub struct DetectorParams {
     /// Regions smaller than this many frame pixels are dropped.
     #[serde(default = "default_min_pixels")]
     pub min_pixels: usize,
-    /// Regions of one object at most this many pixels apart are one instance.
+    /// Regions of one object whose boxes are at most this many pixels apart
+    /// are one instance (0: boxes that overlap).
     #[serde(default = "default_merge_gap")]
     pub merge_gap_px: usize,
-    /// Instances reported per object, largest first.
+    /// Instances reported per object, most confident first.
     #[serde(default = "one")]
     pub max_instances: usize,
     /// Instances whose mean probability is lower are dropped.
