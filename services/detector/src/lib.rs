@@ -86,29 +86,15 @@ impl DetectedObject {
         let (x0, y0) = (x.saturating_sub(by), y.saturating_sub(by));
         let (x1, y1) = ((x + w + by).min(width.max(x + w)), (y + h + by).min(height.max(y + h)));
         let (grown_w, grown_h) = (x1 - x0, y1 - y0);
-        // Whether `line` (offset `origin` in the frame) has a set value within
-        // `by` of frame position `at`, for each `at` in `first..first + count`.
-        let near = |line: &mut dyn Iterator<Item = bool>, origin: usize, first: usize, count: usize| -> Vec<bool> {
-            let mut prefix = vec![0usize];
-            for inside in line {
-                prefix.push(prefix[prefix.len() - 1] + usize::from(inside));
-            }
-            let len = prefix.len() - 1;
-            (first..first + count)
-                .map(|at| {
-                    // The window [at − by, at + by] within the line, as indices.
-                    let lo = (at.saturating_sub(by).max(origin) - origin).min(len);
-                    let hi = (at + by + 1).min(origin + len).saturating_sub(origin);
-                    hi > lo && prefix[hi] > prefix[lo]
-                })
-                .collect()
-        };
         // Along the rows into the grown box's columns, then along its columns.
-        let rows: Vec<Vec<bool>> =
-            (0..h).map(|r| near(&mut self.mask[r * w..(r + 1) * w].iter().copied(), x, x0, grown_w)).collect();
+        let mut across = Vec::with_capacity(h * grown_w);
+        for row in self.mask.chunks(w) {
+            across.extend(within_reach(row.iter().copied(), x, x0, grown_w, by));
+        }
         let mut grown = vec![false; grown_w * grown_h];
         for c in 0..grown_w {
-            for (g, inside) in near(&mut rows.iter().map(|row| row[c]), y, y0, grown_h).into_iter().enumerate() {
+            let column = across.iter().skip(c).step_by(grown_w).copied();
+            for (g, inside) in within_reach(column, y, y0, grown_h, by).enumerate() {
                 grown[g * grown_w + c] = inside;
             }
         }
@@ -129,6 +115,28 @@ impl DetectedObject {
         }
         frame
     }
+}
+
+/// For each frame position `first..first + count`: whether `line`, which
+/// starts at frame position `origin`, holds a set value within `by` of it.
+fn within_reach(
+    line: impl Iterator<Item = bool>,
+    origin: usize,
+    first: usize,
+    count: usize,
+    by: usize,
+) -> impl Iterator<Item = bool> {
+    let mut prefix = vec![0usize];
+    for inside in line {
+        prefix.push(prefix[prefix.len() - 1] + usize::from(inside));
+    }
+    let len = prefix.len() - 1;
+    (first..first + count).map(move |at| {
+        // The window [at − by, at + by] within the line, as indices.
+        let lo = (at.saturating_sub(by).max(origin) - origin).min(len);
+        let hi = (at + by + 1).min(origin + len).saturating_sub(origin);
+        hi > lo && prefix[hi] > prefix[lo]
+    })
 }
 
 /// Parameters of the detector stage (`config/detector.toml` and a graph's
